@@ -1,0 +1,42 @@
+"""Errors a user can fix. The CLI turns every PdToolError into one line and exit code 2."""
+from __future__ import annotations
+
+
+class PdToolError(Exception):
+    """Something the user can fix: a file, a preset, a flag (the CLI exits 2)."""
+
+
+class SplatFormatError(PdToolError):
+    """A splat file (.ply / .splat) is unreadable, incomplete or holds invalid values."""
+
+
+class PlyFormatError(SplatFormatError):
+    """A .ply file does not follow the INRIA 3DGS layout."""
+
+
+class CameraError(PdToolError):
+    """A camera file is missing, malformed or does not name the requested view."""
+
+
+class PresetError(PdToolError):
+    """A preset name is unknown or a preset TOML file is malformed."""
+
+
+class PreparationError(PdToolError):
+    """Scene preparation options select nothing, everything, or something impossible."""
+
+
+class SimulationUnstable(PdToolError):
+    """The stability guard stopped a simulation (NaN, escape, inverted or collapsed volume)."""
+
+
+class MaterialFileError(PdToolError):
+    """A material file is malformed, of an unknown version, or does not match the scene."""
+
+
+class VideoError(PdToolError):
+    """A reference video folder is missing frames, a camera or has inconsistent sizes."""
+
+
+class UsdExportError(PdToolError):
+    """USD writing or validation failed."""

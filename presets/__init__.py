@@ -1,0 +1,1 @@
+"""Shipped TOML presets (materials, quality levels, forces); data only."""

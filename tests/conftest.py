@@ -1,0 +1,36 @@
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def _cuda_available() -> bool:
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        return wp.is_cuda_available()
+    except Exception:
+        return False
+
+
+def pytest_generate_tests(metafunc):
+    # A `device` fixture over cpu/cuda, the way warp's tests do it: cuda is listed
+    # only where a GPU exists so that CI on CPU stays green without skips.
+    if "device" in metafunc.fixturenames:
+        devices = ["cpu"]
+        if os.environ.get("PDTOOL_TEST_CUDA", "1") != "0" and _cuda_available():
+            devices.append("cuda")
+        metafunc.parametrize("device", devices)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real captures not found at {SHARED_DATA}")
+    return SHARED_DATA

@@ -1,0 +1,1 @@
+"""USD export: the only package that imports pxr."""
