@@ -17,6 +17,7 @@ from pd_tool.errors import PlyFormatError
 from pd_tool.scene import REQUIRED_PLY_PROPERTIES, GaussianScene, sh_coeff_count
 
 NORMAL_PROPERTIES = ("nx", "ny", "nz")
+LABEL_PROPERTY = "region"  # optional integer region label (pdtool's synthetic scenes write it)
 _REST_RE = re.compile(r"^f_rest_(\d+)$")
 _VALID_REST_COUNTS = {3 * (sh_coeff_count(d) - 1): d for d in range(4)}  # 0, 9, 24, 45
 
@@ -117,6 +118,8 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=torch.float32).to(device)
 
+    labels = np.asarray(data[LABEL_PROPERTY], np.int32) if LABEL_PROPERTY in names else None
+
     return GaussianScene(
         positions=t(xyz),
         quats=t(rot / norms[:, None]),
@@ -127,6 +130,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
         source=path,
         source_format="ply-ascii" if ply.text else f"ply-binary-{'le' if ply.byte_order in ('<', '=') else 'be'}",
         extra=extra,
+        labels=labels,
     )
 
 
@@ -140,7 +144,12 @@ def scene_to_records(scene: GaussianScene) -> np.ndarray:
     rest_names = [f"f_rest_{i}" for i in range(3 * (k - 1))]
     fields = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *rest_names,
               "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    rec = np.zeros(n, dtype=[(f, "<f4") for f in fields])
+    dtype = [(f, "<f4") for f in fields]
+    if scene.labels is not None:
+        dtype.append((LABEL_PROPERTY, "<i4"))
+    rec = np.zeros(n, dtype=dtype)
+    if scene.labels is not None:
+        rec[LABEL_PROPERTY] = scene.labels
     pos = scene.positions.detach().cpu().double().numpy()
     sh = scene.sh.detach().cpu().double().numpy()
     op = scene.opacities.detach().cpu().double().numpy().clip(1e-7, 1 - 1e-7)

@@ -1,0 +1,121 @@
+"""A deterministic procedural plant made of Gaussians, with a region label per Gaussian.
+
+The plant stands on +z in scene units that are metres: a pot (static, z in [0, 0.2]),
+a solid stem up to z = 0.75, two leaves and a flower head. Tests, benchmarks and the demo
+give each region a known stiffness (see REGION_TRUTH_E) and check what pdtool recovers.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pd_tool.scene import GaussianScene, rgb_to_sh
+
+REGIONS = ("pot", "stem", "leaf", "flower")
+# Ground-truth Young's modulus per region (Pa) used by the demo and the recovery benchmark;
+# stem and flower differ by 10x or more, as the recovery benchmark requires.
+REGION_TRUTH_E = {"pot": 1.0e6, "stem": 2.0e5, "leaf": 4.0e4, "flower": 1.5e4}
+REGION_COLORS = {
+    "pot": (0.62, 0.32, 0.18),
+    "stem": (0.20, 0.55, 0.18),
+    "leaf": (0.30, 0.70, 0.25),
+    "flower": (0.95, 0.75, 0.15),
+}
+POT_TOP = 0.2  # metres; everything below is the static pot
+STEM_TOP = 0.75  # metres
+# Fractions of the Gaussian budget per region (pot, stem, leaves, flower).
+_SHARES = (0.22, 0.28, 0.25, 0.25)
+
+
+def _random_quats(rng: np.random.Generator, n: int, jitter: float) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) close to identity (small random rotations)."""
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = rng.uniform(0, jitter, size=n)
+    return np.concatenate([np.cos(angle / 2)[:, None], axis * np.sin(angle / 2)[:, None]], axis=1)
+
+
+def _pot(rng, n):
+    # cylinder shell (side) plus the top soil disc
+    n_side = int(n * 0.75)
+    th = rng.uniform(0, 2 * np.pi, n_side)
+    z = rng.uniform(0.0, POT_TOP, n_side)
+    r = 0.10 + 0.03 * z / POT_TOP  # slightly flared
+    side = np.stack([r * np.cos(th), r * np.sin(th), z], 1)
+    n_top = n - n_side
+    rr = 0.12 * np.sqrt(rng.uniform(0, 1, n_top))
+    th = rng.uniform(0, 2 * np.pi, n_top)
+    top = np.stack([rr * np.cos(th), rr * np.sin(th), np.full(n_top, POT_TOP - 0.01)], 1)
+    return np.concatenate([side, top])
+
+
+def _stem(rng, n):
+    # a solid slightly curved cylinder, radius 2 cm, from the soil to STEM_TOP
+    t = rng.uniform(0, 1, n)
+    z = POT_TOP - 0.02 + t * (STEM_TOP - POT_TOP + 0.02)
+    r = 0.02 * np.sqrt(rng.uniform(0, 1, n))
+    th = rng.uniform(0, 2 * np.pi, n)
+    bend = 0.03 * t ** 2
+    return np.stack([r * np.cos(th) + bend, r * np.sin(th), z], 1)
+
+
+def _leaves(rng, n):
+    out = []
+    for k, (zc, ang) in enumerate(((0.42, 0.3), (0.56, 0.3 + np.pi))):
+        m = n // 2 if k == 0 else n - n // 2
+        # an ellipse 16 cm x 6 cm, rising 25 degrees, 1 cm thick
+        u = rng.uniform(0, 1, m)
+        v = rng.uniform(-1, 1, m) * np.sqrt(np.clip(1 - (2 * u - 1) ** 2, 0, 1))
+        along = 0.02 + 0.16 * u
+        across = 0.03 * v
+        up = along * np.tan(np.radians(25)) + rng.uniform(-0.005, 0.005, m)
+        c, s = np.cos(ang), np.sin(ang)
+        out.append(np.stack([along * c - across * s, along * s + across * c, zc + up], 1))
+    return np.concatenate(out)
+
+
+def _flower(rng, n):
+    # a flat head: a disc of petals of radius 13 cm, 3 cm thick, tilted a little
+    rr = 0.13 * np.sqrt(rng.uniform(0, 1, n))
+    th = rng.uniform(0, 2 * np.pi, n)
+    z = STEM_TOP + 0.01 + rng.uniform(-0.015, 0.015, n) + 0.15 * rr
+    return np.stack([rr * np.cos(th) + 0.03, rr * np.sin(th), z], 1)
+
+
+def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | torch.device = "cpu") -> GaussianScene:
+    """The procedural plant with about `n` Gaussians (exactly n), seeded and deterministic.
+
+    Returns a GaussianScene whose `labels` [n] index REGIONS and whose `label_names` is
+    REGIONS. Scene units are metres, +z is up, the pot is below z = POT_TOP.
+    """
+    if n < 100:
+        raise ValueError("make_plant needs at least 100 Gaussians")
+    rng = np.random.default_rng(seed)
+    counts = [int(n * s) for s in _SHARES]
+    counts[-1] = n - sum(counts[:-1])
+    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), _leaves(rng, counts[2]), _flower(rng, counts[3])]
+    pos = np.concatenate(parts)
+    labels = np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(counts)])
+    # splat size from the local spacing of each region: about half the mean neighbour gap
+    scales = np.empty((n, 3))
+    colors = np.empty((n, 3))
+    for i, name in enumerate(REGIONS):
+        sel = labels == i
+        ext = np.ptp(pos[sel], axis=0).clip(0.01, None)
+        spacing = (np.prod(ext) / sel.sum()) ** (1 / 3)
+        scales[sel] = spacing * 0.6 * rng.uniform(0.7, 1.3, size=(sel.sum(), 3))
+        base = np.array(REGION_COLORS[name])
+        colors[sel] = np.clip(base + rng.normal(0, 0.04, size=(sel.sum(), 3)), 0, 1)
+    quats = _random_quats(rng, n, jitter=np.pi)
+    sh = np.zeros((n, (sh_degree + 1) ** 2, 3))
+    sh[:, 0] = rgb_to_sh(torch.from_numpy(colors)).numpy()
+    opac = rng.uniform(0.7, 0.95, n)
+
+    def t(a):
+        return torch.as_tensor(a, dtype=torch.float32, device=device)
+
+    return GaussianScene(
+        positions=t(pos), quats=t(quats), scales=t(scales), opacities=t(opac), sh=t(sh),
+        source_format="synthetic", labels=labels, label_names=REGIONS,
+    )
+
