@@ -76,5 +76,30 @@ def info(scene: Path, as_json: bool) -> None:
     click.echo(json.dumps(summary) if as_json else format_summary(summary))
 
 
+@main.command()
+@click.argument("kind", required=False, type=click.Choice(["materials", "quality", "forces"]))
+def presets(kind: str | None) -> None:
+    """List the shipped presets (materials, quality levels, forces).
+
+    Wherever a preset name is accepted you may pass your own TOML file with the
+    same keys instead.
+
+    \b
+    Example:
+      pdtool presets materials
+    """
+    from pd_tool.presets import KINDS, builtin, load_preset
+
+    with user_errors():
+        for k in [kind] if kind else KINDS:
+            click.echo(click.style(k, bold=True))
+            for name in builtin(k):
+                p = load_preset(k, name)
+                note = p.pop("note", "")
+                values = "  ".join(f"{key}={val:g}" if isinstance(val, float) else f"{key}={val}"
+                                   for key, val in p.items())
+                click.echo(f"  {name:<12} {values}\n  {'':<12} {note}")
+
+
 if __name__ == "__main__":
     main()

@@ -1,0 +1,112 @@
+"""Presets: materials, quality levels and forces, shipped as TOML in the `presets` package.
+
+A preset is named (e.g. `flower`) or given as a path to the user's own TOML file with the
+same keys (one table, or a file whose single table is used).
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pd_tool.errors import PresetError
+
+KINDS = ("materials", "quality", "forces")
+_REQUIRED = {
+    "materials": {"E": float, "nu": float, "density": float},
+    "quality": {"grid_res": int, "cfl_safety": float, "driver_ratio": float,
+                "fit_velocity_iters": int, "fit_material_iters": int},
+    "forces": {"at": str, "radius": float, "start": float, "duration": float, "magnitude": float},
+}
+_RANGES = {
+    "E": (1.0, 1e12), "nu": (0.0, 0.499), "density": (1e-3, 1e5), "grid_res": (10, 512),
+    "cfl_safety": (1e-3, 1.0), "driver_ratio": (1e-4, 1.0), "fit_velocity_iters": (0, 100000),
+    "fit_material_iters": (0, 100000), "radius": (0.0, 100.0), "start": (0.0, 1e6),
+    "duration": (0.0, 1e6), "magnitude": (0.0, 1e9),
+}
+
+
+def _parse_toml(text: str, where: str) -> dict[str, Any]:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise PresetError(f"{where}: not valid TOML ({e}); check the file's syntax") from None
+
+
+def builtin(kind: str) -> dict[str, dict[str, Any]]:
+    """All shipped presets of one kind, by name."""
+    if kind not in KINDS:
+        raise PresetError(f"unknown preset kind '{kind}'; choose one of {', '.join(KINDS)}")
+    text = resources.files("presets").joinpath(f"{kind}.toml").read_text(encoding="utf-8")
+    return _parse_toml(text, f"presets/{kind}.toml")
+
+
+def _validate(kind: str, name: str, table: Any, where: str) -> dict[str, Any]:
+    if not isinstance(table, dict):
+        raise PresetError(f"{where}: '{name}' is not a table of settings")
+    out = dict(table)
+    for key, typ in _REQUIRED[kind].items():
+        if key not in table:
+            raise PresetError(f"{where}: {kind} preset '{name}' lacks '{key}' (needs {', '.join(_REQUIRED[kind])})")
+        val = table[key]
+        if typ is str:
+            if not isinstance(val, str):
+                raise PresetError(f"{where}: '{name}.{key}' must be a string")
+            continue
+        if isinstance(val, bool) or not isinstance(val, (int, float)):
+            raise PresetError(f"{where}: '{name}.{key}' must be a number, got {val!r}")
+        if typ is int and float(val) != int(val):
+            raise PresetError(f"{where}: '{name}.{key}' must be a whole number, got {val!r}")
+        val = typ(val)
+        lo, hi = _RANGES.get(key, (-math.inf, math.inf))
+        if not (math.isfinite(val) and lo <= val <= hi):
+            raise PresetError(f"{where}: '{name}.{key}' = {val!r} is outside [{lo:g}, {hi:g}]")
+        out[key] = val
+    return out
+
+
+def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
+    """One preset: a shipped name, or a user's TOML file (path ending in .toml)."""
+    text = str(name_or_path)
+    if text.endswith(".toml") or Path(text).is_file():
+        path = Path(text)
+        if not path.is_file():
+            raise PresetError(f"{path}: no such preset file")
+        try:
+            data = _parse_toml(path.read_text(encoding="utf-8"), str(path))
+        except UnicodeDecodeError:
+            raise PresetError(f"{path}: not a text file; a preset is a TOML file") from None
+        # one flat table, or a file with exactly one named table
+        if set(_REQUIRED[kind]) <= set(data):
+            return _validate(kind, path.stem, data, str(path))
+        tables = {k: v for k, v in data.items() if isinstance(v, dict)}
+        if len(tables) != 1:
+            raise PresetError(
+                f"{path}: expected the keys {', '.join(_REQUIRED[kind])} at the top or in one table"
+            )
+        (name, table), = tables.items()
+        return _validate(kind, name, table, str(path))
+    presets = builtin(kind)
+    if text not in presets:
+        raise PresetError(
+            f"unknown {kind} preset '{text}'; choose one of {', '.join(presets)} or pass a .toml file "
+            f"(see `pdtool presets {kind}`)"
+        )
+    return _validate(kind, text, presets[text], f"presets/{kind}.toml")
+
+
+@dataclass(frozen=True)
+class Material:
+    """A homogeneous material: E (Pa), nu, density (kg/m^3)."""
+
+    E: float
+    nu: float
+    density: float
+
+    @classmethod
+    def from_preset(cls, name_or_path: str | Path) -> "Material":
+        p = load_preset("materials", name_or_path)
+        return cls(p["E"], p["nu"], p["density"])
