@@ -1,1 +1,55 @@
-"""USD export: the only package that imports pxr."""
+"""USD export: the only package that imports pxr (usd-core >= 26.3), and lazily.
+
+Public API (importing `usd_export` itself does not import pxr):
+
+    UsdBakeWriter(path, *, n_points, fps, start_frame=0, up_axis="Z",
+                  meters_per_unit=1.0, fmt="instancer" | "splat" | "both",
+                  colors=None, opacities=None, sh=None, scale_factor=2.0,
+                  ids=None, color_points=True, flush_bytes=64 MiB)
+        .write_frame(time_code, positions [N,3] scene units,
+                     orientations [N,4] (w,x,y,z) unit, scales [N,3] linear sigma)
+        .hold_frames(until_time_code)   # object at rest: no samples, end time grows
+        .close(validate=True) -> Path   # validate, then os.replace into place
+        .abort()                        # delete temporaries, publish nothing
+        context manager: close() on success, abort() on exception.
+    validate_usd(path, *, usd_validators=True) -> list[str]
+        Every registered pxr.UsdValidation validator (errors fail, warnings are
+        returned) plus pdtool's own checks; raises UsdExportError.
+    UsdExportError   (pd_tool.errors; a PdToolError: the CLI exits 2)
+
+Scales: the PointInstancer's unit-sphere prototype is scaled by
+sigma * scale_factor (default 2: the ~2-sigma ellipsoid); the splat schema gets
+the linear sigmas unchanged. Quaternions: pdtool passes (w, x, y, z); USD's
+Vt arrays are filled from numpy as (x, y, z, w), Gf.Quat* take w first.
+
+Example:
+    from usd_export import UsdBakeWriter
+    with UsdBakeWriter("out.usd", n_points=n, fps=30, fmt="both",
+                       colors=rgb, opacities=alpha, sh=sh) as w:
+        for f in range(frames):
+            w.write_frame(f, positions[f], quats_wxyz[f], sigmas[f])
+
+On disk: a single binary crate file OUT.usd (no sidecar files; while writing,
+a hidden .OUT.usd.tmp-<pid>-<hex>.usdc sits next to it). See docs/parts/usd.md.
+"""
+from __future__ import annotations
+
+from pd_tool.errors import UsdExportError
+
+__all__ = ["UsdBakeWriter", "validate_usd", "UsdExportError"]
+
+
+def __getattr__(name: str):
+    # Lazy: pxr is a heavy import and only bake/export needs it.
+    if name in ("UsdBakeWriter", "validate_usd"):
+        try:
+            if name == "UsdBakeWriter":
+                from .writer import UsdBakeWriter as obj
+            else:
+                from .validate import validate_usd as obj
+        except ImportError as e:
+            if "pxr" in str(e):
+                raise UsdExportError("USD export needs usd-core: pip install 'usd-core>=26.3'") from e
+            raise
+        return obj
+    raise AttributeError(f"module 'usd_export' has no attribute {name!r}")

@@ -1,0 +1,86 @@
+"""usd_export._geom (numpy) against dense references, and the quaternion order through pxr."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usd_export._geom import (
+    ellipsoid_extent, ellipsoid_half_extents, normalize_quats, quat_to_rotmat, rgb_to_sh_dc,
+    sh_dc_to_rgb, sh_degree, wxyz_to_xyzw, xyzw_to_wxyz,
+)
+
+RNG_SEED = 7
+
+
+def _random_quats(n: int, rng) -> np.ndarray:
+    return normalize_quats(rng.normal(size=(n, 4)).astype(np.float32))
+
+
+def test_rotmat_matches_pxr():
+    Gf = pytest.importorskip("pxr.Gf")
+    rng = np.random.default_rng(RNG_SEED)
+    q = _random_quats(20, rng)
+    r = quat_to_rotmat(q)
+    for qi, ri in zip(q, r):
+        gq = Gf.Quatd(float(qi[0]), Gf.Vec3d(*map(float, qi[1:])))
+        # Gf matrices act on row vectors (v * M), so Gf's matrix is our R transposed.
+        m = np.array(Gf.Matrix3d(Gf.Rotation(gq)))
+        np.testing.assert_allclose(ri, m.T, atol=1e-6)
+    np.testing.assert_allclose(r @ r.transpose(0, 2, 1), np.broadcast_to(np.eye(3), r.shape), atol=1e-6)
+
+
+def test_ellipsoid_half_extents_against_dense_surface_samples():
+    rng = np.random.default_rng(RNG_SEED)
+    q = _random_quats(16, rng)
+    radii = rng.uniform(0.1, 2.0, (16, 3)).astype(np.float32)
+    # Dense reference: max |(R S u)_i| over many unit vectors u. Sampling only
+    # approaches the supremum from below, so the exact value must be >= and close.
+    u = rng.normal(size=(200_000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    m = quat_to_rotmat(q) * radii.astype(np.float64)[:, None, :]
+    ref = np.abs(np.einsum("nij,kj->nki", m, u)).max(axis=1)
+    got = ellipsoid_half_extents(q, radii)
+    assert (got >= ref - 1e-12).all()
+    np.testing.assert_allclose(got, ref, rtol=2e-3)
+
+
+def test_ellipsoid_extent_contains_centres_and_is_float32_outward():
+    rng = np.random.default_rng(RNG_SEED)
+    p = rng.normal(size=(100, 3)).astype(np.float32) * 1e3
+    q = _random_quats(100, rng)
+    box = ellipsoid_extent(p, q, np.full((100, 3), 1e-9, np.float32))
+    assert box.dtype == np.float32
+    assert (p >= box[0]).all() and (p <= box[1]).all()
+
+
+def test_quaternion_order_round_trip_through_vt_and_gf():
+    Vt = pytest.importorskip("pxr.Vt")
+    rng = np.random.default_rng(RNG_SEED)
+    wxyz = _random_quats(50, rng)
+    xyzw = wxyz_to_xyzw(wxyz)
+    np.testing.assert_array_equal(xyzw_to_wxyz(xyzw), wxyz)
+    for vt_type, dtype, tol in ((Vt.QuatfArray, np.float32, 0.0), (Vt.QuathArray, np.float16, 1e-3)):
+        arr = vt_type.FromNumpy(xyzw.astype(dtype))
+        for i in (0, 17, 49):
+            g = arr[i]  # Gf.Quatf / Gf.Quath: real part is w
+            got = np.array([g.GetReal(), *g.GetImaginary()], dtype=np.float64)
+            np.testing.assert_allclose(got, wxyz[i], atol=tol)
+        back = xyzw_to_wxyz(np.asarray(arr).astype(np.float32))
+        np.testing.assert_allclose(back, wxyz, atol=tol)
+    # Gf constructors take w first: Quatf(w, x, y, z) round-trips to FromNumpy's xyzw.
+    g = Vt.QuatfArray([Vt.QuatfArray.FromNumpy(xyzw[:1])[0]])
+    np.testing.assert_array_equal(np.asarray(g), xyzw[:1])
+
+
+def test_normalize_handles_zero_and_scale():
+    q = np.array([[0, 0, 0, 0], [2, 0, 0, 0], [0, 3, 4, 0]], np.float32)
+    out = normalize_quats(q)
+    np.testing.assert_allclose(out, [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0.6, 0.8, 0]], atol=1e-7)
+
+
+def test_sh_colour_round_trip_and_degree():
+    rgb = np.random.default_rng(RNG_SEED).uniform(0, 1, (10, 3)).astype(np.float32)
+    np.testing.assert_allclose(sh_dc_to_rgb(rgb_to_sh_dc(rgb)), rgb, atol=1e-6)
+    assert [sh_degree(k) for k in (1, 4, 9, 16)] == [0, 1, 2, 3]
+    with pytest.raises(ValueError):
+        sh_degree(5)

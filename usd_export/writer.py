@@ -1,0 +1,353 @@
+"""UsdBakeWriter: stream an animated splat bake into one USD file, frame by frame.
+
+Memory stays bounded without value clips: time samples go straight into a
+crate (.usdc) layer, and the layer is saved whenever `flush_bytes` of new
+samples have piled up. A crate save appends the new arrays to the file and
+afterwards reads them back lazily from the memory-mapped file, so samples
+already saved no longer occupy the heap (measured in docs/parts/usd.md:
+peak RSS flat in the number of frames). The result is a single file.
+
+Atomic output: everything is written to a hidden temporary file next to the
+destination (same file system) and moved into place with os.replace only by
+`close()`, after validation. An exception inside `with UsdBakeWriter(...)`
+(or `abort()`) deletes the temporary file, so a failed bake leaves nothing.
+"""
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+
+import numpy as np
+from pxr import Kind, Sdf, Usd, UsdGeom
+
+from pd_tool.errors import UsdExportError
+
+from ._geom import normalize_quats, sh_dc_to_rgb, rgb_to_sh_dc
+from .instancer import InstancerPart
+from .splat_field import SplatFieldPart
+
+FORMATS = ("instancer", "splat", "both")
+SUFFIXES = (".usd", ".usdc", ".usda")
+DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma ellipsoid
+DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
+ROOT = "/Root"
+
+
+class UsdBakeWriter:
+    """Write an animated Gaussian-splat bake as USD, one frame at a time.
+
+    Args:
+        path: destination, ``.usd`` / ``.usdc`` (binary crate, streamed) or
+            ``.usda`` (text; converted at close, so not memory bounded: for
+            small debugging bakes only).
+        n_points: N, the number of Gaussians (fixed for the whole bake).
+        fps: frames per second; time codes are frame numbers, so the stage's
+            timeCodesPerSecond and framesPerSecond are both `fps`.
+        start_frame: first time code (stage startTimeCode).
+        up_axis: "Y" or "Z", the stage upAxis.
+        meters_per_unit: metres per scene unit (stage metersPerUnit).
+        fmt: "instancer" (UsdGeom.PointInstancer of unit spheres + a coloured
+            UsdGeom.Points), "splat" (UsdVol.ParticleField3DGaussianSplat) or
+            "both".
+        colors: [N, 3] float 0-1 display colour per splat; default: from the
+            DC term of `sh` (3DGS: 0.5 + 0.2821 * dc), else mid grey.
+        opacities: [N] float 0-1 (activated); default 1.
+        sh: [N, K, 3] SH coefficients, K = (d+1)^2, sh[:, 0] the DC term; used by
+            the splat schema. Default: degree 0 from `colors`.
+        scale_factor: instancer scale = Gaussian sigma * scale_factor; the
+            default 2 makes the unit-sphere prototype show the 2-sigma ellipsoid.
+        ids: [N] int instance ids (PointInstancer.ids); default 0..N-1.
+        color_points: also write /Root/SplatColors (UsdGeom.Points with
+            displayColor), the only place Blender reads per-splat colour from.
+        flush_bytes: save (append to the file) after this many bytes of new
+            samples; bounds the writer's memory.
+
+    Example:
+        >>> with UsdBakeWriter("out.usd", n_points=n, fps=30, colors=rgb,
+        ...                    opacities=alpha, sh=sh, fmt="both") as w:
+        ...     for f in range(frames):
+        ...         w.write_frame(f, pos[f], quats_wxyz[f], sigmas[f])
+        ...     w.hold_frames(59)          # at rest: no new samples up to 59
+        >>> # leaving the block calls close(): validated, then moved into place
+    """
+
+    def __init__(self, path: str | os.PathLike, *, n_points: int, fps: float,
+                 start_frame: float = 0, up_axis: str = "Z", meters_per_unit: float = 1.0,
+                 fmt: str = "instancer", colors: np.ndarray | None = None,
+                 opacities: np.ndarray | None = None, sh: np.ndarray | None = None,
+                 scale_factor: float = DEFAULT_SCALE_FACTOR, ids: np.ndarray | None = None,
+                 color_points: bool = True, flush_bytes: int = DEFAULT_FLUSH_BYTES) -> None:
+        self.path = Path(path)
+        n = int(n_points)
+        self._check_args(n, fps, up_axis, meters_per_unit, fmt, scale_factor)
+        colors, opacities, sh, ids = _per_splat_inputs(n, colors, opacities, sh, ids)
+        self.n_points, self.fps, self.fmt = n, float(fps), fmt
+        self.start_frame = float(start_frame)
+        self.flush_bytes = int(flush_bytes)
+        self.frames_written = 0
+        self.bytes_written = 0  # array bytes of all time samples handed to USD
+        self._last_t: float | None = None
+        self._last_samples: list[tuple[Sdf.Path, object]] = []
+        self._held_until: float | None = None
+        self._unsaved = 0
+        self._closed = False
+
+        token = f"{os.getpid()}-{secrets.token_hex(4)}"
+        self._tmp = self.path.parent / f".{self.path.name}.tmp-{token}.usdc"
+        self._tmp_text = self.path.parent / f".{self.path.name}.tmp-{token}.usda"
+        if not self.path.parent.is_dir():
+            raise UsdExportError(f"{self.path}: folder {self.path.parent} does not exist; "
+                                 f"create it or choose another output path")
+        try:
+            # A strong reference: a stage hands out only weak layer handles, and the
+            # layer must outlive the stage used to set it up.
+            self._layer = Sdf.Layer.CreateNew(str(self._tmp))
+            stage = Usd.Stage.Open(self._layer)
+        except Exception as e:  # pxr raises Tf.ErrorException on unwritable paths
+            raise UsdExportError(f"{self.path}: cannot create a USD file there ({e}); "
+                                 f"check the folder is writable") from e
+        try:
+            self._setup_stage(stage, up_axis, meters_per_unit, colors, opacities, sh, ids,
+                              scale_factor, color_points)
+            self._layer.Save()
+        except BaseException:
+            del stage
+            self._layer = None
+            self._remove_temporaries()
+            raise
+        # From here on samples go straight into the layer: no stage, so no change
+        # processing per sample.
+        del stage
+
+    # ---------------------------------------------------------------- setup
+    @staticmethod
+    def _check_args(n: int, fps: float, up_axis: str, mpu: float, fmt: str,
+                    scale_factor: float) -> None:
+        if n <= 0:
+            raise UsdExportError(f"n_points={n}: a bake needs at least one splat")
+        if not fps > 0:
+            raise UsdExportError(f"fps={fps}: must be > 0")
+        if up_axis not in ("Y", "Z"):
+            raise UsdExportError(f"up_axis={up_axis!r}: must be 'Y' or 'Z'")
+        if not mpu > 0:
+            raise UsdExportError(f"meters_per_unit={mpu}: must be > 0")
+        if fmt not in FORMATS:
+            raise UsdExportError(f"format {fmt!r}: choose one of {', '.join(FORMATS)}")
+        if not scale_factor > 0:
+            raise UsdExportError(f"scale_factor={scale_factor}: must be > 0")
+
+    def _setup_stage(self, stage: Usd.Stage, up_axis: str, mpu: float, colors, opacities,
+                     sh, ids, scale_factor: float, color_points: bool) -> None:
+        if self.path.suffix.lower() not in SUFFIXES:
+            raise UsdExportError(f"{self.path}: output must end in {', '.join(SUFFIXES)}")
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis == "Z" else UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, float(mpu))
+        stage.SetTimeCodesPerSecond(self.fps)
+        stage.SetFramesPerSecond(self.fps)
+        stage.SetStartTimeCode(self.start_frame)
+        stage.SetEndTimeCode(self.start_frame)
+        root = UsdGeom.Xform.Define(stage, ROOT)
+        Usd.ModelAPI(root).SetKind(Kind.Tokens.component)
+        stage.SetDefaultPrim(root.GetPrim())
+        stage.GetRootLayer().documentation = "pdtool bake: animated 3D Gaussian splats"
+        self._parts = []
+        if self.fmt in ("instancer", "both"):
+            self._parts.append(InstancerPart(
+                stage, f"{ROOT}/Instancer", colors=colors, opacities=opacities, ids=ids,
+                scale_factor=scale_factor,
+                color_points_path=f"{ROOT}/SplatColors" if color_points else None))
+        if self.fmt in ("splat", "both"):
+            self._parts.append(SplatFieldPart(stage, f"{ROOT}/Splats", colors=colors,
+                                              opacities=opacities, sh=sh))
+
+    # ---------------------------------------------------------------- frames
+    def write_frame(self, time_code: float, positions: np.ndarray, orientations: np.ndarray,
+                    scales: np.ndarray) -> None:
+        """Author one frame's time samples.
+
+        Args:
+            time_code: frame number; strictly greater than any earlier frame or hold.
+            positions: [N, 3] scene units (cast to float32).
+            orientations: [N, 4] (w, x, y, z), unit (renormalised here).
+            scales: [N, 3] linear Gaussian sigmas, scene units (> 0).
+        """
+        self._check_open()
+        t = float(time_code)
+        positions, quats, sigmas = self._check_frame(t, positions, orientations, scales)
+        layer = self._layer
+        if self._held_until is not None and t > self._held_until:
+            # Re-author the held values at the end of the hold so that USD's linear
+            # interpolation does not blend the rest pose into the hold.
+            for p, v in self._last_samples:
+                layer.SetTimeSample(p, self._held_until, v)
+        if self.frames_written == 0:
+            for part in self._parts:
+                for p, v in part.first_frame_defaults(positions, quats, sigmas):
+                    layer.GetAttributeAtPath(p).default = v
+        samples = [s for part in self._parts for s in part.samples(positions, quats, sigmas)]
+        nbytes = 0
+        for p, v in samples:
+            layer.SetTimeSample(p, t, v)
+            nbytes += _vt_nbytes(v)
+        self._last_samples, self._last_t, self._held_until = samples, t, None
+        self.frames_written += 1
+        self.bytes_written += nbytes
+        self._unsaved += nbytes
+        if self._unsaved >= self.flush_bytes:
+            self._save()
+
+    def hold_frames(self, until_time_code: float) -> None:
+        """Extend the animation to `until_time_code` with the object at rest.
+
+        No samples are written (USD holds the last sample); only the end time
+        code moves. A later `write_frame` re-authors the held pose first.
+        """
+        self._check_open()
+        t = float(until_time_code)
+        if self._last_t is None:
+            raise UsdExportError("hold_frames before any write_frame: write the rest pose first")
+        if t <= self.end_time_code:
+            raise UsdExportError(f"hold_frames({t:g}): must be after time code {self.end_time_code:g}")
+        self._held_until = t
+
+    @property
+    def end_time_code(self) -> float:
+        """Last time code covered so far (written or held)."""
+        ends = [x for x in (self._last_t, self._held_until) if x is not None]
+        return max(ends) if ends else self.start_frame
+
+    def _check_frame(self, t: float, positions, orientations, scales):
+        n = self.n_points
+        if not np.isfinite(t) or t < self.start_frame:
+            raise UsdExportError(f"time code {t:g}: must be finite and >= start_frame {self.start_frame:g}")
+        if self._last_t is not None and t <= self.end_time_code:
+            raise UsdExportError(f"time code {t:g}: frames must increase "
+                                 f"(last covered {self.end_time_code:g})")
+        pos = np.ascontiguousarray(_np(positions), dtype=np.float32)
+        q = _np(orientations)
+        s = np.ascontiguousarray(_np(scales), dtype=np.float32)
+        for name, a, cols in (("positions", pos, 3), ("orientations", q, 4), ("scales", s, 3)):
+            if a.shape != (n, cols):
+                raise UsdExportError(f"frame {t:g}: {name} has shape {tuple(a.shape)}, "
+                                     f"expected ({n}, {cols})")
+            if not np.isfinite(a).all():
+                raise UsdExportError(f"frame {t:g}: {name} holds NaN or inf; the simulation "
+                                     f"diverged (try a finer --quality or a smaller force)")
+        if not (s > 0).all():
+            raise UsdExportError(f"frame {t:g}: scales must be linear sigmas > 0 "
+                                 f"(min {s.min():g}); pass exp(log_scales)")
+        return pos, normalize_quats(q), s
+
+    # ---------------------------------------------------------------- finish
+    def _save(self) -> None:
+        self._layer.Save()
+        self._unsaved = 0
+
+    def close(self, *, validate: bool = True) -> Path:
+        """Finish the file and move it to `path` atomically; returns `path`.
+
+        With `validate`, `validate_usd` runs on the finished temporary file and
+        an invalid file raises UsdExportError and is deleted, never published.
+        """
+        self._check_open()
+        if self.frames_written == 0:
+            self.abort()
+            raise UsdExportError(f"{self.path}: no frames were written; nothing to save")
+        try:
+            self._layer.endTimeCode = self.end_time_code
+            self._save()
+            src = self._tmp
+            if self.path.suffix.lower() == ".usda":
+                self._layer.Export(str(self._tmp_text))
+                src = self._tmp_text
+            self._layer = None
+            if validate:
+                from .validate import validate_usd
+                self.warnings = validate_usd(src)
+            os.replace(src, self.path)
+        except BaseException:
+            self.abort()
+            raise
+        self._remove_temporaries()
+        self._closed = True
+        _reload_if_open(self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the bake: delete the temporary files; `path` is left untouched."""
+        self._layer = None
+        self._closed = True
+        self._remove_temporaries()
+
+    def _remove_temporaries(self) -> None:
+        for p in (self._tmp, self._tmp_text):
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise UsdExportError(f"{self.path}: writer is already closed")
+
+    def __enter__(self) -> "UsdBakeWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._closed:
+            return
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def _np(a) -> np.ndarray:
+    """numpy view of a numpy array or a (CPU or CUDA) torch tensor."""
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    return np.asarray(a)
+
+
+def _vt_nbytes(v) -> int:
+    return np.asarray(v).nbytes  # Vt arrays expose a buffer: no copy
+
+
+def _per_splat_inputs(n: int, colors, opacities, sh, ids):
+    """Validate and fill in the constant per-splat arrays (see UsdBakeWriter)."""
+    if sh is not None:
+        sh = np.asarray(_np(sh), dtype=np.float32)
+        if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3:
+            raise UsdExportError(f"sh has shape {tuple(sh.shape)}, expected ({n}, K, 3)")
+        k = sh.shape[1]
+        if k < 1 or round(k ** 0.5) ** 2 != k:
+            raise UsdExportError(f"sh has {k} coefficients per splat; expected (degree+1)^2 "
+                                 f"(1, 4, 9 or 16)")
+    if colors is None:
+        colors = sh_dc_to_rgb(sh[:, 0]) if sh is not None else np.full((n, 3), 0.5, np.float32)
+    colors = np.ascontiguousarray(_np(colors), dtype=np.float32)
+    if colors.shape != (n, 3):
+        raise UsdExportError(f"colors has shape {tuple(colors.shape)}, expected ({n}, 3)")
+    if sh is None:
+        sh = rgb_to_sh_dc(colors)[:, None, :]
+    opacities = np.ones(n, np.float32) if opacities is None else _np(opacities)
+    opacities = np.ascontiguousarray(opacities, dtype=np.float32).reshape(-1)
+    if opacities.shape != (n,):
+        raise UsdExportError(f"opacities has {opacities.shape[0]} values, expected {n}")
+    for name, a in (("colors", colors), ("opacities", opacities)):
+        if not np.isfinite(a).all() or a.min() < 0 or a.max() > 1:
+            raise UsdExportError(f"{name} must lie in 0-1 (found {a.min():g}..{a.max():g}); "
+                                 f"pass activated values, not logits")
+    ids = np.arange(n, dtype=np.int64) if ids is None else np.asarray(_np(ids), dtype=np.int64)
+    if ids.shape != (n,) or np.unique(ids).size != n:
+        raise UsdExportError(f"ids must be {n} distinct integers")
+    return colors, opacities, sh, ids
+
+
+def _reload_if_open(path: Path) -> None:
+    # Sdf caches layers by path: a layer for `path` still held elsewhere in this
+    # process (an earlier bake opened for checking) would show the old file.
+    layer = Sdf.Layer.Find(str(path))
+    if layer is not None:
+        layer.Reload(force=True)
