@@ -80,7 +80,7 @@ def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
         except UnicodeDecodeError:
             raise PresetError(f"{path}: not a text file; a preset is a TOML file") from None
         # one flat table, or a file with exactly one named table
-        if set(_REQUIRED[kind]) <= set(data):
+        if set(_REQUIRED[kind]) & set(data):
             return _validate(kind, path.stem, data, str(path))
         tables = {k: v for k, v in data.items() if isinstance(v, dict)}
         if len(tables) != 1:
