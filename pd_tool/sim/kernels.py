@@ -1,0 +1,377 @@
+"""Warp device code for the MLS-MPM simulator: @wp.func and @wp.kernel only.
+
+solver.py launches these; _ref.py holds float64 numpy/torch twins used by the tests.
+
+Conventions shared by every kernel:
+- Particle position = base[p] + u[p]. `base` is a fixed float32 position (rest position in
+  the fast path, frame-start position in the differentiable path) and `u` the displacement
+  from it. Keeping the small displacement as state avoids the float32 rounding of
+  x += dt * v when a substep moves a point by less than one ulp of x (design.md).
+- `order[t]` is the particle handled by thread t (particles sorted by cell, so that
+  neighbouring threads touch neighbouring grid nodes). Any permutation gives the same result.
+- Grid nodes (i, j, k) sit at (i, j, k) * dx; arrays have shape (nx + 1, ny + 1, nz + 1).
+- Quadratic B-spline weights; MLS-MPM (Hu et al. 2018): the affine matrix C doubles as the
+  velocity gradient in the update of F.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+# Stats slots written by the kernels and read once per frame by the guard (solver.py).
+STAT_NONFINITE = 0  # particles with a NaN/inf position, velocity or F
+STAT_EDGE = 1  # particles that reached the outer cell of the grid
+STAT_COLLAPSED = 2  # particles with det F <= min_det_f (inverted or collapsed volume)
+STAT_VMAX = 3  # max particle speed (m/s), frame-end kernel only
+STAT_KINETIC = 4  # kinetic energy (J), frame-end kernel only
+N_STATS = 5
+
+POLAR_EPS = 1e-6  # smallest sigma_i + sigma_j in the polar adjoint (inverted F only)
+
+
+# --------------------------------------------------------------------------------------
+# Polar rotation with a gradient that stays bounded at F = I
+# --------------------------------------------------------------------------------------
+@wp.func
+def polar_rotation(F: wp.mat33) -> wp.mat33:
+    """R of the polar decomposition F = R S, R = U V^T from warp's svd3 (U, V rotations)."""
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    return U * wp.transpose(V)
+
+
+@wp.func_grad(polar_rotation)
+def adj_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
+    # dR = U Omega V^T with Omega_ij = (A_ij - A_ji) / (s_i + s_j), A = U^T dF V.
+    # Its adjoint: dL/dF = U M V^T, M_ij = (G_ij - G_ji) / (s_i + s_j), G = U^T adj_R V.
+    # The denominators are sums of singular values (2 at rest), not the differences of
+    # squares that warp's svd3 adjoint divides by, so the gradient is finite at F = I.
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    G = wp.transpose(U) * adj_ret * V
+    s01 = wp.max(sig[0] + sig[1], POLAR_EPS)
+    s02 = wp.max(sig[0] + sig[2], POLAR_EPS)
+    s12 = wp.max(sig[1] + sig[2], POLAR_EPS)
+    m01 = (G[0, 1] - G[1, 0]) / s01
+    m02 = (G[0, 2] - G[2, 0]) / s02
+    m12 = (G[1, 2] - G[2, 1]) / s12
+    M = wp.mat33(0.0, m01, m02, -m01, 0.0, m12, -m02, -m12, 0.0)
+    wp.adjoint[F] += U * M * wp.transpose(V)
+
+
+@wp.func
+def kirchhoff_stress(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Fixed-corotated Kirchhoff stress tau = 2 mu (F - R) F^T + lam (J - 1) J I, in Pa."""
+    R = polar_rotation(F)
+    J = wp.determinant(F)
+    return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+
+
+@wp.func
+def lame(E: float, nu: float) -> wp.vec2:
+    """(mu, lambda) in Pa from Young's modulus E (Pa) and Poisson's ratio nu."""
+    return wp.vec2(E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)))
+
+
+# --------------------------------------------------------------------------------------
+# Stencil helpers
+# --------------------------------------------------------------------------------------
+@wp.func
+def stencil_base(x: wp.vec3, inv_dx: float, nodes: wp.vec3i) -> wp.vec3i:
+    """Lowest node of the 3x3x3 stencil, clamped so that a runaway (even NaN) particle
+    can never index outside the grid: memory stays safe and the guard reports it."""
+    b = wp.vec3i(0, 0, 0)
+    for d in range(3):
+        q = x[d] * inv_dx - 0.5
+        # NaN fails both comparisons and lands on 0.
+        if q >= 0.0:
+            if q < float(nodes[d] - 3):
+                b[d] = int(q)
+            else:
+                b[d] = nodes[d] - 3
+    return b
+
+
+@wp.func
+def bspline_w(fx: float, o: int) -> float:
+    """Quadratic B-spline weight of node offset o (0, 1, 2) at fx = x/dx - base in [0.5, 1.5)."""
+    w = 0.0
+    if o == 0:
+        w = 0.5 * (1.5 - fx) * (1.5 - fx)
+    elif o == 1:
+        w = 0.75 - (fx - 1.0) * (fx - 1.0)
+    else:
+        w = 0.5 * (fx - 0.5) * (fx - 0.5)
+    return w
+
+
+@wp.func
+def external_accel(
+    p: int,
+    t: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+) -> wp.vec3:
+    """Sum of the user accelerations (m/s^2) acting on particle p at time t (s)."""
+    a = wp.vec3(0.0)
+    for k in range(n_forces):
+        win = force_window[k]
+        if t >= win[0] and t < win[1]:
+            a += force_accel[k] * force_mask[k, p]
+    return a
+
+
+# --------------------------------------------------------------------------------------
+# Kernels
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def cell_keys(
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    inv_dx: float,
+    nodes: wp.vec3i,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+):
+    """Linear stencil-base cell of every particle, the key for sorting by cell."""
+    p = wp.tid()
+    b = stencil_base(base[p] + u[p], inv_dx, nodes)
+    keys[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+    values[p] = p
+
+
+@wp.kernel
+def mark_fixed_nodes(
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    is_static: wp.array(dtype=int),
+    inv_dx: float,
+    nodes: wp.vec3i,
+    fixed: wp.array3d(dtype=int),
+):
+    """Dirichlet nodes: the node nearest to each static particle gets zero velocity."""
+    p = wp.tid()
+    if is_static[p] != 0:
+        x = base[p] + u[p]
+        i = wp.clamp(int(wp.floor(x[0] * inv_dx + 0.5)), 0, nodes[0] - 1)
+        j = wp.clamp(int(wp.floor(x[1] * inv_dx + 0.5)), 0, nodes[1] - 1)
+        k = wp.clamp(int(wp.floor(x[2] * inv_dx + 0.5)), 0, nodes[2] - 1)
+        fixed[i, j, k] = 1
+
+
+@wp.kernel
+def p2g(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    t_frame: wp.array(dtype=float),
+    t_offset: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """Particle to grid: mass (kg) and momentum (kg m/s) with the MLS stress impulse.
+
+    m_i v_i += N [m_p v_p + m_p a_ext dt + (m_p C_p - 4/dx^2 dt V_p tau_p)(x_i - x_p)].
+    """
+    p = order[wp.tid()]
+    inv_dx = 1.0 / dx
+    x = base[p] + u[p]
+    b = stencil_base(x, inv_dx, nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+
+    lm = lame(E[p], nu)
+    tau = kirchhoff_stress(F[p], lm[0], lm[1])
+    m = mass[p]
+    affine = m * C[p] - (4.0 * inv_dx * inv_dx * dt * volume[p]) * tau
+    a_ext = external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
+    mv = m * (v[p] + a_ext * dt)
+
+    for i in range(3):
+        wi = bspline_w(fx[0], i)
+        for j in range(3):
+            wij = wi * bspline_w(fx[1], j)
+            for k in range(3):
+                w = wij * bspline_w(fx[2], k)
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                wp.atomic_add(grid_m, b[0] + i, b[1] + j, b[2] + k, w * m)
+                wp.atomic_add(grid_mv, b[0] + i, b[1] + j, b[2] + k, w * (mv + affine * dpos))
+
+
+@wp.kernel
+def grid_update(
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    fixed: wp.array3d(dtype=int),
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """Grid velocity (m/s) = momentum / mass + dt g, damped, then boundary conditions.
+
+    Walls: in the `pad` outer node layers the velocity component pointing out of the grid
+    is removed (free-slip), so particles cannot leave. Ground: nodes at z <= ground_z lose
+    their downward velocity. Dirichlet: fixed nodes get zero velocity.
+    """
+    i, j, k = wp.tid()
+    m = grid_m[i, j, k]
+    vel = wp.vec3(0.0)
+    if m > 0.0:
+        vel = (grid_mv[i, j, k] / m + dt * gravity) * damping_factor
+        if i < pad and vel[0] < 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if i >= nodes[0] - pad and vel[0] > 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if j < pad and vel[1] < 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if j >= nodes[1] - pad and vel[1] > 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if k < pad and vel[2] < 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+        if k >= nodes[2] - pad and vel[2] > 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+        if use_ground != 0:
+            if float(k) * dx <= ground_z and vel[2] < 0.0:
+                vel = wp.vec3(vel[0], vel[1], 0.0)
+        if fixed[i, j, k] != 0:
+            vel = wp.vec3(0.0)
+    grid_v[i, j, k] = vel
+
+
+@wp.kernel
+def g2p(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    is_static: wp.array(dtype=int),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    min_det_f: float,
+    edge_lo: wp.vec3,
+    edge_hi: wp.vec3,
+    u_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    stats: wp.array(dtype=float),
+):
+    """Grid to particle: v, C from the grid; F <- (I + dt C) F; u <- u + dt v.
+
+    Each thread reads and writes only its own particle, so in the fast path the outputs may
+    alias the inputs. Under a tape they must be separate arrays. Guard counters go to
+    `stats` only on failure (no atomics in the normal case).
+    """
+    p = order[wp.tid()]
+    inv_dx = 1.0 / dx
+    up = u[p]
+    x = base[p] + up
+    Fp = F[p]
+    b = stencil_base(x, inv_dx, nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    vel = wp.vec3(0.0)
+    Cn = wp.mat33(0.0)
+    for i in range(3):
+        wi = bspline_w(fx[0], i)
+        for j in range(3):
+            wij = wi * bspline_w(fx[1], j)
+            for k in range(3):
+                w = wij * bspline_w(fx[2], k)
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gv = grid_v[b[0] + i, b[1] + j, b[2] + k]
+                vel += w * gv
+                Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
+    if is_static[p] != 0:
+        # Static particles stay where they are, undeformed (they still lend mass to P2G).
+        vel = wp.vec3(0.0)
+        Cn = wp.mat33(0.0)
+    Fn = (wp.identity(n=3, dtype=float) + dt * Cn) * Fp
+    un = up + dt * vel
+    u_out[p] = un
+    v_out[p] = vel
+    C_out[p] = Cn
+    F_out[p] = Fn
+
+    xn = base[p] + un
+    J = wp.determinant(Fn)
+    if not (wp.isfinite(xn) and wp.isfinite(vel) and wp.isfinite(J)):
+        wp.atomic_add(stats, STAT_NONFINITE, 1.0)
+    else:
+        if not (J > min_det_f):
+            wp.atomic_add(stats, STAT_COLLAPSED, 1.0)
+        if wp.min(xn - edge_lo) < 0.0 or wp.max(xn - edge_hi) > 0.0:
+            wp.atomic_add(stats, STAT_EDGE, 1.0)
+
+
+@wp.kernel(enable_backward=False)
+def frame_stats(
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    stats: wp.array(dtype=float),
+):
+    """Max speed (m/s) and kinetic energy (J) at the end of a frame, for CFL and rest checks."""
+    p = wp.tid()
+    vp = v[p]
+    s2 = wp.dot(vp, vp)
+    if wp.isfinite(s2):
+        wp.atomic_max(stats, STAT_VMAX, wp.sqrt(s2))
+        wp.atomic_add(stats, STAT_KINETIC, 0.5 * mass[p] * s2)
+    else:
+        wp.atomic_add(stats, STAT_NONFINITE, 1.0)
+
+
+@wp.kernel
+def compose_positions(
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+):
+    """x = base + u (m)."""
+    p = wp.tid()
+    x[p] = base[p] + u[p]
+
+
+@wp.kernel
+def stress_kernel(
+    F: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    nu: float,
+    tau: wp.array(dtype=wp.mat33),
+):
+    """Kirchhoff stress of each F (Pa); used by tests of the stress and its gradient."""
+    p = wp.tid()
+    lm = lame(E[p], nu)
+    tau[p] = kirchhoff_stress(F[p], lm[0], lm[1])
+
+
+@wp.kernel
+def polar_kernel(F: wp.array(dtype=wp.mat33), R: wp.array(dtype=wp.mat33)):
+    """R of each F; used by tests of the polar adjoint."""
+    p = wp.tid()
+    R[p] = polar_rotation(F[p])

@@ -1,0 +1,431 @@
+"""MPM buffers and launches: the configuration, the grid geometry and the fast forward path.
+
+The fast path (MPMSolver) runs without a tape, allocates its buffers once, updates particle
+state in place (each G2P thread owns its particle, so aliasing is safe without a tape) and,
+on CUDA, replays one captured graph per frame. The differentiable path lives in autograd.py
+and reuses `launch_substep` with separate per-substep arrays.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from pd_tool.errors import PdToolError
+from pd_tool.sim import kernels as K
+from pd_tool.sim.cfl import cfl_substeps, wave_speed
+from pd_tool.sim.guard import check_stats
+
+wp.config.quiet = True
+
+
+class SimConfigError(PdToolError):
+    """A simulator setting or input array is invalid."""
+
+
+@dataclass
+class SimConfig:
+    """Simulation settings (SI units).
+
+    Attributes:
+        grid_res: cells along the longest axis of `domain`; dx = max(domain) / grid_res.
+        domain: (Lx, Ly, Lz) box in metres; particles live in [0,Lx]x[0,Ly]x[0,Lz]. The
+            outer `boundary_pad` node layers are walls, so keep the object at least
+            boundary_pad + 1 cells away from every face.
+        nu: Poisson's ratio, constant (0 <= nu < 0.5).
+        gravity: m/s^2; (0, 0, 0) switches it off.
+        damping: grid velocity damping rate, 1/s (v *= exp(-damping dt) per substep).
+        substeps: substeps per frame; None = chosen by the CFL condition.
+        cfl_safety: CFL number: dt <= cfl_safety * dx / (wave speed + max speed).
+        ground_z: optional ground plane height in metres (nodes below stop falling).
+        boundary_pad: wall thickness in nodes (free-slip walls).
+        min_det_f: guard threshold: det F below this counts as collapsed/inverted.
+        segment: substeps recomputed per tape in the differentiable backward (memory knob).
+    """
+
+    grid_res: int = 64
+    domain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    nu: float = 0.3
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    damping: float = 0.0
+    substeps: int | None = None
+    cfl_safety: float = 0.5
+    ground_z: float | None = None
+    boundary_pad: int = 3
+    min_det_f: float = 1e-2
+    segment: int = 16
+
+    def validate(self) -> None:
+        if self.grid_res < 4:
+            raise SimConfigError(f"SimConfig.grid_res={self.grid_res}: need at least 4 cells")
+        if len(self.domain) != 3 or min(self.domain) <= 0:
+            raise SimConfigError(f"SimConfig.domain={self.domain}: need three positive lengths in metres")
+        if not (0.0 <= self.nu < 0.5):
+            raise SimConfigError(f"SimConfig.nu={self.nu}: Poisson's ratio must be in [0, 0.5)")
+        if not (0.0 < self.cfl_safety <= 1.0):
+            raise SimConfigError(f"SimConfig.cfl_safety={self.cfl_safety}: must be in (0, 1]")
+        if self.substeps is not None and self.substeps < 1:
+            raise SimConfigError(f"SimConfig.substeps={self.substeps}: must be >= 1 or None (CFL)")
+        if self.boundary_pad < 1:
+            raise SimConfigError(f"SimConfig.boundary_pad={self.boundary_pad}: must be >= 1")
+        if self.damping < 0:
+            raise SimConfigError(f"SimConfig.damping={self.damping}: must be >= 0 (1/s)")
+
+
+@dataclass
+class Force:
+    """A constant acceleration on a particle set during [t_start, t_end) seconds.
+
+    Attributes:
+        mask: [N] bool, the particles pushed.
+        accel: (3,) m/s^2.
+        t_start, t_end: window in simulation seconds.
+    """
+
+    mask: np.ndarray
+    accel: tuple[float, float, float]
+    t_start: float = 0.0
+    t_end: float = math.inf
+
+
+@dataclass
+class GridGeometry:
+    """Background grid covering [0, n*dx] per axis; nodes = cells + 1 per axis."""
+
+    dx: float
+    cells: tuple[int, int, int]
+    pad: int
+
+    @classmethod
+    def from_config(cls, cfg: SimConfig) -> "GridGeometry":
+        dx = max(cfg.domain) / cfg.grid_res
+        cells = tuple(max(4, int(math.ceil(L / dx - 1e-6))) for L in cfg.domain)
+        return cls(dx=dx, cells=cells, pad=cfg.boundary_pad)
+
+    @property
+    def nodes(self) -> tuple[int, int, int]:
+        return tuple(c + 1 for c in self.cells)
+
+    @property
+    def nodes_vec(self) -> wp.vec3i:
+        return wp.vec3i(*self.nodes)
+
+    @property
+    def edge_lo(self) -> wp.vec3:
+        # A particle closer than one cell to the grid border has left the walls behind.
+        return wp.vec3(self.dx, self.dx, self.dx)
+
+    @property
+    def edge_hi(self) -> wp.vec3:
+        return wp.vec3(*[(c - 1) * self.dx for c in self.cells])
+
+
+@dataclass
+class ForceArrays:
+    """Device copy of the forces: mask [K, N] float, accel [K] vec3, window [K] vec2."""
+
+    n: int
+    mask: wp.array
+    accel: wp.array
+    window: wp.array
+
+    @classmethod
+    def build(cls, forces: list[Force], n_particles: int, device) -> "ForceArrays":
+        k = max(1, len(forces))  # warp needs a non-empty array even without forces
+        mask = np.zeros((k, n_particles), np.float32)
+        accel = np.zeros((k, 3), np.float32)
+        window = np.zeros((k, 2), np.float32)
+        for i, f in enumerate(forces):
+            m = np.asarray(f.mask)
+            if m.shape != (n_particles,):
+                raise SimConfigError(f"force {i}: mask has shape {m.shape}, expected ({n_particles},)")
+            mask[i] = m.astype(np.float32)
+            accel[i] = np.asarray(f.accel, np.float32).reshape(3)
+            window[i] = (f.t_start, min(f.t_end, 3.0e38))
+        return cls(
+            n=len(forces),
+            mask=wp.array(mask, dtype=float, device=device),
+            accel=wp.array(accel, dtype=wp.vec3, device=device),
+            window=wp.array(window, dtype=wp.vec2, device=device),
+        )
+
+
+@dataclass
+class GridArrays:
+    m: wp.array
+    mv: wp.array
+    v: wp.array
+
+    @classmethod
+    def alloc(cls, geo: GridGeometry, device, requires_grad: bool = False) -> "GridArrays":
+        s = geo.nodes
+        return cls(
+            m=wp.zeros(s, dtype=float, device=device, requires_grad=requires_grad),
+            mv=wp.zeros(s, dtype=wp.vec3, device=device, requires_grad=requires_grad),
+            v=wp.zeros(s, dtype=wp.vec3, device=device, requires_grad=requires_grad),
+        )
+
+
+@dataclass
+class ParticleState:
+    """u: displacement from `base` [N] vec3 (m); v [N] vec3 (m/s); C, F [N] mat33."""
+
+    u: wp.array
+    v: wp.array
+    C: wp.array
+    F: wp.array
+
+    @classmethod
+    def zeros(cls, n: int, device, requires_grad: bool = False) -> "ParticleState":
+        return cls(*(wp.zeros(n, dtype=t, device=device, requires_grad=requires_grad)
+                     for t in (wp.vec3, wp.vec3, wp.mat33, wp.mat33)))
+
+    def clone(self, requires_grad: bool = False) -> "ParticleState":
+        out = []
+        for a in (self.u, self.v, self.C, self.F):
+            c = wp.empty_like(a, requires_grad=requires_grad)
+            wp.copy(c, a)
+            out.append(c)
+        return ParticleState(*out)
+
+
+@dataclass
+class Materials:
+    """Per-particle constants on the device: E (Pa), volume (m^3), mass (kg), static (int)."""
+
+    E: wp.array
+    volume: wp.array
+    mass: wp.array
+    static: wp.array
+
+
+@dataclass
+class SubstepContext:
+    """Everything a substep launch needs apart from the particle state and the grid."""
+
+    geo: GridGeometry
+    cfg: SimConfig
+    order: wp.array
+    base: wp.array
+    mat: Materials
+    fixed: wp.array
+    forces: ForceArrays
+    t_frame: wp.array
+    stats: wp.array
+    device: object = field(default=None)
+
+
+def launch_substep(ctx: SubstepContext, dt: float, t_offset: float,
+                   s_in: ParticleState, s_out: ParticleState, grid: GridArrays) -> None:
+    """One MPM substep: zero grid, P2G, grid update, G2P (state s_in -> s_out).
+
+    s_out may alias s_in only without a tape; under a tape give separate arrays (and a
+    separate `grid`) per substep so that the adjoints read the values of that substep.
+    """
+    geo, cfg, dev = ctx.geo, ctx.cfg, ctx.device
+    n = s_in.u.shape[0]
+    nodes = geo.nodes_vec
+    grid.m.zero_()
+    grid.mv.zero_()
+    wp.launch(K.p2g, dim=n, device=dev, inputs=[
+        ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, ctx.mat.E, ctx.mat.volume, ctx.mat.mass,
+        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
+        ctx.forces.n, ctx.forces.mask, ctx.forces.accel, ctx.forces.window, grid.m, grid.mv])
+    damping_factor = math.exp(-cfg.damping * dt)
+    wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[
+        grid.m, grid.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
+        float(damping_factor), int(geo.pad), nodes, int(cfg.ground_z is not None),
+        float(cfg.ground_z if cfg.ground_z is not None else 0.0), grid.v])
+    wp.launch(K.g2p, dim=n, device=dev, inputs=[
+        ctx.order, ctx.base, s_in.u, s_in.F, ctx.mat.static, grid.v, float(geo.dx), float(dt),
+        nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
+        s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+
+
+def sort_by_cell(geo: GridGeometry, base: wp.array, u: wp.array, keys: wp.array,
+                 values: wp.array, device) -> None:
+    """Fill values[:N] with particle indices sorted by stencil cell (keys/values hold 2N)."""
+    n = base.shape[0]
+    wp.launch(K.cell_keys, dim=n, device=device,
+              inputs=[base, u, 1.0 / geo.dx, geo.nodes_vec, keys, values])
+    wp.utils.radix_sort_pairs(keys, values, n)
+
+
+def fixed_nodes(geo: GridGeometry, base: wp.array, u: wp.array, static: wp.array, device) -> wp.array:
+    """[nodes] int array, 1 where a static particle pins the grid velocity to zero."""
+    fixed = wp.zeros(geo.nodes, dtype=int, device=device)
+    wp.launch(K.mark_fixed_nodes, dim=base.shape[0], device=device,
+              inputs=[base, u, static, 1.0 / geo.dx, geo.nodes_vec, fixed])
+    return fixed
+
+
+def check_particles(x0: np.ndarray, volume: np.ndarray, mass: np.ndarray, E: np.ndarray,
+                    static: np.ndarray, cfg: SimConfig) -> None:
+    """Validate particle arrays at the public boundary, before any launch."""
+    n = x0.shape[0]
+    if x0.ndim != 2 or x0.shape[1] != 3:
+        raise SimConfigError(f"x0 has shape {x0.shape}, expected [N, 3] positions in metres")
+    for name, a in (("volume", volume), ("mass", mass), ("E", E), ("static", static)):
+        if a.shape != (n,):
+            raise SimConfigError(f"{name} has shape {a.shape}, expected ({n},) like x0")
+    for name, a in (("volume", volume), ("mass", mass), ("E", E)):
+        if not np.all(np.isfinite(a)) or np.any(a <= 0):
+            raise SimConfigError(f"{name} must be finite and positive for every particle")
+    if not np.all(np.isfinite(x0)):
+        raise SimConfigError("x0 holds NaN/inf positions")
+    geo = GridGeometry.from_config(cfg)
+    lo = (geo.pad + 0.5) * geo.dx
+    hi = np.array([(c - geo.pad - 0.5) * geo.dx for c in geo.cells])
+    bad = np.any((x0 < lo) | (x0 > hi), axis=1)
+    if np.any(bad):
+        raise SimConfigError(
+            f"{int(bad.sum())} particles lie inside the wall padding or outside the domain "
+            f"{tuple(cfg.domain)} m (allowed: [{lo:.4g}, {hi.round(4).tolist()}] m); map the "
+            f"object further inside the box or lower boundary_pad")
+
+
+class MPMSolver:
+    """Fast forward MPM: no tape, buffers allocated once, CUDA graph per frame on GPU.
+
+    Args:
+        x0: [N, 3] rest positions, m, inside the domain (see SimConfig).
+        volume: [N] m^3.  mass: [N] kg.  E: [N] Young's modulus, Pa.
+        static: [N] bool, particles that never move (their nodes become Dirichlet cells).
+        config: SimConfig.
+        device: "cpu" or "cuda" (warp device string).
+    """
+
+    def __init__(self, x0, volume, mass, E, static, config: SimConfig | None = None,
+                 device: str = "cpu") -> None:
+        cfg = config or SimConfig()
+        cfg.validate()
+        x0 = np.ascontiguousarray(np.asarray(x0, np.float32))
+        volume = np.asarray(volume, np.float32)
+        mass = np.asarray(mass, np.float32)
+        E = np.asarray(E, np.float32)
+        static = np.asarray(static).astype(bool)
+        check_particles(x0, volume, mass, E, static, cfg)
+        wp.init()
+        self.device = wp.get_device(device)
+        self.config = cfg
+        self.geo = GridGeometry.from_config(cfg)
+        self.n = x0.shape[0]
+        self.time = 0.0
+        self.frame = 0
+        self._c = wave_speed(E[~static] if np.any(~static) else E,
+                             (mass / volume)[~static] if np.any(~static) else mass / volume, cfg.nu)
+        self._vmax = 0.0
+        self._substeps: int | None = None
+        self._forces: list[Force] = []
+        self._graphs: dict = {}
+        d = self.device
+        self._base = wp.array(x0, dtype=wp.vec3, device=d)
+        self.mat = Materials(
+            E=wp.array(E, dtype=float, device=d), volume=wp.array(volume, dtype=float, device=d),
+            mass=wp.array(mass, dtype=float, device=d), static=wp.array(static.astype(np.int32), dtype=int, device=d))
+        self.state = ParticleState.zeros(self.n, d)
+        self.state.F.fill_(wp.mat33(np.eye(3, dtype=np.float32)))
+        self.grid = GridArrays.alloc(self.geo, d)
+        self._keys = wp.zeros(2 * self.n, dtype=int, device=d)
+        self._values = wp.zeros(2 * self.n, dtype=int, device=d)
+        self._order = self._values[: self.n]
+        self._x = wp.zeros(self.n, dtype=wp.vec3, device=d)
+        self._t_frame = wp.zeros(1, dtype=float, device=d)
+        self._stats = wp.zeros(K.N_STATS, dtype=float, device=d)
+        self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
+        self._force_arrays = ForceArrays.build([], self.n, d)
+
+    # ---------------------------------------------------------------- inputs
+    def set_velocity(self, v) -> None:
+        """Set particle velocities [N, 3] m/s (static particles are ignored)."""
+        v = np.asarray(v, np.float32)
+        if v.shape != (self.n, 3):
+            raise SimConfigError(f"set_velocity: shape {v.shape}, expected ({self.n}, 3) m/s")
+        self.state.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+        self._vmax = float(np.max(np.linalg.norm(v, axis=1))) if self.n else 0.0
+
+    def add_force(self, mask, accel, t_start: float = 0.0, t_end: float = math.inf) -> None:
+        """Push the particles in mask [N] bool with accel (3,) m/s^2 during [t_start, t_end) s."""
+        self._forces.append(Force(np.asarray(mask).astype(bool), tuple(accel), float(t_start), float(t_end)))
+        self._force_arrays = ForceArrays.build(self._forces, self.n, self.device)
+        self._graphs.clear()  # graphs hold the old force arrays
+
+    # ---------------------------------------------------------------- stepping
+    def substeps_per_frame(self, frame_dt: float) -> int:
+        """Substeps for one frame: config.substeps, or the CFL choice from the stiffest
+        particle's wave speed and the fastest particle seen so far (never decreases)."""
+        if self.config.substeps is not None:
+            return int(self.config.substeps)
+        n = cfl_substeps(frame_dt, self.geo.dx, self._c, self._vmax, self.config.cfl_safety)
+        self._substeps = max(n, self._substeps or 0)
+        return self._substeps
+
+    def _context(self) -> SubstepContext:
+        return SubstepContext(geo=self.geo, cfg=self.config, order=self._order, base=self._base,
+                              mat=self.mat, fixed=self._fixed, forces=self._force_arrays,
+                              t_frame=self._t_frame, stats=self._stats, device=self.device)
+
+    def _run_substeps(self, n: int, dt: float) -> None:
+        ctx = self._context()
+        for s in range(n):
+            launch_substep(ctx, dt, s * dt, self.state, self.state, self.grid)
+
+    def step_frame(self, frame_dt: float) -> int:
+        """Advance one output frame of frame_dt seconds; return the substeps used.
+
+        Raises SimulationUnstable (naming the frame) if the guard trips; the check reads
+        the device counters once per frame, never per substep.
+        """
+        n = self.substeps_per_frame(frame_dt)
+        dt = frame_dt / n
+        d = self.device
+        self._t_frame.fill_(self.time)
+        sort_by_cell(self.geo, self._base, self.state.u, self._keys, self._values, d)
+        if d.is_cuda:
+            key = (n, float(frame_dt))
+            graph = self._graphs.get(key)
+            if graph is None:
+                if len(self._graphs) > 8:
+                    self._graphs.clear()
+                with wp.ScopedCapture(device=d) as cap:
+                    self._run_substeps(n, dt)
+                graph = self._graphs[key] = cap.graph
+            wp.capture_launch(graph)
+        else:
+            self._run_substeps(n, dt)
+        wp.launch(K.frame_stats, dim=self.n, device=d, inputs=[self.state.v, self.mat.mass, self._stats])
+        stats = self._stats.numpy()
+        self._stats.zero_()
+        self.time += frame_dt
+        self.frame += 1
+        self._kinetic = float(stats[K.STAT_KINETIC])
+        self._vmax = float(stats[K.STAT_VMAX])
+        check_stats(stats, self.frame - 1, self.time, n)
+        return n
+
+    # ---------------------------------------------------------------- outputs
+    def positions(self) -> np.ndarray:
+        """[N, 3] float32 particle positions, m."""
+        wp.launch(K.compose_positions, dim=self.n, device=self.device,
+                  inputs=[self._base, self.state.u, self._x])
+        return self._x.numpy()
+
+    def displacements(self) -> np.ndarray:
+        """[N, 3] float32 displacement from the rest position, m (no rounding from x)."""
+        return self.state.u.numpy()
+
+    def velocities(self) -> np.ndarray:
+        """[N, 3] float32 particle velocities, m/s."""
+        return self.state.v.numpy()
+
+    def deformation_gradients(self) -> np.ndarray:
+        """[N, 3, 3] float32 deformation gradients F (rest = identity)."""
+        return self.state.F.numpy()
+
+    def kinetic_energy(self) -> float:
+        """Kinetic energy sum 0.5 m |v|^2 of the particles, J (one device sync)."""
+        stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
+        wp.launch(K.frame_stats, dim=self.n, device=self.device, inputs=[self.state.v, self.mat.mass, stats])
+        return float(stats.numpy()[K.STAT_KINETIC])
