@@ -45,8 +45,6 @@ def validate_usd(path: str | os.PathLike, *, usd_validators: bool = True) -> lis
         raise UsdExportError(f"{path}: not a readable USD file ({e})") from e
     errors: list[str] = []
     warnings: list[str] = []
-    if usd_validators:
-        _run_usd_validators(stage, errors, warnings)
     errors += check_stage_metadata(stage)
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.PointInstancer):
@@ -55,6 +53,8 @@ def validate_usd(path: str | os.PathLike, *, usd_validators: bool = True) -> lis
             errors += check_points(prim)
         elif prim.GetTypeName() == "ParticleField3DGaussianSplat":
             errors += check_splat_field(prim)
+    if usd_validators:  # after ours: the message quotes the first few errors
+        _run_usd_validators(stage, errors, warnings)
     if errors:
         more = f" (+{len(errors) - MAX_REPORTED} more)" if len(errors) > MAX_REPORTED else ""
         raise UsdExportError(f"{path}: invalid USD: " + "; ".join(errors[:MAX_REPORTED]) + more)
@@ -77,10 +77,11 @@ def check_stage_metadata(stage: Usd.Stage) -> list[str]:
     """Stage-level metadata a DCC needs to place and time the animation."""
     root = stage.GetRootLayer()
     errs = []
-    for key in ("upAxis", "metersPerUnit", "timeCodesPerSecond", "framesPerSecond",
-                "startTimeCode", "endTimeCode"):
-        if not root.pseudoRoot.HasInfo(key):
-            errs.append(f"stage metadata {key} is not authored")
+    missing = [key for key in ("upAxis", "metersPerUnit", "timeCodesPerSecond",
+                               "framesPerSecond", "startTimeCode", "endTimeCode")
+               if not root.pseudoRoot.HasInfo(key)]
+    if missing:
+        errs.append(f"stage metadata not authored: {', '.join(missing)}")
     if not stage.GetDefaultPrim():
         errs.append("no default prim")
     if stage.GetEndTimeCode() < stage.GetStartTimeCode():

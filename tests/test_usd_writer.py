@@ -1,0 +1,319 @@
+"""UsdBakeWriter: what lands in the file, atomic output, streaming, validation."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pxr = pytest.importorskip("pxr")
+from pxr import Sdf, Usd, UsdGeom  # noqa: E402
+
+from pd_tool.errors import UsdExportError  # noqa: E402
+from usd_export import UsdBakeWriter, validate_usd  # noqa: E402
+from usd_export._geom import normalize_quats  # noqa: E402
+
+N = 300
+FRAMES = 6
+HALF_QUAT_TOL = 1e-3  # quath: 11-bit mantissa, |q_i| <= 1
+
+
+def synthetic_bake(n: int = N, frames: int = FRAMES, seed: int = 0, sh_k: int = 16):
+    """Known trajectories: each point moves on its own circle and its sigma breathes."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.normal(size=(n, 3)).astype(np.float32)
+    phase = rng.uniform(0, 2 * np.pi, n)
+    q0 = normalize_quats(rng.normal(size=(n, 4)).astype(np.float32))
+    s0 = rng.uniform(0.01, 0.05, (n, 3)).astype(np.float32)
+    pos, quats, sig = [], [], []
+    for f in range(frames):
+        a = 0.3 * f + phase
+        pos.append(x0 + 0.2 * np.stack([np.cos(a), np.sin(a), 0.1 * f * np.ones(n)], 1).astype(np.float32))
+        half = 0.05 * f  # rotation about z by 0.1 f rad, composed with q0
+        rz = np.array([np.cos(half), 0, 0, np.sin(half)], np.float32)
+        w1, x1, y1, z1 = rz
+        w2, x2, y2, z2 = q0.T
+        quats.append(np.stack([w1 * w2 - z1 * z2, w1 * x2 - z1 * y2, w1 * y2 + z1 * x2,
+                               w1 * z2 + z1 * w2], 1).astype(np.float32))
+        sig.append(s0 * (1 + 0.05 * f))
+    sh = (rng.normal(size=(n, sh_k, 3)) * 0.3).astype(np.float32)
+    opac = rng.uniform(0.05, 1, n).astype(np.float32)
+    return np.stack(pos), np.stack(quats), np.stack(sig), sh, opac
+
+
+def write(path: Path, data, *, fmt="both", start=1, hold_to=None, **kw) -> Path:
+    pos, quats, sig, sh, opac = data
+    with UsdBakeWriter(path, n_points=pos.shape[1], fps=30, start_frame=start, fmt=fmt,
+                       sh=sh, opacities=opac, **kw) as w:
+        for f in range(pos.shape[0]):
+            w.write_frame(start + f, pos[f], quats[f], sig[f])
+        if hold_to is not None:
+            w.hold_frames(hold_to)
+    return path
+
+
+def assert_box_bounds(ext: np.ndarray, p: np.ndarray, radii: np.ndarray) -> None:
+    """An ellipsoid's box half size lies between its smallest and largest radius."""
+    r_min, r_max = radii.min(1, keepdims=True), radii.max(1, keepdims=True)
+    assert (ext[0] <= (p - r_min).min(0)).all() and (ext[1] >= (p + r_min).max(0)).all()
+    assert (ext[0] >= (p - r_max).min(0) - 1e-6).all() and (ext[1] <= (p + r_max).max(0) + 1e-6).all()
+
+
+@pytest.fixture(scope="module")
+def data():
+    return synthetic_bake()
+
+
+@pytest.fixture(scope="module")
+def both_file(tmp_path_factory, data):
+    return write(tmp_path_factory.mktemp("usd") / "bake.usd", data, hold_to=FRAMES + 10)
+
+
+def test_stage_metadata(both_file):
+    stage = Usd.Stage.Open(str(both_file))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetTimeCodesPerSecond() == 30 and stage.GetFramesPerSecond() == 30
+    assert stage.GetStartTimeCode() == 1
+    assert stage.GetEndTimeCode() == FRAMES + 10  # the hold is covered
+    assert stage.GetDefaultPrim().GetPath() == Sdf.Path("/Root")
+    # a single self-contained file: no sidecars, no temporaries left
+    assert sorted(p.name for p in both_file.parent.iterdir()) == ["bake.usd"]
+
+
+def test_instancer_samples_equal_written(both_file, data):
+    pos, quats, sig, sh, opac = data
+    stage = Usd.Stage.Open(str(both_file))
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    assert inst.GetPositionsAttr().GetTimeSamples() == list(range(1, FRAMES + 1))
+    for f in (0, FRAMES - 1):
+        t = 1 + f
+        np.testing.assert_array_equal(np.asarray(inst.GetPositionsAttr().Get(t)), pos[f])
+        q = np.asarray(inst.GetOrientationsAttr().Get(t)).astype(np.float32)  # x, y, z, w
+        np.testing.assert_allclose(q[:, [3, 0, 1, 2]], quats[f], atol=HALF_QUAT_TOL)
+        np.testing.assert_allclose(np.asarray(inst.GetScalesAttr().Get(t)), 2.0 * sig[f], rtol=1e-6)
+        assert_box_bounds(np.asarray(inst.GetExtentAttr().Get(t)), pos[f], 2 * sig[f])
+    assert inst.GetOrientationsAttr().GetTypeName() == Sdf.ValueTypeNames.QuathArray
+    assert not inst.GetPrim().GetAttribute("orientationsf").HasAuthoredValue()
+    # written once, not per frame
+    for attr in (inst.GetProtoIndicesAttr(), inst.GetIdsAttr()):
+        assert attr.GetNumTimeSamples() == 0 and len(attr.Get()) == N
+    np.testing.assert_array_equal(np.asarray(inst.GetIdsAttr().Get()), np.arange(N))
+    proto = inst.GetPrototypesRel().GetTargets()
+    assert proto == [Sdf.Path("/Root/Instancer/Prototypes/Sphere")]
+    assert UsdGeom.Sphere(stage.GetPrimAtPath(proto[0])).GetRadiusAttr().Get() == 1.0
+    pv = UsdGeom.PrimvarsAPI(inst)
+    assert pv.GetPrimvar("displayColor").GetInterpolation() == UsdGeom.Tokens.vertex
+    assert len(pv.GetPrimvar("displayColor").Get()) == N
+    np.testing.assert_allclose(np.asarray(pv.GetPrimvar("displayOpacity").Get()), opac)
+
+
+def test_held_frames_keep_last_pose(both_file, data):
+    pos = data[0]
+    stage = Usd.Stage.Open(str(both_file))
+    attr = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer")).GetPositionsAttr()
+    np.testing.assert_array_equal(np.asarray(attr.Get(FRAMES + 10)), pos[-1])
+
+
+def test_write_after_hold_does_not_blend_into_the_hold(tmp_path, data):
+    pos, quats, sig, sh, opac = data
+    path = tmp_path / "h.usd"
+    with UsdBakeWriter(path, n_points=N, fps=30, start_frame=0, sh=sh) as w:
+        w.write_frame(0, pos[0], quats[0], sig[0])
+        w.hold_frames(5)
+        w.write_frame(6, pos[1], quats[1], sig[1])
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath("/Root/Instancer").GetAttribute("positions")
+    # between the pose and its re-authored copy at 5, interpolation is the pose (to 1 ulp)
+    np.testing.assert_allclose(np.asarray(attr.Get(4.5)), pos[0], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(attr.Get(5)), pos[0])
+    np.testing.assert_array_equal(np.asarray(attr.Get(6)), pos[1])
+
+
+def test_points_companion_carries_colour(both_file, data):
+    pos = data[0]
+    stage = Usd.Stage.Open(str(both_file))
+    pts = UsdGeom.Points(stage.GetPrimAtPath("/Root/SplatColors"))
+    np.testing.assert_array_equal(np.asarray(pts.GetPointsAttr().Get(3)), pos[2])
+    inst_col = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Root/Instancer")).GetPrimvar("displayColor").Get()
+    np.testing.assert_array_equal(np.asarray(pts.GetDisplayColorPrimvar().Get()), np.asarray(inst_col))
+    assert len(pts.GetWidthsAttr().Get()) == N
+
+
+def test_splat_schema_layout(both_file, data):
+    from pxr import UsdVol
+    pos, quats, sig, sh, opac = data
+    stage = Usd.Stage.Open(str(both_file))
+    field = UsdVol.ParticleField3DGaussianSplat(stage.GetPrimAtPath("/Root/Splats"))
+    assert field
+    assert field.GetRadianceSphericalHarmonicsDegreeAttr().Get() == 3
+    coeffs = np.asarray(field.GetRadianceSphericalHarmonicsCoefficientsAttr().Get())
+    # per splat its 16 RGB coefficients contiguously, DC first
+    np.testing.assert_array_equal(coeffs.reshape(N, 16, 3), sh)
+    np.testing.assert_array_equal(np.asarray(field.GetOpacitiesAttr().Get()), opac)
+    assert field.GetOpacitiesAttr().GetNumTimeSamples() == 0
+    for f in (1, 4):
+        t = 1 + f
+        np.testing.assert_array_equal(np.asarray(field.GetPositionsAttr().Get(t)), pos[f])
+        np.testing.assert_array_equal(np.asarray(field.GetScalesAttr().Get(t)), sig[f])  # sigma, unscaled
+        q = np.asarray(field.GetOrientationsAttr().Get(t))
+        np.testing.assert_allclose(q[:, [3, 0, 1, 2]], quats[f], atol=1e-6)
+        # box of the 3-sigma ellipsoids
+        assert_box_bounds(np.asarray(field.GetExtentAttr().Get(t)), pos[f], 3 * sig[f])
+
+
+def test_validate_clean_file_has_no_errors(both_file):
+    assert isinstance(validate_usd(both_file), list)
+
+
+@pytest.mark.parametrize("fmt,prims", [("instancer", {"Instancer", "SplatColors"}),
+                                       ("splat", {"Splats"})])
+def test_formats(tmp_path, data, fmt, prims):
+    path = write(tmp_path / f"{fmt}.usdc", data, fmt=fmt)
+    stage = Usd.Stage.Open(str(path))
+    assert {p.GetName() for p in stage.GetDefaultPrim().GetChildren()} == prims
+
+
+def test_usda_output_and_torch_inputs(tmp_path, data):
+    torch = pytest.importorskip("torch")
+    pos, quats, sig, sh, opac = data
+    path = tmp_path / "t.usda"
+    with UsdBakeWriter(path, n_points=N, fps=24, fmt="both", sh=torch.from_numpy(sh),
+                       opacities=torch.from_numpy(opac), up_axis="Y", meters_per_unit=0.01) as w:
+        for f in range(2):
+            w.write_frame(f, torch.from_numpy(pos[f]), torch.from_numpy(quats[f]),
+                          torch.from_numpy(sig[f]))
+    assert path.read_text()[:10] == "#usda 1.0\n"
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+
+
+def test_exception_inside_with_leaves_nothing(tmp_path, data):
+    pos, quats, sig, sh, opac = data
+    path = tmp_path / "fail.usd"
+    path.write_bytes(b"previous bake")  # an older result must survive a failed bake
+    with pytest.raises(RuntimeError, match="guard"):
+        with UsdBakeWriter(path, n_points=N, fps=30, sh=sh) as w:
+            w.write_frame(0, pos[0], quats[0], sig[0])
+            raise RuntimeError("stability guard stopped the bake")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fail.usd"]
+    assert path.read_bytes() == b"previous bake"
+
+
+def test_bad_frames_raise_and_clean_up(tmp_path, data):
+    pos, quats, sig, sh, opac = data
+    path = tmp_path / "bad.usd"
+    bad = pos[0].copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(UsdExportError, match="NaN"):
+        with UsdBakeWriter(path, n_points=N, fps=30) as w:
+            w.write_frame(0, bad, quats[0], sig[0])
+    assert list(tmp_path.iterdir()) == []
+    w = UsdBakeWriter(path, n_points=N, fps=30)
+    with pytest.raises(UsdExportError, match=r"shape \(299, 3\)"):
+        w.write_frame(0, pos[0][:-1], quats[0], sig[0])
+    w.write_frame(0, pos[0], quats[0], sig[0])
+    with pytest.raises(UsdExportError, match="increase"):
+        w.write_frame(0, pos[0], quats[0], sig[0])
+    with pytest.raises(UsdExportError, match="> 0"):
+        w.write_frame(1, pos[0], quats[0], -sig[0])
+    w.abort()
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(fmt="mesh"), "format"), (dict(up_axis="X"), "up_axis"), (dict(fps=0), "fps"),
+    (dict(opacities=np.full(N, 2.0)), "0-1"), (dict(sh=np.zeros((N, 5, 3))), "degree"),
+    (dict(ids=np.zeros(N)), "distinct")])
+def test_bad_arguments(tmp_path, kw, match):
+    args = dict(n_points=N, fps=30) | kw
+    with pytest.raises(UsdExportError, match=match):
+        UsdBakeWriter(tmp_path / "x.usd", **args)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_suffix(tmp_path):
+    with pytest.raises(UsdExportError, match=r"\.usda"):
+        UsdBakeWriter(tmp_path / "x.abc", n_points=3, fps=30)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_streams_samples_to_disk_while_writing(tmp_path, data):
+    pos, quats, sig, sh, opac = data
+    w = UsdBakeWriter(tmp_path / "s.usd", n_points=N, fps=30, fmt="both", sh=sh, flush_bytes=1)
+    sizes = []
+    for f in range(3):
+        w.write_frame(f, pos[f], quats[f], sig[f])
+        sizes.append(w._tmp.stat().st_size)
+    # every frame is appended to the temporary crate file as it is written; the
+    # crate stores equal arrays once, so positions count once for all three prims:
+    # positions 12 + quath 8 + instancer scales 12 + quatf 16 + sigmas 12 bytes
+    per_frame = N * (12 + 8 + 12 + 16 + 12)
+    assert sizes[1] - sizes[0] >= per_frame and sizes[2] - sizes[1] >= per_frame
+    assert not (tmp_path / "s.usd").exists()
+    w.close()
+    assert (tmp_path / "s.usd").exists()
+
+
+def test_validate_rejects_broken_files(tmp_path):
+    bad = tmp_path / "bad.usda"
+    bad.write_text('''#usda 1.0
+(
+    defaultPrim = "Root"
+)
+def Xform "Root"
+{
+    def PointInstancer "I"
+    {
+        point3f[] positions.timeSamples = { 1: [(0, 0, 0), (5, 0, 0)] }
+        quath[] orientations.timeSamples = { 1: [(1, 0, 0, 0), (2, 0, 0, 0)] }
+        float3[] scales.timeSamples = { 1: [(1, 1, 1)] }
+        float3[] extent.timeSamples = { 1: [(-1, -1, -1), (1, 1, 1)] }
+        int[] protoIndices = [0, 0]
+        rel prototypes = </Root/I/P/S>
+        def Scope "P"
+        {
+            def Sphere "S"
+            {
+            }
+        }
+    }
+}
+''')
+    with pytest.raises(UsdExportError) as e:
+        validate_usd(bad)
+    msg = str(e.value)
+    for needle in ("upAxis", "metersPerUnit", "timeCodesPerSecond", "scales has 1 elements",
+                   "not unit length", "does not contain"):
+        assert needle in msg, (needle, msg)
+    assert "\n" not in msg
+
+
+def test_validate_runs_pxr_validators(tmp_path):
+    # A composition error (a reference to a missing file) is caught by
+    # UsdValidation's CompositionErrorTest / MissingReferenceValidator, not by us.
+    bad = tmp_path / "ref.usda"
+    bad.write_text('''#usda 1.0
+(
+    defaultPrim = "Root"
+    upAxis = "Z"
+    metersPerUnit = 1
+    timeCodesPerSecond = 30
+    framesPerSecond = 30
+    startTimeCode = 0
+    endTimeCode = 0
+)
+def Xform "Root" ( prepend references = @./missing_file.usd@ ) {}
+''')
+    with pytest.raises(UsdExportError, match=r"\[(CompositionError|UnresolvableDependency)\]"):
+        validate_usd(bad)
+    assert validate_usd(bad, usd_validators=False) == []
+
+
+def test_not_a_usd_file(tmp_path):
+    p = tmp_path / "x.usd"
+    p.write_bytes(b"\x00garbage")
+    with pytest.raises(UsdExportError, match="not a readable USD"):
+        validate_usd(p)
