@@ -36,6 +36,26 @@ def user_errors() -> Iterator[None]:
 
 
 SCENE_PATH = click.Path(exists=True, dir_okay=False, path_type=Path)
+UP_CHOICE = click.Choice(["+x", "-x", "+y", "-y", "+z", "-z"])
+DEVICE_OPTION = click.option(
+    "--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+    help="Where kernels run; auto picks CUDA when a GPU is visible.",
+)
+
+
+def parse_vector(text: str | None, param: str, n: int = 3) -> tuple[float, ...] | None:
+    """'1,2,3' -> (1.0, 2.0, 3.0), with a usage error naming the option otherwise."""
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    import math
+
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise click.BadParameter(f"expected {n} comma-separated numbers, got {text!r}", param_hint=param)
+    return vals
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -74,6 +94,246 @@ def info(scene: Path, as_json: bool) -> None:
 
         summary = scene_summary(load_splats(scene))
     click.echo(json.dumps(summary) if as_json else format_summary(summary))
+
+
+@main.command()
+@click.argument("scene", type=SCENE_PATH)
+@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Output image (.png).")
+@click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="cameras.json (INRIA 3DGS), transforms.json (NeRF) or camera.json (pdtool). "
+                   "Default: an automatic 3/4 view that frames the object.")
+@click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
+@click.option("--width", type=click.IntRange(8, 8192), help="Output width, pixels (keeps the field of view).")
+@click.option("--height", type=click.IntRange(8, 8192), help="Output height, pixels.")
+@click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
+              help="Scene up axis, for the automatic camera (COLMAP scenes are often -y).")
+@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
+@click.option("--write-camera", type=click.Path(file_okay=False, path_type=Path),
+              help="Also write the camera as DIR/camera.json, ready for the reference-video folder.")
+@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True,
+              help="Frame rate stored in the written camera.json (the reference video's rate).")
+@DEVICE_OPTION
+def render(scene: Path, out: Path, camera: Path | None, view: str | None, width: int | None,
+           height: int | None, up: str, background: str, write_camera: Path | None, fps: float,
+           device: str) -> None:
+    """Render one view of a splat to a PNG.
+
+    This is how you make frame I_0 for an image-to-video model: render the view, animate
+    the picture with the model, and put the frames in a folder with the camera.json that
+    --write-camera writes.
+
+    \b
+    Examples:
+      pdtool render ../shared/data/udon.ply --up -y -o udon.png
+      pdtool render scene.ply --camera cameras.json --view 0 --width 1024 --height 576 \\
+          -o video/frame_0000.png --write-camera video/
+    """
+    if out.suffix.lower() != ".png":
+        raise click.BadParameter("must end in .png", param_hint="--out")
+    bg = parse_vector(background, "--background")
+    with user_errors():
+        import dataclasses
+
+        from pd_tool.cameras import save_camera_json
+        from pd_tool.device import resolve_device
+        from pd_tool.io import load_splats
+        from pd_tool.preview import save_png
+        from pd_tool.views import render_image, scene_camera
+
+        dev = resolve_device(device)
+        splats = load_splats(scene, device=dev)
+        view_id: str | int | None = int(view) if view is not None and view.isdigit() else view
+        cam = scene_camera(splats, camera, view_id, width=width, height=height, up_axis=up)
+        save_png(out, render_image(splats, cam, background=bg))
+        click.echo(f"wrote {out} ({cam.width}x{cam.height}, camera '{cam.name}')")
+        if write_camera is not None:
+            write_camera.mkdir(parents=True, exist_ok=True)
+            save_camera_json(write_camera / "camera.json", dataclasses.replace(cam, fps=fps))
+            click.echo(f"wrote {write_camera / 'camera.json'}")
+
+
+def prepare_options_decorator(f):
+    """Foreground, static-region and scale options shared by bake and fit."""
+    opts = [
+        click.option("--foreground-box", metavar="X0,Y0,Z0,X1,Y1,Z1",
+                     help="Simulate only the Gaussians in this box (scene units). Default: all."),
+        click.option("--min-opacity", type=click.FloatRange(0, 1), default=None,
+                     help="Leave out Gaussians fainter than this.  [default: 0.02]"),
+        click.option("--static-box", metavar="X0,Y0,Z0,X1,Y1,Z1",
+                     help="Gaussians in this box stay fixed (a pot, a table). Scene units."),
+        click.option("--static-below", type=float, metavar="H",
+                     help="Gaussians below height H along the up axis stay fixed."),
+        click.option("--up", type=UP_CHOICE, default=None, help="Scene up axis.  [default: +z]"),
+        click.option("--meters-per-unit", type=click.FloatRange(min=0, min_open=True), default=None,
+                     help="Real size of one scene unit, metres. Default: the object's longest side is 1 m."),
+    ]
+    for o in reversed(opts):
+        f = o(f)
+    return f
+
+
+def build_prepare_options(base=None, **kw):
+    """PrepareOptions from CLI values; options left unset keep `base`'s (a fit's) values."""
+    from pd_tool.prepare import Box, PrepareOptions
+
+    opts = base or PrepareOptions()
+    for key in ("foreground_box", "static_box"):
+        if kw.get(key) is not None:
+            box = Box.parse(kw[key], "--" + key.replace("_", "-"))
+            setattr(opts, key, (*box.lo, *box.hi))
+    mapping = {"min_opacity": "min_opacity", "static_below": "static_below", "up": "up_axis",
+               "meters_per_unit": "meters_per_unit"}
+    for cli_name, field_name in mapping.items():
+        if kw.get(cli_name) is not None:
+            setattr(opts, field_name, kw[cli_name])
+    return opts
+
+
+def _tqdm(total: int, desc: str, unit: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=True)
+
+
+def _fmt_size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+@main.command()
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--scene", type=SCENE_PATH, help="Splat to animate (.ply/.splat). Default: the last fit's scene.")
+@click.option("--material", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Fitted material file (.pdmat) from `pdtool fit`. Default: the last fit in this folder.")
+@click.option("--preset", help="Material preset instead of a fit: flower, leafy-plant, fabric-hat, rubber-cord, "
+                               "jelly, or your own TOML file (see `pdtool presets materials`).")
+@click.option("--force", "force_vec", required=True, metavar="FX,FY,FZ",
+              help="Acceleration in scene units per s^2, e.g. 0,0,1 pushes up at 1 unit/s^2.")
+@click.option("--interaction", metavar="NAME|FILE",
+              help="Force preset: poke (short tap at the top), gust (whole object), drag (long pull), "
+                   "or a TOML file. Sets --at/--radius/--start/--duration; explicit options win.")
+@click.option("--at", "at_point", metavar="X,Y,Z|top", help="Centre of the pushed region, scene units, or 'top'. "
+              "Default: the whole free object.")
+@click.option("--radius", type=click.FloatRange(min=0, min_open=True),
+              help="Radius of the pushed region around --at, scene units.  [default: 0.15 x object size]")
+@click.option("--box", "force_box", metavar="X0,Y0,Z0,X1,Y1,Z1", help="Push the free particles in this box instead.")
+@click.option("--start", type=click.FloatRange(min=0), default=None, help="When the force starts, s.  [default: 0]")
+@click.option("--duration", type=click.FloatRange(min=0), default=None,
+              help=f"How long the force lasts, s.  [default: 0.25]")
+@click.option("--seconds", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Animation length, s.  [default: 2]")
+@click.option("--frames", type=click.IntRange(min=1), default=None, help="Animation length in frames instead of --seconds.")
+@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True, help="Frames per second.")
+@click.option("--quality", default="default", show_default=True,
+              help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio.")
+@click.option("--format", "fmt", type=click.Choice(["instancer", "splat", "both"]), default="both", show_default=True,
+              help="instancer: UsdGeom.PointInstancer of spheres (every DCC); splat: UsdVol 3D Gaussian splat "
+                   "schema (usd 26.03+); both.")
+@click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also render the animation to a video (.mp4 or .gif) from an automatic camera.")
+@click.option("--gravity/--no-gravity", default=False, show_default=True,
+              help="Simulate gravity. Off by default: a scan already shows the object at rest under gravity.")
+@click.option("--substeps", type=click.IntRange(min=1), help="Fix the substeps per frame. Default: from the CFL bound.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed for driver selection.")
+@prepare_options_decorator
+@DEVICE_OPTION
+def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: str,
+         interaction: str | None, at_point: str | None, radius: float | None, force_box: str | None,
+         start: float | None, duration: float | None, seconds: float | None, frames: int | None, fps: float,
+         quality: str, fmt: str, preview: Path | None, gravity: bool, substeps: int | None, seed: int,
+         device: str, **prep_kw) -> None:
+    """Simulate the object under a force and write an animated USD to OUT.
+
+    The material comes from --preset, from --material, or, with neither, from the
+    last `pdtool fit` run in this folder. The force is an acceleration (scene units per
+    s^2) applied to the free particles within --radius of --at (or in --box, or the
+    whole object) from --start for --duration seconds. The output appears whole or
+    not at all.
+
+    \b
+    Examples:
+      pdtool bake --scene plant.ply --preset flower --force 0,0,1 --seconds 1 out.usd
+      pdtool bake --force 0,0,1 out.usd          # uses the last fit in this folder
+      pdtool bake --scene donut.ply --preset jelly --static-below 0.01 \\
+          --interaction poke --force 0,0,-40 --preview poke.mp4 poke.usd
+    """
+    if out.suffix.lower() not in (".usd", ".usda", ".usdc"):
+        raise click.BadParameter("must end in .usd, .usda or .usdc", param_hint="OUT")
+    if preview is not None and preview.suffix.lower() not in (".mp4", ".gif"):
+        raise click.BadParameter("must end in .mp4 or .gif", param_hint="--preview")
+    if material is not None and preset is not None:
+        raise click.UsageError("give --material or --preset, not both")
+    if seconds is not None and frames is not None:
+        raise click.UsageError("give --seconds or --frames, not both")
+    if force_box is not None and (at_point is not None or radius is not None):
+        raise click.UsageError("give --box or --at/--radius, not both")
+    accel = parse_vector(force_vec, "--force")
+    at: tuple[float, ...] | str | None = None
+    if at_point is not None:
+        at = "top" if at_point.strip().lower() == "top" else parse_vector(at_point, "--at")
+    with user_errors():
+        from pd_tool.bake import BakeSettings, ForceSpec, bake as run_bake
+        from pd_tool.device import resolve_device
+        from pd_tool.io import load_splats
+        from pd_tool.material_file import MaterialFile, read_record
+        from pd_tool.prepare import Box, PrepareOptions
+        from pd_tool.presets import Material, load_preset
+
+        mat_file = None
+        mat = None
+        if preset is not None:
+            mat = Material.from_preset(preset)
+        else:
+            if material is None:
+                rec = read_record(".")
+                if rec is None:
+                    raise InputError("no material: pass --scene FILE with --preset NAME (see `pdtool presets`), "
+                                     "or --material FILE, or run `pdtool fit` in this folder first")
+                rec_scene, material = rec
+                scene = scene or rec_scene
+            mat_file = MaterialFile.load(material)
+        if scene is None:
+            scene = Path(mat_file.meta["scene_path"]) if mat_file is not None else None
+            if scene is None or not scene.is_file():
+                raise InputError("no scene: pass --scene FILE.ply (with --preset NAME or --material FILE)")
+        if mat_file is not None:
+            mat_file.check_scene(scene, material)
+        load_preset("quality", quality)
+        base = PrepareOptions.from_dict(mat_file.meta["prepare"]) if mat_file is not None else None
+        opts = build_prepare_options(base, **prep_kw)
+        overrides = dict(at=at, radius=radius, start=start, duration=duration,
+                         box=None if force_box is None else (*Box.parse(force_box, "--box").lo,
+                                                             *Box.parse(force_box, "--box").hi))
+        if interaction is not None:
+            spec = ForceSpec.from_interaction(interaction, accel, **overrides)
+        else:
+            spec = ForceSpec(accel=accel)
+            for k, v in overrides.items():
+                if v is not None:
+                    setattr(spec, k, v)
+        n_seconds = (frames - 1) / fps if frames is not None else (seconds if seconds is not None else 2.0)
+        dev = resolve_device(device)
+        settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=dev,
+                                gravity=gravity, substeps=substeps, seed=seed)
+        splats = load_splats(scene, device=dev)
+        bar = _tqdm(settings.frames, "bake", "frame")
+        try:
+            result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
+                              prepare_options=opts, settings=settings, preview=preview,
+                              progress=lambda done, total: bar.update(done - bar.n))
+        finally:
+            bar.close()
+    for line in result.report:
+        click.echo(line)
+    click.echo(
+        f"wrote {result.out}: {result.frames} frames ({result.simulated_frames} simulated), "
+        f"{result.substeps_per_frame} substeps/frame, {result.gaussians:,} Gaussians driven by "
+        f"{result.drivers:,} particles, {result.seconds_elapsed:.1f} s, {_fmt_size(result.bytes_written)}"
+    )
 
 
 @main.command()

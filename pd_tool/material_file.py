@@ -6,7 +6,7 @@ Material file (`*.pdmat`, a numpy .npz without pickles, so it is safe to open):
                     fit metrics, field names
     driver_E        float64 [Q]     Young's modulus per driving particle, Pa
     driver_v0       float32 [Q, 3]  fitted initial velocity per driver, m/s (sim axes)
-    driver_rest     float64 [Q, 3]  driver rest positions, metres (simulation box)
+    driver_rest     float64 [Q, 3]  driver rest positions, scene units (so any bake grid can use them)
     field.<name>.<param>            float32 arrays: the fitted fields' weights
 Record (`.pdtool/last-fit.json` in the working directory): which scene and material file
 the most recent `pdtool fit` there produced; a bare `pdtool bake` uses it.
@@ -106,6 +106,29 @@ class MaterialFile:
             if len(parts) == 3 and parts[0] == "field":
                 fields.setdefault(parts[1], {})[parts[2]] = arr
         return cls(driver_E=E, driver_v0=v0, driver_rest=rest, meta=meta, fields=fields)
+
+    @property
+    def nu(self) -> float:
+        return float(self.meta["nu"])
+
+    @property
+    def density(self) -> float:
+        return float(self.meta["density"])
+
+    @property
+    def damping(self) -> float:
+        return float(self.meta.get("damping", 0.0))
+
+    def E_at(self, points_scene: np.ndarray) -> np.ndarray:
+        """Young's modulus [M] (Pa) at points [M, 3] in scene units: the value of the
+        nearest fitted driver, so a bake may use another grid or driver ratio than the fit."""
+        import torch
+
+        from pd_tool.drivers import nearest_drivers
+
+        idx = nearest_drivers(torch.as_tensor(points_scene, dtype=torch.float64),
+                              torch.as_tensor(self.driver_rest, dtype=torch.float64), k=1)
+        return self.driver_E[idx[:, 0].numpy()]
 
     def check_scene(self, scene_path: str | Path, material_path: str | Path = "material") -> None:
         """Refuse a material fitted to another scene file."""

@@ -25,8 +25,9 @@ _RANGES = {
     "E": (1.0, 1e12), "nu": (0.0, 0.499), "density": (1e-3, 1e5), "grid_res": (10, 512),
     "cfl_safety": (1e-3, 1.0), "driver_ratio": (1e-4, 1.0), "fit_velocity_iters": (0, 100000),
     "fit_material_iters": (0, 100000), "radius": (0.0, 100.0), "start": (0.0, 1e6),
-    "duration": (0.0, 1e6), "magnitude": (0.0, 1e9),
+    "duration": (0.0, 1e6), "magnitude": (0.0, 1e9), "damping": (0.0, 1e4),
 }
+_OPTIONAL = {"materials": {"damping": float}}
 
 
 def _parse_toml(text: str, where: str) -> dict[str, Any]:
@@ -48,7 +49,8 @@ def _validate(kind: str, name: str, table: Any, where: str) -> dict[str, Any]:
     if not isinstance(table, dict):
         raise PresetError(f"{where}: '{name}' is not a table of settings")
     out = dict(table)
-    for key, typ in _REQUIRED[kind].items():
+    optional = {k: t for k, t in _OPTIONAL.get(kind, {}).items() if k in table}
+    for key, typ in {**_REQUIRED[kind], **optional}.items():
         if key not in table:
             raise PresetError(f"{where}: {kind} preset '{name}' lacks '{key}' (needs {', '.join(_REQUIRED[kind])})")
         val = table[key]
@@ -100,13 +102,14 @@ def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class Material:
-    """A homogeneous material: E (Pa), nu, density (kg/m^3)."""
+    """A homogeneous material: E (Pa), nu, density (kg/m^3), damping (1/s)."""
 
     E: float
     nu: float
     density: float
+    damping: float = 0.0
 
     @classmethod
     def from_preset(cls, name_or_path: str | Path) -> "Material":
         p = load_preset("materials", name_or_path)
-        return cls(p["E"], p["nu"], p["density"])
+        return cls(p["E"], p["nu"], p["density"], p.get("damping", 0.0))

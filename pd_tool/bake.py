@@ -1,0 +1,307 @@
+"""Bake: simulate a prepared object under a force and stream the animation to USD.
+
+Data flow: scene -> prepare (foreground, static, simulation box) -> driving particles ->
+fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
+usd_export (streamed, atomic). Frames after the object is at rest again are held (no
+simulation, no new samples), see REST_*.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from pd_tool.errors import PdToolError, PreparationError
+from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene, up_rotation
+from pd_tool.presets import Material, load_preset
+from pd_tool.scene import GaussianScene
+
+# The object is at rest again when its kinetic energy has stayed below REST_FRACTION of
+# the peak (after the force ended) for REST_FRAMES frames in a row.
+REST_FRACTION = 1e-5
+REST_FRAMES = 10
+DEFAULT_DURATION_S = 0.25  # force duration when neither --duration nor an interaction says
+
+
+class ForceRegionError(PdToolError):
+    """The force's region selects no free particle."""
+
+
+@dataclass
+class ForceSpec:
+    """An acceleration applied to a region for a time window.
+
+    accel: (3,) scene units / s^2. at: a point (scene units), "top" (the free particle
+    highest along up) or None (every free particle). radius: scene units (with a point or
+    "top"); radius_fraction: the radius as a fraction of the object's longest side, used
+    when radius is None. box: x0,y0,z0,x1,y1,z1 in scene units instead of at/radius.
+    start, duration: seconds.
+    """
+
+    accel: tuple[float, float, float]
+    at: tuple[float, float, float] | str | None = None
+    radius: float | None = None
+    radius_fraction: float = 0.15
+    box: tuple[float, ...] | None = None
+    start: float = 0.0
+    duration: float = DEFAULT_DURATION_S
+
+    @classmethod
+    def from_interaction(cls, name_or_path: str | Path, accel: tuple[float, float, float], **overrides: Any) -> "ForceSpec":
+        """A force preset (poke, gust, drag or a TOML file) scaled by accel, then overrides."""
+        p = load_preset("forces", name_or_path)
+        at = None if p["at"] == "all" else p["at"]
+        spec = cls(accel=tuple(float(a) * p["magnitude"] for a in accel), at=at,
+                   radius_fraction=p["radius"], start=p["start"], duration=p["duration"])
+        for k, v in overrides.items():
+            if v is not None:
+                setattr(spec, k, v)
+        return spec
+
+
+@dataclass
+class BakeSettings:
+    """How to bake. seconds and fps set the frame count (frames = round(seconds * fps) + 1,
+    frame 0 being the rest state)."""
+
+    seconds: float = 2.0
+    fps: float = 30.0
+    quality: str | Path = "default"
+    fmt: str = "both"  # instancer | splat | both
+    device: str = "cpu"
+    gravity: bool = False  # the scan is already in equilibrium under gravity
+    substeps: int | None = None  # None: CFL
+    driver_ratio: float | None = None  # None: from the quality preset
+    seed: int = 0
+    stop_at_rest: bool = True
+
+    @property
+    def frames(self) -> int:
+        return int(round(self.seconds * self.fps)) + 1
+
+
+@dataclass
+class BakeResult:
+    out: Path
+    frames: int
+    simulated_frames: int
+    substeps_per_frame: int
+    gaussians: int
+    drivers: int
+    seconds_elapsed: float
+    bytes_written: int
+    peak_displacement: float  # scene units, over all Gaussians and frames
+    displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
+    report: list[str] = field(default_factory=list)
+
+
+def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np.ndarray, spec: ForceSpec) -> np.ndarray:
+    """Which driving particles [Q] the force pushes."""
+    free = ~drivers_static
+    tr = prep.transform
+    if spec.box is not None:
+        from pd_tool.prepare import Box
+
+        box = Box.parse(spec.box, "--box")
+        mask = box.contains(tr.to_scene(drivers_rest)) & free
+        where = f"box {spec.box}"
+    elif spec.at is None:
+        mask = free.copy()
+        where = "the whole object"
+    else:
+        if isinstance(spec.at, str):
+            if spec.at != "top":
+                raise ForceRegionError(f"force position '{spec.at}' is not a point x,y,z or 'top'")
+            if not free.any():
+                raise ForceRegionError("every particle is static, so nothing can move; shrink the static region")
+            centre = drivers_rest[free][np.argmax(drivers_rest[free][:, 2])]
+        else:
+            centre = tr.to_sim(np.asarray(spec.at, np.float64)[None])[0]
+        radius_m = (spec.radius * tr.scale) if spec.radius is not None else spec.radius_fraction * prep.object_size_m
+        mask = (np.linalg.norm(drivers_rest - centre, axis=1) <= radius_m) & free
+        where = f"within {radius_m / tr.scale:.3g} scene units of {np.round(tr.to_scene(centre[None])[0], 4).tolist()}"
+    if not mask.any():
+        raise ForceRegionError(
+            f"the force region ({where}) holds no free particle; move --at onto the object, "
+            f"enlarge --radius, or check the static region"
+        )
+    return mask
+
+
+def _usd_frame(prep: PreparedScene) -> tuple[np.ndarray, str]:
+    """Rotation from scene axes to the USD file's axes, and its upAxis. +y and +z scenes are
+    written as they are; other up axes are rotated so that up is +Z (USD knows only Y, Z)."""
+    up = prep.options.up_axis
+    if up == "+z":
+        return np.eye(3), "Z"
+    if up == "+y":
+        return np.eye(3), "Y"
+    return up_rotation(up), "Z"
+
+
+def bake(
+    scene: GaussianScene,
+    out: str | Path,
+    *,
+    force: ForceSpec,
+    material: Material | None = None,
+    material_file: Any = None,
+    prepare_options: PrepareOptions | None = None,
+    settings: BakeSettings | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    preview: str | Path | None = None,
+) -> BakeResult:
+    """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
+
+    Give either a homogeneous `material` (a preset) or a fitted `material_file`
+    (pd_tool.material_file.MaterialFile). `progress(done, total)` is called once per frame.
+    """
+    from pd_tool.drivers import build_drivers, interpolate
+    from pd_tool.rotations import matrix_to_quat, quat_multiply
+    from pd_tool.sim import MPMSolver, SimConfig
+    from usd_export import UsdBakeWriter
+
+    t_start = time.perf_counter()
+    settings = settings or BakeSettings()
+    quality = load_preset("quality", settings.quality)
+    opts = prepare_options or PrepareOptions()
+    opts.grid_res = int(quality["grid_res"])
+    if material is None and material_file is None:
+        raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
+    if material is None:
+        nu, damping = material_file.nu, material_file.damping
+        opts.density_kg_m3 = material_file.density
+    else:
+        nu, damping = material.nu, material.damping
+        opts.density_kg_m3 = material.density
+    prep = prepare_scene(scene, opts)
+    dev = settings.device
+    frame_dt = 1.0 / settings.fps
+    n_frames = settings.frames
+
+    # ---- driving particles
+    ratio = settings.driver_ratio if settings.driver_ratio is not None else float(quality["driver_ratio"])
+    drivers = build_drivers(
+        torch.as_tensor(prep.positions_sim, dtype=torch.float32), torch.as_tensor(prep.volumes, dtype=torch.float32),
+        torch.as_tensor(prep.masses, dtype=torch.float32), torch.as_tensor(prep.static), prep.dx,
+        ratio=ratio, seed=settings.seed,
+    )
+    d_rest = drivers.positions.double().cpu().numpy()
+    d_static = drivers.static.cpu().numpy().astype(bool)
+    if material_file is not None:
+        E = material_file.E_at(prep.transform.to_scene(d_rest))
+    else:
+        E = np.full(len(d_rest), material.E, np.float64)
+
+    # ---- simulator
+    cfg = SimConfig(
+        grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu,
+        gravity=(0.0, 0.0, -9.81) if settings.gravity else (0.0, 0.0, 0.0), damping=damping,
+        substeps=settings.substeps, cfl_safety=float(quality["cfl_safety"]),
+    )
+    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
+    mask = force_mask(prep, d_rest, d_static, force)
+    accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+    solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
+    force_end = force.start + force.duration
+
+    # ---- per-Gaussian rest state (simulated Gaussians only; the rest of the scene is static)
+    fg = torch.as_tensor(prep.foreground)
+    R_sim = torch.as_tensor(prep.transform.R, dtype=torch.float64)
+    q_sim_from_scene = matrix_to_quat(R_sim).float()
+    rest_pts = torch.as_tensor(prep.positions_sim, dtype=torch.float32, device=dev)
+    rest_q_scene = scene.quats[fg].to(dev)
+    rest_q_sim = quat_multiply(q_sim_from_scene.to(dev).expand_as(rest_q_scene), rest_q_scene)
+    q_scene_from_sim = matrix_to_quat(R_sim.T).float().to(dev)
+    d_rest_t = drivers.positions.to(dev)
+    neighbors = drivers.neighbors.to(dev)
+
+    R_usd, up_axis = _usd_frame(prep)
+    q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
+    all_pos = scene.positions.detach().double().cpu().numpy() @ R_usd.T
+    all_q = quat_multiply(q_usd.expand_as(scene.quats.to(dev)), scene.quats.to(dev)).cpu().numpy()
+    all_scales = scene.scales.detach().cpu().numpy()
+    fg_np = prep.foreground
+
+    def frame_arrays(d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        if d_now is None:
+            return all_pos.astype(np.float32), all_q
+        pts, quats = interpolate(rest_pts, rest_q_sim, d_rest_t, torch.as_tensor(d_now, dtype=torch.float32, device=dev),
+                                 neighbors)[:2]
+        q_scene = quat_multiply(q_scene_from_sim.expand_as(quats), quats)
+        q_out = quat_multiply(q_usd.expand_as(q_scene), q_scene)
+        pos = all_pos.copy()
+        pos[fg_np] = prep.transform.to_scene(pts.double().cpu().numpy()) @ R_usd.T
+        q = all_q.copy()
+        q[fg_np] = q_out.cpu().numpy()
+        return pos.astype(np.float32), q
+
+    colors = scene.colors.cpu().numpy()
+    writer = UsdBakeWriter(
+        out, n_points=scene.count, fps=settings.fps, start_frame=0, up_axis=up_axis,
+        meters_per_unit=float(prep.transform.scale), fmt=settings.fmt, colors=colors,
+        opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
+    )
+    preview_frames: list[tuple[np.ndarray, np.ndarray]] = []
+    disp: list[float] = []
+    peak_ke = 0.0
+    calm = 0
+    simulated = 0
+    substeps = solver.substeps_per_frame(frame_dt)
+    with writer:
+        pos0, q0 = frame_arrays(None)
+        writer.write_frame(0, pos0, q0, all_scales)
+        disp.append(0.0)
+        if preview is not None:
+            preview_frames.append((pos0, q0))
+        if progress:
+            progress(1, n_frames)
+        for f in range(1, n_frames):
+            substeps = solver.step_frame(frame_dt)
+            simulated += 1
+            pos, q = frame_arrays(solver.positions())
+            writer.write_frame(f, pos, q, all_scales)
+            disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
+            if preview is not None:
+                preview_frames.append((pos, q))
+            if progress:
+                progress(f + 1, n_frames)
+            ke = solver.kinetic_energy()
+            peak_ke = max(peak_ke, ke)
+            if settings.stop_at_rest and solver.time >= force_end:
+                calm = calm + 1 if ke <= REST_FRACTION * peak_ke else 0
+                if calm >= REST_FRAMES and f + 1 < n_frames:
+                    writer.hold_frames(n_frames - 1)
+                    disp.extend([disp[-1]] * (n_frames - 1 - f))
+                    if progress:
+                        progress(n_frames, n_frames)
+                    break
+    out = Path(out)
+    result = BakeResult(
+        out=out, frames=n_frames, simulated_frames=simulated, substeps_per_frame=substeps,
+        gaussians=scene.count, drivers=len(d_rest), seconds_elapsed=time.perf_counter() - t_start,
+        bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
+        report=list(prep.report),
+    )
+    if simulated < n_frames - 1:
+        result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
+    if preview is not None:
+        from pd_tool.preview import write_preview
+        from pd_tool.views import render_image, scene_camera
+
+        cam = scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
+        R_back = torch.as_tensor(R_usd.T, dtype=torch.float32)
+        q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float()
+        images = (
+            render_image(scene, cam, positions=torch.as_tensor(p, device=scene.device) @ R_back.T.to(scene.device),
+                         quats=quat_multiply(q_back.to(scene.device).expand(len(q), 4), torch.as_tensor(q, device=scene.device)))
+            for p, q in preview_frames
+        )
+        write_preview(images, preview, settings.fps)
+        result.report.append(f"preview {preview}")
+    return result
