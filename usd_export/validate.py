@@ -20,6 +20,8 @@ from pxr import Sdf, Usd, UsdGeom, UsdValidation
 
 from pd_tool.errors import UsdExportError
 
+from ._geom import col_max, col_min
+
 QUAT_TOL = {"quath": 4e-3, "quatf": 1e-4}  # | |q| - 1 |: half has 11-bit mantissas
 MAX_REPORTED = 8  # errors quoted in the exception message
 
@@ -116,7 +118,7 @@ def _check_common(name: str, t, arrays: dict[str, np.ndarray | None], n: int,
         errs.append(f"{name}.extent is missing at time {t}")
     elif n and np.isfinite(positions).all():
         lo, hi = extent[0], extent[1]
-        if (positions < lo).any() or (positions > hi).any():
+        if (col_min(positions) < lo).any() or (col_max(positions) > hi).any():
             errs.append(f"{name}.extent at time {t} does not contain all points")
     return errs
 

@@ -1,0 +1,122 @@
+"""Benchmark UsdBakeWriter: time, peak memory and file size per frame.
+
+Each configuration runs in its own subprocess so that its peak RSS
+(ru_maxrss) is its own. The baseline is the RSS after imports and the
+synthetic data (one rest frame plus per-frame offsets) exist, just before the
+writer opens; "writer peak" is peak RSS minus that baseline.
+
+    python bench/usd_write.py --device cpu --json usd_write.json
+    python bench/usd_write.py --points 300000 --frames 10,30,90 --fmt both --flush-mb 64,0
+
+--flush-mb 0 means "never flush before close" (the whole bake in memory): the
+comparison that shows what streaming buys.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _rss_peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
+            validate: bool, out_dir: str) -> dict:
+    import numpy as np
+    import torch
+
+    from usd_export import UsdBakeWriter, validate_usd
+
+    gen = torch.Generator(device=device).manual_seed(0)
+    x0 = torch.randn(points, 3, generator=gen, device=device)
+    q0 = torch.nn.functional.normalize(torch.randn(points, 4, generator=gen, device=device), dim=1)
+    s0 = torch.rand(points, 3, generator=gen, device=device) * 0.01 + 0.001
+    sh = torch.randn(points, 16, 3, generator=gen, device=device) * 0.3
+    rgb = torch.rand(points, 3, generator=gen, device=device)
+    opac = torch.rand(points, generator=gen, device=device)
+    vel = torch.randn(points, 3, generator=gen, device=device) * 0.01
+    path = Path(out_dir) / f"bench_{points}_{frames}_{fmt}.usd"
+    baseline = _rss_peak_mb()
+
+    t0 = time.perf_counter()
+    flush = int(flush_mb * 2**20) if flush_mb > 0 else 1 << 62
+    w = UsdBakeWriter(path, n_points=points, fps=30, fmt=fmt, colors=rgb.cpu().numpy(),
+                      opacities=opac.cpu().numpy(), sh=sh.cpu().numpy(), flush_bytes=flush)
+    t_open = time.perf_counter() - t0
+    t_frames = 0.0
+    for f in range(frames):
+        pos = (x0 + f * vel).cpu().numpy()  # what the bake hands over: host arrays
+        q, s = q0.cpu().numpy(), (s0 * (1 + 0.01 * f)).cpu().numpy()
+        t1 = time.perf_counter()
+        w.write_frame(f, pos, q, s)
+        t_frames += time.perf_counter() - t1
+    t1 = time.perf_counter()
+    w.close(validate=False)
+    t_close = time.perf_counter() - t1
+    peak = _rss_peak_mb()
+    t_validate = None
+    if validate:
+        t1 = time.perf_counter()
+        validate_usd(path)
+        t_validate = time.perf_counter() - t1
+    size = path.stat().st_size
+    path.unlink()
+    return {
+        "points": points, "frames": frames, "fmt": fmt, "flush_mb": flush_mb, "device": device,
+        "write_s": t_open + t_frames + t_close, "per_frame_ms": 1e3 * t_frames / frames,
+        "close_s": t_close, "validate_s": t_validate,
+        "baseline_rss_mb": baseline, "peak_rss_mb": peak, "writer_peak_mb": peak - baseline,
+        "file_mb": size / 2**20, "mb_per_frame": size / 2**20 / frames,
+        "bytes_per_point_frame": size / (points * frames),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--points", default="300000")
+    ap.add_argument("--frames", default="30")
+    ap.add_argument("--fmt", default="instancer,splat,both")
+    ap.add_argument("--flush-mb", default="64")
+    ap.add_argument("--validate", action="store_true", help="also time validate_usd")
+    ap.add_argument("--dir", default=None, help="where to write (default: a temp dir)")
+    ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--_one", default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a._one:  # child: one configuration, result as JSON on stdout
+        p, f, fmt, fl = a._one.split(":")
+        res = run_one(int(p), int(f), fmt, float(fl), a.device, a.validate, a.dir)
+        print("RESULT" + json.dumps(res))
+        return
+    results = []
+    with tempfile.TemporaryDirectory(dir=a.dir) as d:
+        for p in a.points.split(","):
+            for f in a.frames.split(","):
+                for fmt in a.fmt.split(","):
+                    for fl in a.flush_mb.split(","):
+                        cmd = [sys.executable, __file__, "--device", a.device, "--dir", d,
+                               "--_one", f"{p}:{f}:{fmt}:{fl}"] + (["--validate"] if a.validate else [])
+                        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+                        r = json.loads(next(l for l in out.splitlines() if l.startswith("RESULT"))[6:])
+                        results.append(r)
+                        print(f"N={r['points']} frames={r['frames']} fmt={r['fmt']} flush={fl}MB: "
+                              f"write {r['write_s']:.2f}s ({r['per_frame_ms']:.0f} ms/frame, "
+                              f"close {r['close_s']:.2f}s)"
+                              + (f", validate {r['validate_s']:.2f}s" if r["validate_s"] is not None else "")
+                              + f", writer peak +{r['writer_peak_mb']:.0f} MB "
+                              f"(RSS {r['peak_rss_mb']:.0f} MB), file {r['file_mb']:.1f} MB "
+                              f"= {r['mb_per_frame']:.2f} MB/frame", flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"host": os.uname().nodename, "results": results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
