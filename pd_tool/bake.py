@@ -161,7 +161,8 @@ def bake(
     Give either a homogeneous `material` (a preset) or a fitted `material_file`
     (pd_tool.material_file.MaterialFile). `progress(done, total)` is called once per frame.
     """
-    from pd_tool.drivers import build_drivers, interpolate
+    from pd_tool.animate import GaussianAnimator
+    from pd_tool.drivers import build_drivers
     from pd_tool.rotations import matrix_to_quat, quat_multiply
     from pd_tool.sim import MPMSolver, SimConfig
     from usd_export import UsdBakeWriter
@@ -210,36 +211,22 @@ def bake(
     solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
     force_end = force.start + force.duration
 
-    # ---- per-Gaussian rest state (simulated Gaussians only; the rest of the scene is static)
-    fg = torch.as_tensor(prep.foreground)
-    R_sim = torch.as_tensor(prep.transform.R, dtype=torch.float64)
-    q_sim_from_scene = matrix_to_quat(R_sim).float()
-    rest_pts = torch.as_tensor(prep.positions_sim, dtype=torch.float32, device=dev)
-    rest_q_scene = scene.quats[fg].to(dev)
-    rest_q_sim = quat_multiply(q_sim_from_scene.to(dev).expand_as(rest_q_scene), rest_q_scene)
-    q_scene_from_sim = matrix_to_quat(R_sim.T).float().to(dev)
-    d_rest_t = drivers.positions.to(dev)
-    neighbors = drivers.neighbors.to(dev)
-
+    # ---- every Gaussian follows its drivers; the USD file may use rotated axes
+    animator = GaussianAnimator(scene, prep, drivers, device=dev)
     R_usd, up_axis = _usd_frame(prep)
+    R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
     q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
-    all_pos = scene.positions.detach().double().cpu().numpy() @ R_usd.T
-    all_q = quat_multiply(q_usd.expand_as(scene.quats.to(dev)), scene.quats.to(dev)).cpu().numpy()
     all_scales = scene.scales.detach().cpu().numpy()
-    fg_np = prep.foreground
 
     def frame_arrays(d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        if d_now is None:
-            return all_pos.astype(np.float32), all_q
-        pts, quats = interpolate(rest_pts, rest_q_sim, d_rest_t, torch.as_tensor(d_now, dtype=torch.float32, device=dev),
-                                 neighbors)[:2]
-        q_scene = quat_multiply(q_scene_from_sim.expand_as(quats), quats)
-        q_out = quat_multiply(q_usd.expand_as(q_scene), q_scene)
-        pos = all_pos.copy()
-        pos[fg_np] = prep.transform.to_scene(pts.double().cpu().numpy()) @ R_usd.T
-        q = all_q.copy()
-        q[fg_np] = q_out.cpu().numpy()
-        return pos.astype(np.float32), q
+        with torch.no_grad():
+            if d_now is None:
+                pos, q = animator.scene_positions, animator.scene_quats
+            else:
+                pos, q = animator(d_now)
+            pos = pos @ R_usd_t.T
+            q = quat_multiply(q_usd.expand_as(q), q)
+        return pos.cpu().numpy(), q.cpu().numpy()
 
     colors = scene.colors.cpu().numpy()
     writer = UsdBakeWriter(
@@ -247,7 +234,18 @@ def bake(
         meters_per_unit=float(prep.transform.scale), fmt=settings.fmt, colors=colors,
         opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
     )
-    preview_frames: list[tuple[np.ndarray, np.ndarray]] = []
+    preview_images: list[np.ndarray] = []
+    if preview is not None:
+        from pd_tool.views import render_image, scene_camera
+
+        preview_cam = scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
+        q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
+
+    def snap(pos: np.ndarray, q: np.ndarray) -> None:
+        # back from the USD axes to the scene's, where the automatic camera looks
+        preview_images.append(render_image(
+            scene, preview_cam, positions=torch.as_tensor(pos @ R_usd, device=scene.device),
+            quats=quat_multiply(q_back.expand(len(q), 4), torch.as_tensor(q, device=scene.device))))
     disp: list[float] = []
     peak_ke = 0.0
     calm = 0
@@ -258,7 +256,7 @@ def bake(
         writer.write_frame(0, pos0, q0, all_scales)
         disp.append(0.0)
         if preview is not None:
-            preview_frames.append((pos0, q0))
+            snap(pos0, q0)
         if progress:
             progress(1, n_frames)
         for f in range(1, n_frames):
@@ -268,7 +266,7 @@ def bake(
             writer.write_frame(f, pos, q, all_scales)
             disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
             if preview is not None:
-                preview_frames.append((pos, q))
+                snap(pos, q)
             if progress:
                 progress(f + 1, n_frames)
             ke = solver.kinetic_energy()
@@ -278,6 +276,7 @@ def bake(
                 if calm >= REST_FRAMES and f + 1 < n_frames:
                     writer.hold_frames(n_frames - 1)
                     disp.extend([disp[-1]] * (n_frames - 1 - f))
+                    preview_images.extend(preview_images[-1:] * (n_frames - 1 - f))
                     if progress:
                         progress(n_frames, n_frames)
                     break
@@ -292,16 +291,7 @@ def bake(
         result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
     if preview is not None:
         from pd_tool.preview import write_preview
-        from pd_tool.views import render_image, scene_camera
 
-        cam = scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
-        R_back = torch.as_tensor(R_usd.T, dtype=torch.float32)
-        q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float()
-        images = (
-            render_image(scene, cam, positions=torch.as_tensor(p, device=scene.device) @ R_back.T.to(scene.device),
-                         quats=quat_multiply(q_back.to(scene.device).expand(len(q), 4), torch.as_tensor(q, device=scene.device)))
-            for p, q in preview_frames
-        )
-        write_preview(images, preview, settings.fps)
+        write_preview(preview_images, preview, settings.fps)
         result.report.append(f"preview {preview}")
     return result

@@ -6,16 +6,39 @@ from pd_tool.errors import PdToolError
 DEVICES = ("auto", "cpu", "cuda")
 
 
+def init_warp_quietly() -> None:
+    """Initialise warp without its banner, and without the native library's
+    "could not load the CUDA driver" line on machines with no GPU: a user's stderr should
+    hold pdtool's own messages only."""
+    import os
+    import sys
+
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    if getattr(init_warp_quietly, "_done", False):
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    init_warp_quietly._done = True  # type: ignore[attr-defined]
+
+
 def cuda_available() -> bool:
     """True when both torch and warp see a CUDA device."""
     import torch
 
+    init_warp_quietly()
     if not torch.cuda.is_available():
         return False
     import warp as wp
 
-    wp.config.quiet = True
-    wp.init()
     return wp.is_cuda_available()
 
 

@@ -1,0 +1,92 @@
+"""`pdtool bake` end to end on CPU: synthetic plant, a real capture, guard and input errors."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cli import main
+from pd_tool.io import save_splats
+from pd_tool.synthetic import POT_TOP, make_plant
+
+
+@pytest.fixture(scope="module")
+def plant_ply(tmp_path_factory) -> Path:
+    return save_splats(make_plant(3000, seed=0), tmp_path_factory.mktemp("plant") / "plant.ply")
+
+
+def _bake(args: list[str], cwd: Path):
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        return CliRunner().invoke(main, ["bake", *args], catch_exceptions=False)
+    finally:
+        os.chdir(old)
+
+
+def test_bake_plant_flower_preset_validates(plant_ply: Path, tmp_path: Path) -> None:
+    from pxr import Usd
+
+    from usd_export import validate_usd
+
+    out = tmp_path / "out.usd"
+    res = _bake(["--scene", str(plant_ply), "--preset", "flower", "--force", "0,0,1", "--seconds", "1",
+                 "--quality", "draft", "--static-below", str(POT_TOP), "--device", "cpu", str(out)], tmp_path)
+    assert res.exit_code == 0, res.output
+    assert "31 frames" in res.output and "substeps/frame" in res.output
+    validate_usd(out)  # raises on any validator error
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 30
+    assert stage.GetTimeCodesPerSecond() == 30
+    assert not list(tmp_path.glob(".*part*")), "temporary files left behind"
+
+
+def test_bake_donut_poke_decays(shared_data: Path, tmp_path: Path) -> None:
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.io import load_splats
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.presets import Material
+
+    scene = load_splats(shared_data / "donut_fused.ply")
+    result = bake(
+        scene, tmp_path / "donut.usd",
+        force=ForceSpec.from_interaction("poke", (0.0, 0.0, -3.0)),
+        material=Material.from_preset("jelly"),
+        prepare_options=PrepareOptions(static_below=0.01),
+        settings=BakeSettings(seconds=2.5, fps=20, quality="draft", fmt="instancer", stop_at_rest=False),
+    )
+    disp = np.array(result.displacement_per_frame)
+    assert np.isfinite(disp).all()
+    assert disp.max() > 1e-4  # the poke moves the donut (scene units; the donut is 0.2 across)
+    first, last = disp[1:21].max(), disp[-20:].max()
+    assert last < first, f"motion did not decay: first second {first:.3g}, last second {last:.3g}"
+
+
+def test_guard_stop_leaves_no_file(plant_ply: Path, tmp_path: Path) -> None:
+    out = tmp_path / "boom.usd"
+    res = _bake(["--scene", str(plant_ply), "--preset", "jelly", "--force", "0,0,1e9", "--frames", "6",
+                 "--substeps", "2", "--quality", "draft", "--device", "cpu", str(out)], tmp_path)
+    assert res.exit_code == 2, res.output
+    assert "frame" in res.output and ("substeps" in res.output or "force" in res.output)
+    assert not out.exists() and not list(tmp_path.glob(".boom*"))
+
+
+def test_no_material_names_the_options(tmp_path: Path) -> None:
+    res = _bake(["--force", "0,0,1", str(tmp_path / "x.usd")], tmp_path)
+    assert res.exit_code == 2 and "--scene" in res.output and "--preset" in res.output
+
+
+def test_force_pointing_at_nothing(plant_ply: Path, tmp_path: Path) -> None:
+    res = _bake(["--scene", str(plant_ply), "--preset", "flower", "--force", "1,0,0", "--at", "5,5,5",
+                 "--radius", "0.1", "--frames", "3", "--quality", "draft", "--device", "cpu",
+                 str(tmp_path / "x.usd")], tmp_path)
+    assert res.exit_code == 2 and "holds no free particle" in res.output
+    assert not (tmp_path / "x.usd").exists()
+
+
+def test_bad_output_suffix(plant_ply: Path, tmp_path: Path) -> None:
+    res = _bake(["--scene", str(plant_ply), "--preset", "flower", "--force", "0,0,1", str(tmp_path / "x.abc")], tmp_path)
+    assert res.exit_code == 2 and ".usd" in res.output
