@@ -1,7 +1,8 @@
 """Fitting a material field to reference videos (PhysDreamer stages 1 and 2).
 
-Building blocks exported here: neural fields (fields.py), image losses (losses.py) and
-reference-video input (video.py). The optimisation loop builds on them.
+Building blocks exported here: neural fields (fields.py), image losses (losses.py),
+reference-video input (video.py), AdamW + lr schedule (schedule.py). The optimisation
+loop builds on them.
 """
 from pd_tool.fit.fields import (
     FieldSettingsError,
@@ -12,6 +13,7 @@ from pd_tool.fit.fields import (
     tv_loss,
 )
 from pd_tool.fit.losses import frame_loss, ssim, ssim_map
+from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
 from pd_tool.fit.video import ReferenceVideo, load_reference_video, write_video_folder
 
 __all__ = [
@@ -23,8 +25,10 @@ __all__ = [
     "VelocityField",
     "frame_loss",
     "load_reference_video",
+    "make_optimizer",
     "ssim",
     "ssim_map",
     "tv_loss",
+    "warmup_linear_decay",
     "write_video_folder",
 ]

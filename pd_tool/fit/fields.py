@@ -99,6 +99,7 @@ class Triplane(nn.Module):
             [N, 3, C]: features from plane xy, xz, yz.
         """
         _check_positions(x)
+        x = x.to(self.planes.dtype)  # float64 positions from the simulator are fine
         # grid_sample wants coordinates in [-1, 1] with grid[..., 0] indexing the width
         # (last dim, column j) and grid[..., 1] the height (row i).
         g = 2.0 * x - 1.0

@@ -1,0 +1,94 @@
+"""Learning-rate schedule (linear warm-up, then linear decay) and the AdamW set-up for fields.
+
+The authors' stage 2 used AdamW at lr 1e-3 with warm-up and linear decay and a gradient
+clip of 1.0 (method.md). `make_optimizer` builds that for any set of fields; the returned
+optimiser and scheduler have the usual `state_dict()` / `load_state_dict()` so a fit can
+resume where it stopped.
+"""
+from __future__ import annotations
+
+from functools import partial
+from typing import Iterable
+
+import torch
+from torch import nn
+
+DEFAULT_BETAS = (0.9, 0.999)
+
+
+def warmup_linear_decay(step: int, total_steps: int, warmup_steps: int, final_factor: float = 0.0) -> float:
+    """Learning-rate multiplier at optimiser step `step` (0-based).
+
+    Warm-up: (step + 1) / warmup_steps for step < warmup_steps (so step 0 already moves and
+    step warmup_steps - 1 reaches 1). Then linear from 1 at step = warmup_steps down to
+    final_factor at step = total_steps; held at final_factor beyond.
+    """
+    if total_steps < 1:
+        raise ValueError(f"total_steps must be >= 1, got {total_steps}")
+    if not 0 <= warmup_steps <= total_steps:
+        raise ValueError(f"warmup_steps must be in [0, total_steps={total_steps}], got {warmup_steps}")
+    if not 0.0 <= final_factor <= 1.0:
+        raise ValueError(f"final_factor must be in [0, 1], got {final_factor}")
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    span = total_steps - warmup_steps
+    if span <= 0:
+        return 1.0
+    frac = min(1.0, (step - warmup_steps) / span)
+    return 1.0 - (1.0 - final_factor) * frac
+
+
+def _param_groups(modules: Iterable[nn.Module], weight_decay: float) -> list[dict]:
+    # Decay only the Linear weights. Decaying biases would pull the material field's last
+    # bias, hence log E, toward the middle of its bounds regardless of the video; decaying
+    # planes would fight the TV term's own smoothing.
+    decay, no_decay = [], []
+    for m in modules:
+        for sub in m.modules():
+            for name, p in sub.named_parameters(recurse=False):
+                if not p.requires_grad:
+                    continue
+                (decay if isinstance(sub, nn.Linear) and name == "weight" else no_decay).append(p)
+    groups = [{"params": no_decay, "weight_decay": 0.0}]
+    if decay:
+        groups.append({"params": decay, "weight_decay": weight_decay})
+    return groups
+
+
+def make_optimizer(
+    modules: nn.Module | Iterable[nn.Module],
+    lr: float,
+    total_steps: int,
+    *,
+    warmup_steps: int = 0,
+    final_factor: float = 0.0,
+    weight_decay: float = 0.0,
+    betas: tuple[float, float] = DEFAULT_BETAS,
+) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
+    """AdamW over the trainable parameters of `modules` with a warm-up + linear-decay schedule.
+
+    Call `optimizer.step()` then `scheduler.step()` once per iteration (clip gradients
+    before, e.g. torch.nn.utils.clip_grad_norm_(params, 1.0)).
+
+    Args:
+        modules: a field or several (e.g. one material field, or one velocity field per video).
+        lr: peak learning rate.
+        total_steps: iterations of this stage; warmup_steps: of those, warm-up.
+        final_factor: lr at the end as a fraction of lr.
+        weight_decay: AdamW decoupled decay, applied to Linear weights only (default 0).
+    Returns:
+        (optimizer, scheduler).
+    """
+    if isinstance(modules, nn.Module):
+        modules = [modules]
+    if not lr > 0:
+        raise ValueError(f"learning rate must be > 0, got {lr}")
+    warmup_linear_decay(0, total_steps, warmup_steps, final_factor)  # validate early
+    groups = _param_groups(list(modules), weight_decay)
+    if not any(g["params"] for g in groups):
+        raise ValueError("no trainable parameters in the given modules")
+    opt = torch.optim.AdamW(groups, lr=lr, betas=betas)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, partial(warmup_linear_decay, total_steps=total_steps, warmup_steps=warmup_steps,
+                     final_factor=final_factor))
+    return opt, sched
