@@ -92,6 +92,7 @@ class UsdBakeWriter:
         self._held_until: float | None = None
         self._unsaved = 0
         self._closed = False
+        self.warnings: list[str] = []
 
         token = f"{os.getpid()}-{secrets.token_hex(4)}"
         self._tmp = self.path.parent / f".{self.path.name}.tmp-{token}.usdc"
@@ -247,8 +248,10 @@ class UsdBakeWriter:
     def close(self, *, validate: bool = True) -> Path:
         """Finish the file and move it to `path` atomically; returns `path`.
 
-        With `validate`, `validate_usd` runs on the finished temporary file and
-        an invalid file raises UsdExportError and is deleted, never published.
+        With `validate`, `validate_usd` (all registered UsdValidation validators,
+        our checks at the first and last sample) runs on the finished temporary
+        file; an invalid file raises UsdExportError and is deleted, never published.
+        Its warnings are kept in `self.warnings`.
         """
         self._check_open()
         if self.frames_written == 0:
@@ -264,7 +267,7 @@ class UsdBakeWriter:
             self._layer = None
             if validate:
                 from .validate import validate_usd
-                self.warnings = validate_usd(src)
+                self.warnings = validate_usd(src, every_sample=False)
             os.replace(src, self.path)
         except BaseException:
             self.abort()
