@@ -217,6 +217,16 @@ def test_errors_are_one_line_with_a_fix(tmp_path):
     with pytest.raises(VideoError, match="already exists"):
         write_video_folder(both, _frames(), cam, 30.0)
 
+    two = tmp_path / "two"
+    two.mkdir()
+    _camera_json(two / "camera.json", cam)
+    _write_mp4(two / "a.mp4", _frames(), 30)
+    (two / "b.mp4").write_bytes((two / "a.mp4").read_bytes())
+    expect("2 videos.*one per folder", two)
+    (two / "a.mp4").unlink()
+    (two / "b.mp4").write_bytes(b"\x00" * 1000)
+    expect("b.mp4: cannot decode video", two)
+
 
 def test_write_is_atomic_and_overwrites(tmp_path, monkeypatch):
     folder = write_video_folder(tmp_path / "v", _frames(seed=1), _camera(), 30.0)

@@ -132,6 +132,12 @@ def _to_float_mask(img: np.ndarray, path: Path) -> np.ndarray:
     return f
 
 
+def _why(e: Exception) -> str:
+    """The first line of an exception, short: library messages can span pages."""
+    first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+    return f"{type(e).__name__}: {first[:80]}" if first else type(e).__name__
+
+
 def _imread(path: Path) -> np.ndarray:
     import imageio.v3 as iio
 
@@ -140,7 +146,7 @@ def _imread(path: Path) -> np.ndarray:
         # instead of being offered to every imageio plugin in turn
         return np.asarray(iio.imread(path, plugin="pillow"))
     except Exception as e:  # imageio raises many types for broken files
-        raise VideoError(f"{path}: cannot read image ({type(e).__name__}: {str(e)[:80]}); "
+        raise VideoError(f"{path}: cannot read image ({_why(e)}); "
                          f"re-export it as PNG or JPG") from None
 
 
@@ -218,7 +224,7 @@ def _read_video_file(path: Path, size_fn) -> tuple[list[Tensor], tuple[int, int]
     except VideoError:
         raise
     except Exception as e:
-        raise VideoError(f"{path}: cannot decode video ({type(e).__name__}: {str(e)[:80]}); "
+        raise VideoError(f"{path}: cannot decode video ({_why(e)}); "
                          f"re-encode it as H.264 .mp4 or export PNG frames") from None
     fps = meta.get("fps")
     fps = float(fps) if isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0 else None
