@@ -88,8 +88,10 @@ def _trajectories():
 def imported(tmp_path_factory):
     frames, colors = _trajectories()
     path = tmp_path_factory.mktemp("blender") / "bake.usd"
+    # flush_bytes=1: an incremental crate save after every frame, the way a large
+    # bake streams, so Blender reads a file that was appended to many times.
     with UsdBakeWriter(path, n_points=N, fps=30, start_frame=START, fmt="both",
-                       colors=colors, opacities=np.full(N, 0.8, np.float32)) as w:
+                       colors=colors, opacities=np.full(N, 0.8, np.float32), flush_bytes=1) as w:
         for f, (pos, q, s) in enumerate(frames):
             w.write_frame(START + f, pos, q, s)
         w.hold_frames(HOLD_TO)
