@@ -152,5 +152,7 @@ def test_loss_shape_errors():
         ssim(a, a, window=4)
     with pytest.raises(ValueError, match="mask"):
         frame_loss(a, a, torch.ones(4, 5))
+    with pytest.raises(ValueError, match="lam"):
+        frame_loss(a, a, lam=1.5)
     with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
         frame_loss(torch.rand(4, 4), torch.rand(4, 4))

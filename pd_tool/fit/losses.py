@@ -111,6 +111,8 @@ def frame_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None,
     Returns:
         scalar tensor, differentiable in pred (and target).
     """
+    if not 0.0 <= lam <= 1.0:
+        raise ValueError(f"lam (weight of L1) must be in [0, 1], got {lam}")
     if pred.shape != target.shape:
         raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
     if pred.dim() not in (3, 4) or pred.shape[-1] != 3:

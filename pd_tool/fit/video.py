@@ -282,7 +282,12 @@ def load_reference_video(
     state: dict = {}
 
     def size_fn(native: tuple[int, int]) -> tuple[int, int]:
-        state["native"] = native
+        # called on the first frame, so a wrong camera is reported before the rest decodes
+        w0, h0 = native
+        if abs((w0 / h0) / (cam.width / cam.height) - 1.0) > ASPECT_TOL:
+            raise VideoError(f"{folder}: frames are {w0}x{h0} (aspect {w0 / h0:.3f}) but the camera from {cam_src} "
+                             f"is {cam.width}x{cam.height} (aspect {cam.width / cam.height:.3f}); use the camera "
+                             f"the first frame was rendered with, or crop the frames to its aspect")
         state["size"] = _working_size(native, working_size, folder)
         return state["size"]
 
@@ -309,10 +314,6 @@ def load_reference_video(
                          f"(frame 0 = rest state, then the motion); add frames")
 
     w0, h0 = native
-    if abs((w0 / h0) / (cam.width / cam.height) - 1.0) > ASPECT_TOL:
-        raise VideoError(f"{folder}: frames are {w0}x{h0} (aspect {w0 / h0:.3f}) but the camera from {cam_src} is "
-                         f"{cam.width}x{cam.height} (aspect {cam.width / cam.height:.3f}); use the camera the "
-                         f"first frame was rendered with, or crop the frames to its aspect")
     size = state["size"]
 
     masks, mask_files = None, None
