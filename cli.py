@@ -337,6 +337,111 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 
 
 @main.command()
+@click.argument("scene", type=SCENE_PATH)
+@click.argument("videos", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path),
+              help="Material file to write (.pdmat). Default: SCENE's name + .pdmat beside it.")
+@click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Camera file to use instead of each video folder's camera.json.")
+@click.option("--view", help="View id or name in --camera.")
+@click.option("--fps", type=click.FloatRange(min=1e-3), help="Video frame rate. Default: camera.json's, else 30.")
+@click.option("--quality", default="default", show_default=True,
+              help="draft | default | final or a TOML file: grid, CFL safety, driver ratio, iterations.")
+@click.option("--velocity-iters", type=click.IntRange(min=0), help="Stage 1 iterations. Default: from --quality.")
+@click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
+@click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
+              help="Long side, px, that reference frames are resized to.")
+@click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e5, show_default=True,
+              help="Starting Young's modulus, Pa (uniform).")
+@click.option("--nu", type=click.FloatRange(0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
+@click.option("--density", type=click.FloatRange(min=0, min_open=True), default=1000.0, show_default=True,
+              help="Density, kg/m^3.")
+@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b behind the Gaussians.")
+@click.option("--resume", is_flag=True, help="Continue from the checkpoint an interrupted fit left beside --out.")
+@click.option("--no-preview", is_flag=True, help="Skip the side-by-side preview video.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@prepare_options_decorator
+@DEVICE_OPTION
+def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
+        fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
+        working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
+        no_preview: bool, seed: int, device: str, **prep_kw) -> None:
+    """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
+
+    Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
+    .mp4, with a camera.json (see `pdtool render --write-camera`); optional masks/ hold
+    one PNG per frame. Several folders = several views sharing one material.
+
+    Writes the material file (.pdmat), a report (.report.json), a loss plot, the E field
+    as a coloured .ply and a picture, and a side-by-side preview, and records the fit
+    so that a plain `pdtool bake --force ...` in this folder uses it.
+
+    \b
+    Example:
+      pdtool fit plant.ply video/ --quality draft
+      pdtool bake --force 0,0,1 out.usd
+    """
+    bg = parse_vector(background, "--background")
+    out = out or scene.with_suffix(".pdmat")
+    if out.suffix != ".pdmat":
+        raise click.BadParameter("must end in .pdmat", param_hint="--out")
+    with user_errors():
+        from pd_tool.device import resolve_device
+        from pd_tool.fit.outputs import write_fit_outputs
+        from pd_tool.fit.pipeline import FitSettings, run_fit
+        from pd_tool.fit.video import load_reference_video
+        from pd_tool.io import load_splats
+        from pd_tool.material_file import write_record
+        from pd_tool.presets import load_preset
+
+        load_preset("quality", quality)
+        dev = resolve_device(device)
+        view_id: str | int | None = int(view) if view is not None and view.isdigit() else view
+        refs = [load_reference_video(v, camera_path=camera, view=view_id, fps=fps, working_size=working_size,
+                                     device=dev) for v in videos]
+        splats = load_splats(scene, device=dev)
+        settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
+                               init_E=init_e, nu=nu, density=density, working_long_side=working_size,
+                               background=bg, seed=seed, device=dev)
+        opts = build_prepare_options(None, **prep_kw)
+        bar = None
+        stage_now = [""]
+
+        def progress(stage: str, it: int, total: int, loss: float) -> None:
+            nonlocal bar
+            if stage != stage_now[0]:
+                if bar is not None:
+                    bar.close()
+                bar = _tqdm(total, f"fit {stage}", "it")
+                stage_now[0] = stage
+            bar.set_postfix(loss=f"{loss:.4f}")
+            bar.update(it - bar.n)
+
+        try:
+            result = run_fit(splats, scene, refs, out, prepare_options=opts, settings=settings,
+                             progress=progress, resume=resume)
+        finally:
+            if bar is not None:
+                bar.close()
+        side = write_fit_outputs(out.parent, out.stem, splats, result, refs, settings.resolved(),
+                                 preview=not no_preview)
+        write_record(scene, out, ".")
+    import numpy as np
+
+    for line in result.report:
+        click.echo(line)
+    L = result.losses
+    first = (L["velocity"] or L["material"] or [float("nan")])[0]
+    last = (L["material"] or L["velocity"] or [float("nan")])[-1]
+    E = result.gaussian_E
+    click.echo(f"wrote {out}: {len(result.driver_E):,} drivers, E median {np.median(E):.3g} Pa "
+               f"(5%-95%: {np.percentile(E, 5):.3g}-{np.percentile(E, 95):.3g}), loss {first:.4f} -> {last:.4f}, "
+               f"{sum(result.seconds.values()):.0f} s")
+    for kind, path in side.items():
+        click.echo(f"  {kind:<12} {path}")
+
+
+@main.command()
 @click.argument("kind", required=False, type=click.Choice(["materials", "quality", "forces"]))
 def presets(kind: str | None) -> None:
     """List the shipped presets (materials, quality levels, forces).

@@ -1,0 +1,362 @@
+"""The fit: estimate E(x) (and v0(x) per video) so that simulation + rendering match the
+reference videos. PhysDreamer's two stages:
+
+1. velocity: E frozen at its initial value; optimise each video's v0 field on the first
+   `stage1_frames` frames with full back-propagation through the simulation;
+2. material: v0 frozen; optimise the shared E field over all frames, each frame simulated
+   from the detached state of the previous one (a one-frame gradient horizon).
+
+Each iteration: fields -> per-driver E, v0 -> differentiable MPM (warp, checkpointed) ->
+rigid interpolation to every Gaussian -> differentiable rasteriser -> lambda L1 + (1 -
+lambda) D-SSIM against the reference frame -> gradients into the fields.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from pd_tool.atomic import atomic_output
+from pd_tool.errors import PdToolError, VideoError
+from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene
+from pd_tool.presets import load_preset
+from pd_tool.scene import GaussianScene
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class FitSettings:
+    """Settings of a fit. Iteration counts default to the quality preset's.
+
+    Units: E in Pa, velocities in m/s, lr per optimiser step.
+    """
+
+    quality: str = "default"
+    velocity_iters: int | None = None
+    material_iters: int | None = None
+    stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
+    lr_velocity: float = 2e-2
+    lr_material: float = 5e-2
+    warmup: int = 3  # iterations of linear warm-up per stage
+    grad_clip: float = 1.0
+    tv_weight: float = 1e-4
+    loss_lambda: float = 0.1
+    init_E: float = 1e5  # Pa, the uniform starting value (and the baseline it is compared with)
+    E_min: float = 1e3  # Pa, bounds of the material field
+    E_max: float = 1e8
+    velocity_scale: float = 1.0  # m/s per unit of the velocity field's output
+    nu: float = 0.3
+    density: float = 1000.0  # kg/m^3
+    damping: float = 0.0  # 1/s
+    driver_ratio: float | None = None  # None: the quality preset's
+    working_long_side: int = 256  # px, reference frames are resized to this
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    seed: int = 0
+    device: str = "cpu"
+    checkpoint_every: int = 5  # iterations between checkpoints (bounded loss of work on a kill)
+
+    def resolved(self) -> "FitSettings":
+        q = load_preset("quality", self.quality)
+        out = FitSettings(**asdict(self))
+        if out.velocity_iters is None:
+            out.velocity_iters = int(q["fit_velocity_iters"])
+        if out.material_iters is None:
+            out.material_iters = int(q["fit_material_iters"])
+        if out.driver_ratio is None:
+            out.driver_ratio = float(q["driver_ratio"])
+        return out
+
+
+@dataclass
+class FitResult:
+    material_path: Path
+    driver_E: np.ndarray
+    driver_v0: np.ndarray  # [Q, 3] m/s, the first video's fitted initial velocity
+    gaussian_E: np.ndarray  # [F] per simulated Gaussian (its driver's E)
+    losses: dict[str, list[float]]
+    seconds: dict[str, float]
+    prep: PreparedScene
+    drivers: Any
+    report: list[str] = field(default_factory=list)
+
+
+ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
+
+
+class FitProblem:
+    """Everything one fit needs, set up once: preparation, drivers, videos, fields, sim."""
+
+    def __init__(self, scene: GaussianScene, videos: list, prep_options: PrepareOptions, settings: FitSettings) -> None:
+        from pd_tool.animate import GaussianAnimator
+        from pd_tool.drivers import build_drivers
+        from pd_tool.fit.fields import MaterialField, VelocityField
+
+        self.s = settings
+        self.device = torch.device(settings.device)
+        torch.manual_seed(settings.seed)
+        quality = load_preset("quality", settings.quality)
+        prep_options.grid_res = int(quality["grid_res"])
+        prep_options.density_kg_m3 = settings.density
+        self.cfl_safety = float(quality["cfl_safety"])
+        self.scene = scene.to(self.device)
+        self.prep = prepare_scene(self.scene, prep_options)
+        p = self.prep
+        self.drivers = build_drivers(
+            torch.as_tensor(p.positions_sim, dtype=torch.float32), torch.as_tensor(p.volumes, dtype=torch.float32),
+            torch.as_tensor(p.masses, dtype=torch.float32), torch.as_tensor(p.static), p.dx,
+            ratio=settings.driver_ratio, seed=settings.seed,
+        )
+        self.animator = GaussianAnimator(self.scene, p, self.drivers, device=self.device)
+        self.videos = videos
+        fps = {round(v.fps, 6) for v in videos}
+        if len(fps) != 1:
+            raise VideoError(f"reference videos have different frame rates {sorted(fps)}; give them one --fps")
+        self.frame_dt = videos[0].frame_dt
+        d = self.drivers
+        self.x_rest = d.positions.to(self.device, torch.float32)
+        self.static = d.static.to(self.device).bool()
+        self.volume = d.volume.to(self.device, torch.float32)
+        self.mass = d.mass.to(self.device, torch.float32)
+        # fields see positions normalised to the simulation box
+        self.x_norm = (self.x_rest / torch.as_tensor(p.domain, dtype=torch.float32, device=self.device)).clamp(0, 1)
+        self.material = MaterialField(8, math.log(settings.E_min), math.log(settings.E_max),
+                                      math.log(settings.init_E)).to(self.device)
+        self.velocities = torch.nn.ModuleList(
+            [VelocityField(24, settings.velocity_scale) for _ in videos]).to(self.device)
+
+    # ------------------------------------------------------------------ pieces
+    def driver_E(self) -> torch.Tensor:
+        return self.material.youngs_modulus(self.x_norm)
+
+    def driver_v0(self, i: int) -> torch.Tensor:
+        v = self.velocities[i](self.x_norm)
+        return v * (~self.static).float()[:, None]
+
+    def substeps(self, E: torch.Tensor, v0: torch.Tensor) -> int:
+        from pd_tool.sim.cfl import cfl_substeps, wave_speed
+
+        e = E.detach().cpu().numpy()
+        rho = (self.mass / self.volume).detach().cpu().numpy()
+        c = wave_speed(e, rho, self.s.nu)
+        vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
+        return cfl_substeps(self.frame_dt, self.prep.dx, c, vmax, self.cfl_safety)
+
+    def initial_state(self, v0: torch.Tensor):
+        from pd_tool.sim import initial_state
+
+        return initial_state(self.x_rest, v0)
+
+    def step(self, state, E: torch.Tensor, substeps: int):
+        """One video frame of simulation, differentiable in state and E."""
+        from pd_tool.sim import simulate_frame
+
+        return simulate_frame(state, E, volume=self.volume, mass=self.mass, static=self.static,
+                              config=self.sim_config(), frame_dt=self.frame_dt, substeps=substeps)
+
+    def sim_config(self):
+        from pd_tool.sim import SimConfig
+
+        return SimConfig(grid_res=max(self.prep.grid_dims), domain=self.prep.domain, nu=self.s.nu,
+                         gravity=(0.0, 0.0, 0.0), damping=self.s.damping, cfl_safety=self.cfl_safety)
+
+    def render(self, i: int, driver_positions: torch.Tensor) -> torch.Tensor:
+        from pd_tool.render import render
+
+        pos, quats = self.animator(driver_positions)
+        sc = self.scene
+        return render(pos, quats, sc.scales, sc.opacities, sc.sh, self.videos[i].camera,
+                      background=self.s.background).rgb
+
+    def frame_loss(self, i: int, k: int, image: torch.Tensor) -> torch.Tensor:
+        from pd_tool.fit.losses import frame_loss
+
+        v = self.videos[i]
+        mask = None if v.masks is None else v.masks[k]
+        return frame_loss(image, v.frames[k], mask, lam=self.s.loss_lambda)
+
+
+# ---------------------------------------------------------------------- stages
+def _clip_and_step(params, opt, sched, clip: float) -> None:
+    torch.nn.utils.clip_grad_norm_(params, clip)
+    opt.step()
+    sched.step()
+    opt.zero_grad(set_to_none=True)
+
+
+def velocity_iteration(pb: FitProblem) -> float:
+    """One stage-1 iteration over every video; returns the mean frame loss."""
+    E = pb.driver_E().detach()
+    total = 0.0
+    n = 0
+    for i, video in enumerate(pb.videos):
+        v0 = pb.driver_v0(i)
+        sub = pb.substeps(E, v0)
+        state = pb.initial_state(v0)
+        loss = torch.zeros((), device=pb.device)
+        frames = min(pb.s.stage1_frames, video.num_frames - 1)
+        for k in range(1, frames + 1):
+            state = pb.step(state, E, sub)
+            loss = loss + pb.frame_loss(i, k, pb.render(i, state[0]))
+        (loss / frames + pb.s.tv_weight * pb.velocities[i].tv()).backward()
+        total += float(loss) / frames
+        n += 1
+    return total / max(n, 1)
+
+
+def material_iteration(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
+    """One stage-2 iteration: every frame of every video from the detached previous state."""
+    E = pb.driver_E()
+    total = torch.zeros((), device=pb.device)
+    count = 0
+    for i, video in enumerate(pb.videos):
+        sub = pb.substeps(E, v0s[i])
+        state = pb.initial_state(v0s[i])
+        for k in range(1, video.num_frames):
+            state = pb.step(tuple(t.detach() for t in state), E, sub)
+            total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
+            count += 1
+    loss = total / max(count, 1)
+    (loss + pb.s.tv_weight * pb.material.tv()).backward()
+    return float(loss)
+
+
+def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses) -> None:
+    state = {
+        "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it,
+        "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
+        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "losses": losses,
+        "torch_rng": torch.get_rng_state(),
+    }
+    with atomic_output(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _load_checkpoint(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception:
+        raise PdToolError(f"{path}: unreadable fit checkpoint; delete it and fit without --resume") from None
+    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+        raise PdToolError(f"{path}: checkpoint from another pdtool version; delete it and fit without --resume")
+    return state
+
+
+def run_fit(
+    scene: GaussianScene,
+    scene_path: str | Path,
+    videos: list,
+    out: str | Path,
+    *,
+    prepare_options: PrepareOptions | None = None,
+    settings: FitSettings | None = None,
+    progress: ProgressFn | None = None,
+    resume: bool = False,
+) -> FitResult:
+    """Fit and write the material file `out` (.pdmat). A checkpoint `out`.ckpt is kept
+    while fitting (every settings.checkpoint_every iterations) and removed at the end;
+    resume=True continues from it."""
+    from pd_tool.fit.schedule import make_optimizer
+    from pd_tool.material_file import MaterialFile, scene_fingerprint
+
+    s = (settings or FitSettings()).resolved()
+    out = Path(out)
+    ckpt_path = out.with_name(out.name + ".ckpt")
+    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
+    losses: dict[str, list[float]] = {"velocity": [], "material": []}
+    seconds: dict[str, float] = {}
+    ckpt = _load_checkpoint(ckpt_path) if resume else None
+    if ckpt is not None:
+        pb.material.load_state_dict(ckpt["material"])
+        pb.velocities.load_state_dict(ckpt["velocities"])
+        losses = ckpt["losses"]
+        torch.set_rng_state(ckpt["torch_rng"])
+
+    # ---- stage 1: initial velocity per video, E frozen
+    t0 = time.perf_counter()
+    start = 0
+    opt, sched = make_optimizer(list(pb.velocities), s.lr_velocity, max(s.velocity_iters, 1),
+                                warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
+    if ckpt is not None:
+        if ckpt["stage"] == "velocity":
+            opt.load_state_dict(ckpt["optimizer"])
+            sched.load_state_dict(ckpt["scheduler"])
+            start = ckpt["iteration"]
+        else:
+            start = s.velocity_iters
+    for it in range(start, s.velocity_iters):
+        loss = velocity_iteration(pb)
+        _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
+        losses["velocity"].append(loss)
+        if progress:
+            progress("velocity", it + 1, s.velocity_iters, loss)
+        if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
+            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses)
+    seconds["velocity"] = time.perf_counter() - t0
+
+    # ---- stage 2: material, v0 frozen
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
+    opt, sched = make_optimizer(pb.material, s.lr_material, max(s.material_iters, 1),
+                                warmup_steps=min(s.warmup, max(s.material_iters, 1)))
+    start = 0
+    if ckpt is not None and ckpt["stage"] == "material":
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        start = ckpt["iteration"]
+    for it in range(start, s.material_iters):
+        if it == 0 and start == 0:
+            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses)
+        loss = material_iteration(pb, v0s)
+        _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip)
+        losses["material"].append(loss)
+        if progress:
+            progress("material", it + 1, s.material_iters, loss)
+        if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
+            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses)
+    seconds["material"] = time.perf_counter() - t0
+
+    # ---- result
+    with torch.no_grad():
+        driver_E = pb.driver_E().double().cpu().numpy()
+        v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
+    labels = pb.drivers.labels.cpu().numpy()
+    p = pb.prep
+    meta: dict[str, Any] = {
+        "scene_sha256": scene_fingerprint(scene_path),
+        "scene_path": str(Path(scene_path).resolve()),
+        "prepare": p.options.to_dict(),
+        "transform": p.transform.to_dict(),
+        "nu": s.nu, "density": s.density, "damping": s.damping,
+        "drivers": {"count": int(len(driver_E)), "ratio": s.driver_ratio, "seed": s.seed},
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
+        "videos": [str(v.folder) for v in videos],
+        "metrics": {
+            "loss_velocity_first": losses["velocity"][0] if losses["velocity"] else None,
+            "loss_velocity_last": losses["velocity"][-1] if losses["velocity"] else None,
+            "loss_material_first": losses["material"][0] if losses["material"] else None,
+            "loss_material_last": losses["material"][-1] if losses["material"] else None,
+            "seconds": seconds,
+        },
+        "fields": {"material": pb.material.config(),
+                   **{f"velocity{i}": v.config() for i, v in enumerate(pb.velocities)}},
+    }
+    fields = {"material": {k: v.detach().cpu().numpy() for k, v in pb.material.state_dict().items()}}
+    for i, v in enumerate(pb.velocities):
+        fields[f"velocity{i}"] = {k: t.detach().cpu().numpy() for k, t in v.state_dict().items()}
+    mf = MaterialFile(driver_E=driver_E, driver_v0=v0_mean,
+                      driver_rest=p.transform.to_scene(pb.x_rest.double().cpu().numpy()), meta=meta, fields=fields)
+    mf.save(out)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
+                     gaussian_E=driver_E[labels], losses=losses,
+                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report))
