@@ -10,6 +10,8 @@ from pd_tool.fit.fields import (
     Triplane,
     TriplaneField,
     VelocityField,
+    field_arrays,
+    load_field,
     tv_loss,
 )
 from pd_tool.fit.losses import frame_loss, ssim, ssim_map
@@ -23,7 +25,9 @@ __all__ = [
     "Triplane",
     "TriplaneField",
     "VelocityField",
+    "field_arrays",
     "frame_loss",
+    "load_field",
     "load_reference_video",
     "make_optimizer",
     "ssim",

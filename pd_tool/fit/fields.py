@@ -17,18 +17,20 @@ Conventions of this module:
   finite-difference gradient checks and Adam see no kinks.
 - Every field is an `nn.Module`; its `state_dict()` holds all weights, and
   `config()` / `from_config()` give the constructor arguments, so a field can be saved in
-  a material file and rebuilt exactly.
+  a material file and rebuilt exactly (`field_arrays` / `load_field` do both for the
+  .pdmat's `field.<name>.<param>` float32 arrays).
 """
 from __future__ import annotations
 
 import math
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pd_tool.errors import PdToolError
+from pd_tool.errors import MaterialFileError, PdToolError
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: which coordinates index each plane
 PLANE_NAMES = ("xy", "xz", "yz")
@@ -271,3 +273,32 @@ class VelocityField(nn.Module):
         """A field with cfg's shape (its weights still to be loaded with load_state_dict)."""
         c = {k: v for k, v in cfg.items() if k != "kind"}
         return cls(c.pop("resolution"), c.pop("scale"), **c)
+
+
+FIELD_KINDS = {"material": MaterialField, "velocity": VelocityField}
+
+
+def field_arrays(field: nn.Module) -> dict[str, np.ndarray]:
+    """A field's weights as float32 numpy arrays keyed by state_dict name (for the .pdmat
+    file's `field.<name>.<param>` entries; float32 is the fields' own dtype, so exact)."""
+    return {k: v.detach().to("cpu", torch.float32).numpy().copy() for k, v in field.state_dict().items()}
+
+
+def load_field(config: dict[str, Any], arrays: dict[str, Any], device: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild a field saved as `field.config()` + `field_arrays(field)`.
+
+    Raises MaterialFileError (one line) when the kind is unknown or the arrays do not fit
+    the config (a corrupt or hand-edited material file).
+    """
+    cls = FIELD_KINDS.get(config.get("kind")) if isinstance(config, dict) else None
+    if cls is None:
+        raise MaterialFileError(f"unknown field kind {config.get('kind') if isinstance(config, dict) else config!r}; "
+                                f"expected one of {sorted(FIELD_KINDS)}: the material file is corrupt or newer than this pdtool")
+    try:
+        field = cls.from_config(config)
+        field.load_state_dict({k: torch.as_tensor(v, dtype=torch.float32) for k, v in arrays.items()})
+    except (KeyError, TypeError, RuntimeError, PdToolError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise MaterialFileError(f"{config['kind']} field weights do not match its settings ({first[:100]}); "
+                                f"the material file is corrupt: run `pdtool fit` again") from None
+    return field.to(device)
