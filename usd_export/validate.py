@@ -173,10 +173,12 @@ def check_instancer(prim: Usd.Prim, every_sample: bool = True) -> list[str]:
         if pos is None:
             errs.append(f"{name}.positions missing at time {t}")
             continue
-        ori = _arr(ori_a, t)
+        ori, sc = _arr(ori_a, t), _arr(sc_a, t)
         errs += _check_common(name, t, {"positions": pos, "orientations": ori,
-                                        "scales": _arr(sc_a, t)}, n, _arr(ext_a, t), pos)
+                                        "scales": sc}, n, _arr(ext_a, t), pos)
         errs += _check_quats(name, t, ori, "quath")
+        if sc is not None and len(sc) and not (sc > 0).all():
+            errs.append(f"{name}.scales not positive at time {t}")
     return errs
 
 
