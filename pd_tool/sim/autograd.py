@@ -1,0 +1,253 @@
+"""torch.autograd bridge over the warp MPM: one frame per Function, checkpoint-and-recompute.
+
+Forward runs a frame's substeps without a tape, in place, and saves only the frame's input
+state. Backward recomputes the frame from that state, keeping one checkpoint every
+`config.segment` substeps, then replays each segment in reverse under a wp.Tape with a
+separate array per substep (warp's adjoints read the arrays' current values, so in-place
+updates under a tape would silently give wrong gradients). Peak memory is therefore the
+frame-boundary states plus one segment's tape, whatever the number of frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from pd_tool.sim import kernels as K
+from pd_tool.sim.guard import check_stats
+from pd_tool.sim.solver import (
+    Force,
+    ForceArrays,
+    GridArrays,
+    GridGeometry,
+    Materials,
+    ParticleState,
+    SimConfig,
+    SimConfigError,
+    SubstepContext,
+    fixed_nodes,
+    launch_substep,
+    sort_by_cell,
+)
+
+State = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _wp_device(t: torch.Tensor) -> str:
+    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
+
+
+def _vec3(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t.detach().contiguous(), dtype=wp.vec3)
+
+
+def _mat33(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t.detach().contiguous(), dtype=wp.mat33)
+
+
+def _copy(t: torch.Tensor, dtype, requires_grad: bool = False) -> wp.array:
+    a = wp.clone(wp.from_torch(t.detach().contiguous(), dtype=dtype))
+    a.requires_grad = requires_grad
+    return a
+
+
+def _stream_scope(device: str):
+    # Launch on torch's current stream so that torch and warp work is ordered on CUDA.
+    if device.startswith("cuda"):
+        return wp.ScopedStream(wp.stream_from_torch(torch.device(device)))
+    return wp.ScopedDevice(device)
+
+
+def initial_state(x: torch.Tensor, v: torch.Tensor | None = None) -> State:
+    """(x, v, C, F) at rest: C = 0, F = I; x [N, 3] m, v [N, 3] m/s (default 0), float32."""
+    n = x.shape[0]
+    v = torch.zeros_like(x) if v is None else v
+    C = torch.zeros(n, 3, 3, dtype=x.dtype, device=x.device)
+    F = torch.eye(3, dtype=x.dtype, device=x.device).expand(n, 3, 3).contiguous()
+    return x, v, C, F
+
+
+class DiffSim:
+    """Differentiable MPM for a fixed particle set (the fit's simulation).
+
+    Args:
+        volume: [N] m^3.  mass: [N] kg.  static: [N] bool (Dirichlet particles).
+        config: SimConfig (grid, gravity, nu, walls; `segment` = substeps per tape).
+        device: torch device of every tensor passed later ("cpu" or "cuda").
+    """
+
+    def __init__(self, volume, mass, static, config: SimConfig | None = None, device: str = "cpu") -> None:
+        cfg = config or SimConfig()
+        cfg.validate()
+        wp.init()
+        self.config = cfg
+        self.geo = GridGeometry.from_config(cfg)
+        self.torch_device = torch.device(device)
+        self.device = _wp_device(torch.empty(0, device=self.torch_device))
+        vol = torch.as_tensor(np.asarray(volume, np.float32), device=self.torch_device)
+        m = torch.as_tensor(np.asarray(mass, np.float32), device=self.torch_device)
+        st = torch.as_tensor(np.asarray(static).astype(np.int32), device=self.torch_device)
+        self.n = vol.shape[0]
+        if m.shape != (self.n,) or st.shape != (self.n,):
+            raise SimConfigError(f"volume, mass, static must all have shape ({self.n},)")
+        self._vol, self._mass, self._static = vol, m, st  # keep torch owners alive
+        self.volume = wp.from_torch(vol)
+        self.mass = wp.from_torch(m)
+        self.static = wp.from_torch(st, dtype=wp.int32)
+
+    def forces(self, forces: Sequence[Force]) -> ForceArrays:
+        return ForceArrays.build(list(forces), self.n, self.device)
+
+    def frame(self, state: State, E: torch.Tensor, frame_dt: float, substeps: int,
+              forces: Sequence[Force] | ForceArrays = (), t0: float = 0.0, frame_index: int = 0) -> State:
+        """Advance (x, v, C, F) by one frame; differentiable in x, v, C, F and E.
+
+        Args:
+            state: x [N, 3] m, v [N, 3] m/s, C [N, 3, 3] 1/s, F [N, 3, 3]; float32.
+            E: [N] Young's modulus, Pa, float32 (any torch graph may produce it).
+            frame_dt: s.  substeps: substeps in this frame.
+            forces: accelerations with windows in absolute time (t0 = frame start, s).
+        Returns:
+            the new (x, v, C, F).
+        """
+        fa = forces if isinstance(forces, ForceArrays) else self.forces(forces)
+        x, v, C, F = state
+        return _FrameFunction.apply(x, v, C, F, E, self, float(frame_dt), int(substeps), fa,
+                                    float(t0), int(frame_index))
+
+    # ------------------------------------------------------------------ internals
+    def _grid_cache(self) -> GridArrays:
+        # One untaped grid, reused by every substep run without a tape.
+        g = getattr(self, "_grid", None)
+        if g is None:
+            g = self._grid = GridArrays.alloc(self.geo, self.device)
+        return g
+
+    def _context(self, base: wp.array, E: wp.array, order: wp.array, fixed: wp.array,
+                 forces: ForceArrays, t0: float) -> SubstepContext:
+        t_frame = wp.array([t0], dtype=float, device=self.device)
+        stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
+        mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
+        return SubstepContext(geo=self.geo, cfg=self.config, order=order, base=base, mat=mat,
+                              fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
+                              device=self.device)
+
+    def _order_fixed(self, base: wp.array) -> tuple[wp.array, wp.array]:
+        zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
+        keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
+        values = wp.zeros(2 * self.n, dtype=int, device=self.device)
+        sort_by_cell(self.geo, base, zero_u, keys, values, self.device)
+        return values[: self.n], fixed_nodes(self.geo, base, zero_u, self.static, self.device)
+
+
+class _FrameFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index):
+        dev = sim.device
+        dt = frame_dt / substeps
+        x_out = torch.empty_like(x)
+        v_out, C_out, F_out = (t.detach().clone().contiguous() for t in (v, C, F))
+        with _stream_scope(dev):
+            base = _vec3(x)
+            order, fixed = sim._order_fixed(base)
+            sctx = sim._context(base, wp.from_torch(E.detach().contiguous()), order, fixed, forces, t0)
+            st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+            for s in range(substeps):
+                launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
+            wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, _vec3(x_out)])
+            stats = sctx.stats.numpy()  # one sync per frame for the guard
+        check_stats(stats, frame_index, t0 + frame_dt, substeps)
+        ctx.save_for_backward(x, v, C, F, E)
+        ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
+        return x_out, v_out, C_out, F_out
+
+    @staticmethod
+    def backward(ctx, gx, gv, gC, gF):
+        x, v, C, F, E = ctx.saved_tensors
+        sim: DiffSim = ctx.sim
+        dev, n, n_sub = sim.device, sim.n, ctx.substeps
+        dt = ctx.frame_dt / n_sub
+        seg = max(1, int(sim.config.segment))
+        gx, gv, gC, gF = (torch.zeros_like(t) if g is None else g.contiguous()
+                          for g, t in ((gx, x), (gv, v), (gC, C), (gF, F)))
+        with _stream_scope(dev):
+            base = _copy(x, wp.vec3, requires_grad=True)
+            E_w = _copy(E, wp.float32, requires_grad=True)
+            order, fixed = sim._order_fixed(base)
+            sctx = sim._context(base, E_w, order, fixed, ctx.forces, ctx.t0)
+            # 1. recompute without a tape, keeping a checkpoint at every segment start
+            st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=dev), _copy(v, wp.vec3),
+                               _copy(C, wp.mat33), _copy(F, wp.mat33))
+            starts = list(range(0, n_sub, seg))
+            ckpts = {}
+            for s in range(n_sub):
+                if s in starts:
+                    ckpts[s] = st.clone()
+                launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
+            del st
+            # 2. replay segments in reverse under a tape, one array set per substep
+            adj = [_vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF)]  # x_out = base + u: du = gx
+            for k0 in reversed(starts):
+                k1 = min(k0 + seg, n_sub)
+                states = [ckpts.pop(k0).clone(requires_grad=True)]
+                states += [ParticleState.zeros(n, dev, requires_grad=True) for _ in range(k1 - k0)]
+                grids = [GridArrays.alloc(sim.geo, dev, requires_grad=True) for _ in range(k1 - k0)]
+                tape = wp.Tape()
+                with tape:
+                    for i in range(k1 - k0):
+                        launch_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i])
+                last, first = states[-1], states[0]
+                tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.F: adj[3]})
+                adj = [wp.clone(first.u.grad), wp.clone(first.v.grad), wp.clone(first.C.grad), wp.clone(first.F.grad)]
+                del tape, states, grids
+            grad_x = wp.to_torch(base.grad).clone() + gx
+            grad_v = wp.to_torch(adj[1]).clone()
+            grad_C = wp.to_torch(adj[2]).clone()
+            grad_F = wp.to_torch(adj[3]).clone()
+            grad_E = wp.to_torch(E_w.grad).clone()
+        return grad_x, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
+
+
+def simulate_frame(state: State, E: torch.Tensor, static, volume, mass, config: SimConfig,
+                   frame_dt: float, substeps: int, forces: Sequence[Force] = (), t0: float = 0.0) -> State:
+    """One differentiable frame (functional form of DiffSim.frame; builds a DiffSim per call)."""
+    sim = DiffSim(volume, mass, static, config, device=str(state[0].device))
+    return sim.frame(state, E, frame_dt, substeps, forces, t0)
+
+
+def simulate_frames(sim: DiffSim, state: State, E: torch.Tensor, frame_dt: float, substeps: int,
+                    n_frames: int, horizon: int | None = None, forces: Sequence[Force] = (),
+                    t0: float = 0.0) -> list[State]:
+    """Simulate n_frames; returns the state after each frame (list of n_frames tuples).
+
+    horizon: None = full back-propagation through time. k = the state is detached at every
+    k-th frame boundary, so a frame's loss reaches back at most k frames through the state
+    (E keeps its gradient from every frame). horizon=1 is the paper's material stage.
+    """
+    if horizon is not None and horizon < 1:
+        raise SimConfigError(f"horizon={horizon}: must be >= 1 frames or None (full BPTT)")
+    fa = sim.forces(forces)
+    out = []
+    for f in range(n_frames):
+        if horizon is not None and f > 0 and f % horizon == 0:
+            state = tuple(t.detach() for t in state)
+        state = sim.frame(state, E, frame_dt, substeps, fa, t0 + f * frame_dt, frame_index=f)
+        out.append(state)
+    return out
+
+
+def cfl_substeps_for(E: torch.Tensor, sim: DiffSim, frame_dt: float, vmax: float = 0.0) -> int:
+    """CFL substeps per frame for the current E (stiffest moving particle)."""
+    from pd_tool.sim.cfl import cfl_substeps, wave_speed
+
+    moving = ~(sim._static.bool())
+    Em = E.detach()[moving] if bool(moving.any()) else E.detach()
+    rho = (sim._mass / sim._vol)[moving] if bool(moving.any()) else sim._mass / sim._vol
+    c = wave_speed(Em.cpu().numpy(), rho.cpu().numpy(), sim.config.nu)
+    return cfl_substeps(frame_dt, sim.geo.dx, c, vmax, sim.config.cfl_safety)
+
+
+__all__ = ["DiffSim", "initial_state", "simulate_frame", "simulate_frames", "cfl_substeps_for"]
