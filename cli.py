@@ -344,7 +344,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Camera file to use instead of each video folder's camera.json.")
 @click.option("--view", help="View id or name in --camera.")
-@click.option("--fps", type=click.FloatRange(min=1e-3), help="Video frame rate. Default: camera.json's, else 30.")
+@click.option("--fps", type=click.FloatRange(min=1e-3), help="Video frame rate. Default: camera.json's, else the .mp4's own, else 30.")
 @click.option("--quality", default="default", show_default=True,
               help="draft | default | final or a TOML file: grid, CFL safety, driver ratio, iterations.")
 @click.option("--velocity-iters", type=click.IntRange(min=0), help="Stage 1 iterations. Default: from --quality.")
