@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from usd_export._geom import (
-    ellipsoid_extent, ellipsoid_half_extents, normalize_quats, quat_to_rotmat, rgb_to_sh_dc,
-    sh_dc_to_rgb, sh_degree, wxyz_to_xyzw, xyzw_to_wxyz,
+    ellipsoid_extent, ellipsoid_extent_dense, ellipsoid_half_extents, normalize_quats, quat_to_rotmat, rgb_to_sh_dc,
+    sh_dc_to_rgb, sh_degree, sphere_extent, wxyz_to_xyzw, xyzw_to_wxyz,
 )
 
 RNG_SEED = 7
@@ -42,6 +42,23 @@ def test_ellipsoid_half_extents_against_dense_surface_samples():
     got = ellipsoid_half_extents(q, radii)
     assert (got >= ref - 1e-12).all()
     np.testing.assert_allclose(got, ref, rtol=2e-3)
+
+
+@pytest.mark.parametrize("spread", [0.01, 1.0, 100.0])
+def test_ellipsoid_extent_candidates_equal_dense(spread):
+    # spread: positions vs radii; at 100 the radii decide which ellipsoid is extreme
+    rng = np.random.default_rng(RNG_SEED)
+    n = 5000
+    p = (rng.normal(size=(n, 3)) * spread).astype(np.float32)
+    q = _random_quats(n, rng)
+    radii = rng.lognormal(0, 1, (n, 3)).astype(np.float32)
+    np.testing.assert_array_equal(ellipsoid_extent(p, q, radii), ellipsoid_extent_dense(p, q, radii))
+    # and the box holds every ellipsoid's densely sampled surface
+    u = rng.normal(size=(64, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    surf = p[:, None, :] + np.einsum("nij,kj->nki", quat_to_rotmat(q) * radii[:, None, :], u)
+    box = ellipsoid_extent(p, q, radii)
+    assert (surf >= box[0]).all() and (surf <= box[1]).all()
 
 
 def test_ellipsoid_extent_contains_centres_and_is_float32_outward():
@@ -84,3 +101,14 @@ def test_sh_colour_round_trip_and_degree():
     assert [sh_degree(k) for k in (1, 4, 9, 16)] == [0, 1, 2, 3]
     with pytest.raises(ValueError):
         sh_degree(5)
+
+
+def test_sphere_extent_against_dense():
+    rng = np.random.default_rng(RNG_SEED)
+    p = rng.normal(size=(1000, 3)).astype(np.float32)
+    r = rng.uniform(0, 0.3, 1000).astype(np.float32)
+    ref_lo = (p.astype(np.float64) - r[:, None]).min(0)
+    ref_hi = (p.astype(np.float64) + r[:, None]).max(0)
+    box = sphere_extent(p, r)
+    assert (box[0] <= ref_lo).all() and (box[1] >= ref_hi).all()
+    np.testing.assert_allclose(box, np.stack([ref_lo, ref_hi]), rtol=0, atol=1e-5)
