@@ -317,3 +317,24 @@ def test_not_a_usd_file(tmp_path):
     p.write_bytes(b"\x00garbage")
     with pytest.raises(UsdExportError, match="not a readable USD"):
         validate_usd(p)
+
+
+def test_import_is_lazy():
+    # pxr loads only when the writer or validator is first used (design: heavy
+    # imports on use); a subprocess sees a clean sys.modules.
+    import subprocess
+    import sys
+    code = ("import sys, usd_export; assert 'pxr' not in sys.modules; "
+            "usd_export.UsdBakeWriter; assert 'pxr' in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_dropped_writer_removes_its_temporary(tmp_path, data):
+    import gc
+    pos, quats, sig, sh, opac = data
+    w = UsdBakeWriter(tmp_path / "dropped.usd", n_points=N, fps=30)
+    w.write_frame(0, pos[0], quats[0], sig[0])
+    assert len(list(tmp_path.iterdir())) == 1  # the hidden temporary
+    del w
+    gc.collect()
+    assert list(tmp_path.iterdir()) == []

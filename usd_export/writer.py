@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +98,10 @@ class UsdBakeWriter:
         token = f"{os.getpid()}-{secrets.token_hex(4)}"
         self._tmp = self.path.parent / f".{self.path.name}.tmp-{token}.usdc"
         self._tmp_text = self.path.parent / f".{self.path.name}.tmp-{token}.usda"
+        # Last line of defence for a writer dropped without close()/abort() (no
+        # with-block, an exception in between): its temporaries go at collection
+        # or interpreter exit. After close() the file was renamed away already.
+        self._finalizer = weakref.finalize(self, _unlink_all, (self._tmp, self._tmp_text))
         if not self.path.parent.is_dir():
             raise UsdExportError(f"{self.path}: folder {self.path.parent} does not exist; "
                                  f"create it or choose another output path")
@@ -284,11 +289,7 @@ class UsdBakeWriter:
         self._remove_temporaries()
 
     def _remove_temporaries(self) -> None:
-        for p in (self._tmp, self._tmp_text):
-            try:
-                p.unlink()
-            except FileNotFoundError:
-                pass
+        _unlink_all((self._tmp, self._tmp_text))
 
     def _check_open(self) -> None:
         if self._closed:
@@ -304,6 +305,14 @@ class UsdBakeWriter:
             self.close()
         else:
             self.abort()
+
+
+def _unlink_all(paths) -> None:
+    for p in paths:
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def _np(a) -> np.ndarray:
