@@ -44,6 +44,10 @@ class GaussianAnimator:
         self.neighbors = drivers.neighbors.to(dev)
         self.scene_positions = scene.positions.to(dev)
         self.scene_quats = scene.quats.to(dev)
+        from pd_tool.drivers import DriverInterpolator
+
+        self._interp = DriverInterpolator(self.rest_points, self.rest_quats, self.drivers_rest, self.neighbors,
+                                          mode=mode)
 
     def to_scene_points(self, x_sim: torch.Tensor) -> torch.Tensor:
         """Simulation metres [M, 3] -> scene units [M, 3] (torch, differentiable)."""
@@ -52,11 +56,8 @@ class GaussianAnimator:
     def __call__(self, drivers_now: torch.Tensor | np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Scene positions [N, 3] and quaternions [N, 4] (w, x, y, z) for drivers at
         `drivers_now` [Q, 3] (metres, simulation box)."""
-        from pd_tool.drivers import interpolate
-
         d = torch.as_tensor(drivers_now, dtype=torch.float32, device=self.device)
-        pts, quats = interpolate(self.rest_points, self.rest_quats, self.drivers_rest, d, self.neighbors,
-                                 mode=self.mode)[:2]
+        pts, quats = self._interp(d)[:2]
         q_scene = quat_multiply(self._q_scene.expand_as(quats), quats)
         positions = self.scene_positions.index_put((self.fg,), self.to_scene_points(pts))
         orientations = self.scene_quats.index_put((self.fg,), q_scene)

@@ -129,6 +129,12 @@ class FitProblem:
                                       math.log(settings.init_E)).to(self.device)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(24, settings.velocity_scale) for _ in videos]).to(self.device)
+        from pd_tool.sim import DiffSim, SimConfig
+
+        cfg = SimConfig(grid_res=max(p.grid_dims), domain=p.domain, nu=settings.nu, gravity=(0.0, 0.0, 0.0),
+                        damping=settings.damping, cfl_safety=self.cfl_safety)
+        self.sim = DiffSim(self.volume.cpu().numpy(), self.mass.cpu().numpy(), self.static.cpu().numpy(), cfg,
+                           device=str(self.device))
 
     # ------------------------------------------------------------------ pieces
     def driver_E(self) -> torch.Tensor:
@@ -139,31 +145,20 @@ class FitProblem:
         return v * (~self.static).float()[:, None]
 
     def substeps(self, E: torch.Tensor, v0: torch.Tensor) -> int:
-        from pd_tool.sim.cfl import cfl_substeps, wave_speed
+        from pd_tool.sim import cfl_substeps_for
 
-        e = E.detach().cpu().numpy()
-        rho = (self.mass / self.volume).detach().cpu().numpy()
-        c = wave_speed(e, rho, self.s.nu)
         vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
-        return cfl_substeps(self.frame_dt, self.prep.dx, c, vmax, self.cfl_safety)
+        return cfl_substeps_for(E, self.sim, self.frame_dt, vmax)
 
     def initial_state(self, v0: torch.Tensor):
         from pd_tool.sim import initial_state
 
         return initial_state(self.x_rest, v0)
 
-    def step(self, state, E: torch.Tensor, substeps: int):
+    def step(self, state, E: torch.Tensor, substeps: int, frame_index: int):
         """One video frame of simulation, differentiable in state and E."""
-        from pd_tool.sim import simulate_frame
-
-        return simulate_frame(state, E, volume=self.volume, mass=self.mass, static=self.static,
-                              config=self.sim_config(), frame_dt=self.frame_dt, substeps=substeps)
-
-    def sim_config(self):
-        from pd_tool.sim import SimConfig
-
-        return SimConfig(grid_res=max(self.prep.grid_dims), domain=self.prep.domain, nu=self.s.nu,
-                         gravity=(0.0, 0.0, 0.0), damping=self.s.damping, cfl_safety=self.cfl_safety)
+        return self.sim.frame(state, E.float(), self.frame_dt, substeps, t0=(frame_index - 1) * self.frame_dt,
+                              frame_index=frame_index)
 
     def render(self, i: int, driver_positions: torch.Tensor) -> torch.Tensor:
         from pd_tool.render import render
@@ -201,7 +196,7 @@ def velocity_iteration(pb: FitProblem) -> float:
         loss = torch.zeros((), device=pb.device)
         frames = min(pb.s.stage1_frames, video.num_frames - 1)
         for k in range(1, frames + 1):
-            state = pb.step(state, E, sub)
+            state = pb.step(state, E, sub, k)
             loss = loss + pb.frame_loss(i, k, pb.render(i, state[0]))
         (loss / frames + pb.s.tv_weight * pb.velocities[i].tv()).backward()
         total += float(loss) / frames
@@ -218,7 +213,7 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
         sub = pb.substeps(E, v0s[i])
         state = pb.initial_state(v0s[i])
         for k in range(1, video.num_frames):
-            state = pb.step(tuple(t.detach() for t in state), E, sub)
+            state = pb.step(tuple(t.detach() for t in state), E, sub, k)
             total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
             count += 1
     loss = total / max(count, 1)
