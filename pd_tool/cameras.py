@@ -136,6 +136,8 @@ def _read_json(path: Path) -> Any:
         return json.loads(path.read_text(encoding="utf-8")), path
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise CameraError(f"{path}: not valid JSON ({e}); fix the file or re-export the cameras") from None
+    except RecursionError:  # json recurses per nesting level; a corrupt file can nest thousands deep
+        raise CameraError(f"{path}: JSON nested too deeply to be a camera file; fix the file or re-export the cameras") from None
 
 
 def _num(path: Path, where: str, obj: dict, key: str, default: Any = None) -> float:
