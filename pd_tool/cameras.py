@@ -173,7 +173,8 @@ def _size(path: Path, where: str, obj: dict, key: str, default: int | None = Non
     v = obj.get(key, default)
     if v is None:
         raise CameraError(f"{path}: {where} has no '{key}'; add the image {key} in pixels")
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or v <= 0:
+    # isfinite first: int(inf) raises OverflowError and int(nan) ValueError (JSON allows both)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v) or v <= 0:
         raise CameraError(f"{path}: {where} '{key}' must be a positive integer, found {v!r}")
     return int(v)
 
@@ -211,8 +212,9 @@ def _load_nerf(path: Path, data: dict) -> list[Camera]:
         if not isinstance(f, dict) or "transform_matrix" not in f:
             raise CameraError(f"{path}: {where} has no 'transform_matrix'; add the camera-to-world 4x4")
         merged = {**data, **f}  # per-frame intrinsics override the global ones
-        w = _size(path, where, merged, "w", int(merged["width"]) if "width" in merged else None) if ("w" in merged or "width" in merged) else None
-        h = _size(path, where, merged, "h", int(merged["height"]) if "height" in merged else None) if ("h" in merged or "height" in merged) else None
+        # 'w'/'h' (nerfstudio) or 'width'/'height'; _size validates either (int() of a string or inf would raise)
+        w = _size(path, where, merged, "w" if "w" in merged else "width") if ("w" in merged or "width" in merged) else None
+        h = _size(path, where, merged, "h" if "h" in merged else "height") if ("h" in merged or "height" in merged) else None
         if w is None or h is None:
             raise CameraError(f"{path}: {where} has no image size; add 'w' and 'h' (pixels) to transforms.json (Blender exports omit them: use the rendered image size)")
         if "fl_x" in merged:
