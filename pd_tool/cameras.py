@@ -151,6 +151,23 @@ def _num(path: Path, where: str, obj: dict, key: str, default: Any = None) -> fl
     return float(v)
 
 
+def _focal(path: Path, where: str, obj: dict, key: str, default: Any = None) -> float:
+    """A focal length in pixels: finite and positive (0 divides by zero when projecting,
+    a negative one mirrors the image)."""
+    v = _num(path, where, obj, key, default)
+    if not v > 0:
+        raise CameraError(f"{path}: {where} '{key}' must be a positive focal length in pixels, found {v!r}")
+    return v
+
+
+def _fov_focal(path: Path, where: str, obj: dict, key: str, size: int) -> float:
+    """Focal length in pixels from a NeRF field of view (radians, strictly between 0 and pi)."""
+    angle = _num(path, where, obj, key)
+    if not 0.0 < angle < math.pi:
+        raise CameraError(f"{path}: {where} '{key}' = {angle!r} is not a field of view in radians (0 < angle < pi)")
+    return 0.5 * size / math.tan(0.5 * angle)
+
+
 def _matrix(path: Path, where: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         m = np.asarray(v, dtype=np.float64)
@@ -195,8 +212,8 @@ def _load_inria(path: Path, data: list) -> list[Camera]:
         if not isinstance(c, dict) or "position" not in c or "rotation" not in c:
             raise CameraError(f"{path}: {where} lacks 'position' and 'rotation'; an INRIA cameras.json entry needs id, img_name, width, height, position, rotation, fx, fy")
         w, h = _size(path, where, c, "width"), _size(path, where, c, "height")
-        fx = _num(path, where, c, "fx")
-        fy = _num(path, where, c, "fy", fx)
+        fx = _focal(path, where, c, "fx")
+        fy = _focal(path, where, c, "fy", fx)
         cams.append(Camera(w, h, fx, fy, w / 2.0, h / 2.0, _from_position_rotation(path, where, c),
                            name=str(c.get("img_name", c.get("id", i)))))
     return cams
@@ -218,15 +235,15 @@ def _load_nerf(path: Path, data: dict) -> list[Camera]:
         if w is None or h is None:
             raise CameraError(f"{path}: {where} has no image size; add 'w' and 'h' (pixels) to transforms.json (Blender exports omit them: use the rendered image size)")
         if "fl_x" in merged:
-            fx = _num(path, where, merged, "fl_x")
+            fx = _focal(path, where, merged, "fl_x")
         elif "camera_angle_x" in merged:
-            fx = 0.5 * w / math.tan(0.5 * _num(path, where, merged, "camera_angle_x"))
+            fx = _fov_focal(path, where, merged, "camera_angle_x", w)
         else:
             raise CameraError(f"{path}: {where} has neither 'fl_x' nor 'camera_angle_x'; add the focal length")
         if "fl_y" in merged:
-            fy = _num(path, where, merged, "fl_y")
+            fy = _focal(path, where, merged, "fl_y")
         elif "camera_angle_y" in merged:
-            fy = 0.5 * h / math.tan(0.5 * _num(path, where, merged, "camera_angle_y"))
+            fy = _fov_focal(path, where, merged, "camera_angle_y", h)
         else:
             fy = fx
         cx = _num(path, where, merged, "cx", w / 2.0)
@@ -244,8 +261,8 @@ def _load_pdtool(path: Path, obj: dict, where: str) -> Camera:
     if version != CAMERA_JSON_VERSION:
         raise CameraError(f"{path}: {where} has camera.json version {version!r}, this pdtool reads version {CAMERA_JSON_VERSION}; upgrade pdtool or rewrite the file")
     w, h = _size(path, where, obj, "width"), _size(path, where, obj, "height")
-    fx = _num(path, where, obj, "fx")
-    fy = _num(path, where, obj, "fy", fx)
+    fx = _focal(path, where, obj, "fx")
+    fy = _focal(path, where, obj, "fy", fx)
     cx = _num(path, where, obj, "cx", w / 2.0)
     cy = _num(path, where, obj, "cy", h / 2.0)
     if "world_to_camera" in obj:

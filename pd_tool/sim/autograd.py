@@ -158,7 +158,7 @@ class _FrameFunction(torch.autograd.Function):
             for s in range(substeps):
                 launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
             wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, _vec3(x_out)])
-            stats = sctx.stats.numpy()  # one sync per frame for the guard
+            stats = sctx.stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0

@@ -396,7 +396,7 @@ class MPMSolver:
         else:
             self._run_substeps(n, dt)
         wp.launch(K.frame_stats, dim=self.n, device=d, inputs=[self.state.v, self.mat.mass, self._stats])
-        stats = self._stats.numpy()
+        stats = self._stats.numpy().copy()  # on CPU numpy() is a view: copy before zeroing
         self._stats.zero_()
         self.time += frame_dt
         self.frame += 1
