@@ -16,8 +16,11 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
+import struct
 import time
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -72,52 +75,76 @@ class MaterialFile:
 
     @classmethod
     def load(cls, path: str | Path) -> "MaterialFile":
+        """Read a .pdmat file. Raises MaterialFileError (one line) for anything that is not
+        a well-formed material file of this version: a corrupt zip, arrays of the wrong
+        type or shape, NaN/inf, header values out of range."""
         path = Path(path)
         if not path.is_file():
             raise MaterialFileError(f"{path}: no such material file; run `pdtool fit` first or pass --preset")
+        data = _read_npz(path)
+        meta_arr = data.pop("meta", None)
+        if meta_arr is None or meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
+            raise MaterialFileError(f"{path}: material file has no readable header; run `pdtool fit` again")
         try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
-            raise MaterialFileError(f"{path}: not a pdtool material file ({type(e).__name__}); run `pdtool fit` again") from None
-        try:
-            meta = json.loads(bytes(data.pop("meta")).decode("utf-8"))
-        except (KeyError, UnicodeDecodeError, json.JSONDecodeError, TypeError):
+            meta = json.loads(meta_arr.tobytes().decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
             raise MaterialFileError(f"{path}: material file has no readable header; run `pdtool fit` again") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise MaterialFileError(f"{path}: not a pdtool material file; run `pdtool fit` again")
         if meta.get("version") != VERSION:
             raise MaterialFileError(
-                f"{path}: material file version {meta.get('version')} is not supported by this pdtool "
+                f"{path}: material file version {meta.get('version')!r:.40} is not supported by this pdtool "
                 f"(reads version {VERSION}); fit again or update pdtool"
             )
+        _check_meta(path, meta)
         try:
             E, v0, rest = data.pop("driver_E"), data.pop("driver_v0"), data.pop("driver_rest")
         except KeyError as e:
             raise MaterialFileError(f"{path}: material file lacks {e}; run `pdtool fit` again") from None
-        q = len(E)
-        if E.shape != (q,) or v0.shape != (q, 3) or rest.shape != (q, 3) or q == 0:
+        if not all(a.dtype.kind in "iuf" for a in (E, v0, rest)):
+            raise MaterialFileError(f"{path}: material arrays are not real numbers; the file is corrupt")
+        q = len(E) if E.ndim == 1 else -1
+        if q < 1 or v0.shape != (q, 3) or rest.shape != (q, 3):
             raise MaterialFileError(f"{path}: material arrays disagree in shape; the file is corrupt")
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow to inf is refused below
+            # the dtypes save() writes (a no-op for pdtool's own files)
+            E, v0, rest = E.astype(np.float64), v0.astype(np.float32), rest.astype(np.float64)
         if not (np.isfinite(E).all() and (E > 0).all() and np.isfinite(v0).all() and np.isfinite(rest).all()):
             raise MaterialFileError(f"{path}: material holds NaN/inf or non-positive E; the file is corrupt")
         fields: dict[str, dict[str, np.ndarray]] = {}
         for key, arr in data.items():
             parts = key.split(".", 2)
             if len(parts) == 3 and parts[0] == "field":
+                if arr.dtype.kind not in "iuf":
+                    raise MaterialFileError(f"{path}: {key} is not an array of real numbers; the file is corrupt")
+                with np.errstate(over="ignore", invalid="ignore"):
+                    arr = arr.astype(np.float32)  # the fields' own dtype (save() writes float32)
+                if not np.isfinite(arr).all():
+                    raise MaterialFileError(f"{path}: {key} holds NaN/inf; the file is corrupt, run `pdtool fit` again")
                 fields.setdefault(parts[1], {})[parts[2]] = arr
         return cls(driver_E=E, driver_v0=v0, driver_rest=rest, meta=meta, fields=fields)
 
+    def _header_number(self, key: str, default: float | None = None) -> float:
+        if key not in self.meta and default is not None:
+            return default
+        if key not in self.meta:
+            raise MaterialFileError(f"material file has no '{key}' in its header; run `pdtool fit` again")
+        return float(self.meta[key])
+
     @property
     def nu(self) -> float:
-        return float(self.meta["nu"])
+        """Poisson's ratio (MaterialFileError when the header lacks it)."""
+        return self._header_number("nu")
 
     @property
     def density(self) -> float:
-        return float(self.meta["density"])
+        """Density, kg/m^3 (MaterialFileError when the header lacks it)."""
+        return self._header_number("density")
 
     @property
     def damping(self) -> float:
-        return float(self.meta.get("damping", 0.0))
+        """Damping, 1/s (0 when the header lacks it)."""
+        return self._header_number("damping", 0.0)
 
     def E_at(self, points_scene: np.ndarray) -> np.ndarray:
         """Young's modulus [M] (Pa) at points [M, 3] in scene units: the value of the
@@ -139,6 +166,74 @@ class MaterialFile:
                 f"{material_path}: was fitted to {self.meta.get('scene_path', 'another scene')}, not to {scene_path} "
                 f"(fingerprints differ); pass the scene it was fitted to, or fit this one"
             )
+
+
+
+# Header values a bake reads, checked when present: (low, high, high is exclusive).
+_META_RANGES = {"nu": (0.0, 0.5, True), "density": (0.0, math.inf, True), "damping": (0.0, math.inf, False)}
+_META_TYPES = {"scene_path": str, "scene_sha256": str, "prepare": dict, "transform": dict, "fields": dict}
+# A deflate stream expands at most ~1032:1; a member claiming more is corrupt (or a zip bomb).
+_MAX_DEFLATE_RATIO = 1100
+
+
+def _check_meta(path: Path, meta: dict[str, Any]) -> None:
+    """Refuse header values of the wrong type or out of range (a hand-edited or corrupt file)."""
+    for key, (lo, hi, hi_open) in _META_RANGES.items():
+        if key not in meta:
+            continue
+        v = meta[key]
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= lo
+        ok = ok and (v < hi if hi_open else v <= hi) and (v > 0 if key == "density" else True)
+        if not ok:
+            raise MaterialFileError(f"{path}: header '{key}' = {v!r:.40} is not a valid value; the file is corrupt, "
+                                    f"run `pdtool fit` again")
+    for key, typ in _META_TYPES.items():
+        if key in meta and not isinstance(meta[key], typ):
+            raise MaterialFileError(f"{path}: header '{key}' is not a {typ.__name__}; the file is corrupt, "
+                                    f"run `pdtool fit` again")
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every .npy member of an .npz, without pickles. Each member's header is checked
+    against the member's size before reading, so a corrupt header cannot make numpy
+    allocate terabytes; every zip/npy failure becomes one MaterialFileError line."""
+    bad = f"{path}: not a pdtool material file"
+    try:
+        with zipfile.ZipFile(path) as zf:
+            out: dict[str, np.ndarray] = {}
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue  # np.savez writes only .npy members; anything else is not ours
+                if info.compress_type == zipfile.ZIP_STORED:
+                    limit = info.compress_size
+                else:
+                    limit = _MAX_DEFLATE_RATIO * info.compress_size + 1024
+                if info.file_size > limit:
+                    raise MaterialFileError(f"{bad} (member {info.filename} claims {info.file_size} bytes); "
+                                            f"run `pdtool fit` again")
+                with zf.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                    elif version == (2, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+                    else:
+                        raise MaterialFileError(f"{bad} (.npy format {version}); run `pdtool fit` again")
+                    if dtype.hasobject:
+                        raise MaterialFileError(f"{bad} ({info.filename} holds Python objects); run `pdtool fit` again")
+                    if dtype.itemsize * math.prod(shape) > info.file_size:
+                        raise MaterialFileError(f"{bad} ({info.filename} declares shape {shape} but holds "
+                                                f"{info.file_size} bytes); run `pdtool fit` again")
+                with zf.open(info) as fh:
+                    out[info.filename[:-4]] = np.lib.format.read_array(fh, allow_pickle=False)
+            return out
+    except MaterialFileError:
+        raise
+    # zipfile, zlib and numpy raise many types for damaged files (BadZipFile, zlib.error,
+    # NotImplementedError for unknown compression, RuntimeError for encrypted members...)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, ValueError, OSError, EOFError, KeyError,
+            NotImplementedError, RuntimeError, struct.error, MemoryError, TypeError) as e:
+        raise MaterialFileError(f"{bad} ({type(e).__name__}); run `pdtool fit` again") from None
 
 
 def write_record(scene: str | Path, material: str | Path, workdir: str | Path = ".") -> Path:
