@@ -95,11 +95,16 @@ def imported(tmp_path_factory):
         for f, (pos, q, s) in enumerate(frames):
             w.write_frame(START + f, pos, q, s)
         w.hold_frames(HOLD_TO)
-    proc = subprocess.run([sys.executable, "-c", PROBE, str(path), ",".join(map(str, PROBE_FRAMES))],
+    return run_probe(path, PROBE_FRAMES), frames, colors
+
+
+def run_probe(path: Path, frames) -> dict:
+    """Import `path` into a fresh Blender (subprocess) and report what arrived."""
+    proc = subprocess.run([sys.executable, "-c", PROBE, str(path), ",".join(map(str, frames))],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     line = next(l for l in proc.stdout.splitlines() if l.startswith("PROBE_JSON"))
-    return json.loads(line[len("PROBE_JSON"):]), frames, colors
+    return json.loads(line[len("PROBE_JSON"):])
 
 
 def test_frame_range(imported):
@@ -140,3 +145,40 @@ def test_per_splat_colours_reach_blender(imported):
     rec = out["frames"][str(PROBE_FRAMES[0])]
     assert "displayColor" in rec["point_attributes"]
     np.testing.assert_allclose(np.array(rec["colors"]), colors, rtol=0, atol=1e-6)
+
+
+def test_pdtool_bake_output_imports(tmp_path):
+    """End to end: a real `pd_tool.bake` of the synthetic plant, imported into Blender."""
+    from pxr import Usd, UsdGeom
+
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.presets import Material
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    scene = make_plant(1500, seed=0)
+    out = tmp_path / "plant.usd"
+    res = bake(scene, out, force=ForceSpec(accel=(0.0, 0.0, 1.0)),
+               material=Material.from_preset("flower"),
+               prepare_options=PrepareOptions(static_below=POT_TOP),
+               settings=BakeSettings(seconds=0.2, fps=30, quality="draft", fmt="both",
+                                     stop_at_rest=False))
+    frames = (2, res.frames - 1)
+    probe = run_probe(out, frames)
+    assert probe["frame_range"] == [0, res.frames - 1]
+    stage = Usd.Stage.Open(str(out))
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    written = {f: np.asarray(inst.GetPositionsAttr().Get(f)) for f in frames}
+    assert np.abs(written[frames[0]] - written[frames[1]]).max() > 1e-4  # it moved
+    # Blender converts to metres on import (apply_unit_conversion_scale): the bake's
+    # metersPerUnit is the scene's scale, so world positions are samples * mpu.
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    assert mpu != 1.0  # the conversion is exercised, not trivially 1
+    for f in frames:
+        rec = probe["frames"][str(f)]
+        assert rec["instance_ids"] == list(range(scene.count))
+        np.testing.assert_allclose(np.array(rec["positions"]), written[f] * mpu, rtol=0, atol=POS_TOL)
+    colors = np.asarray(UsdGeom.Points(stage.GetPrimAtPath("/Root/SplatColors"))
+                        .GetDisplayColorPrimvar().Get())
+    np.testing.assert_allclose(np.array(probe["frames"][str(frames[0])]["colors"]), colors,
+                               rtol=0, atol=1e-6)
