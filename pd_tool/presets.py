@@ -35,6 +35,8 @@ def _parse_toml(text: str, where: str) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise PresetError(f"{where}: not valid TOML ({e}); check the file's syntax") from None
+    except RecursionError:  # tomllib recurses per nested array / inline table
+        raise PresetError(f"{where}: arrays or tables nested too deeply to be a preset; check the file") from None
 
 
 def builtin(kind: str) -> dict[str, dict[str, Any]]:
@@ -59,13 +61,18 @@ def _validate(kind: str, name: str, table: Any, where: str) -> dict[str, Any]:
                 raise PresetError(f"{where}: '{name}.{key}' must be a string")
             continue
         if isinstance(val, bool) or not isinstance(val, (int, float)):
-            raise PresetError(f"{where}: '{name}.{key}' must be a number, got {val!r}")
-        if typ is int and float(val) != int(val):
-            raise PresetError(f"{where}: '{name}.{key}' must be a whole number, got {val!r}")
-        val = typ(val)
+            raise PresetError(f"{where}: '{name}.{key}' must be a number, got {val!r:.40}")
         lo, hi = _RANGES.get(key, (-math.inf, math.inf))
-        if not (math.isfinite(val) and lo <= val <= hi):
-            raise PresetError(f"{where}: '{name}.{key}' = {val!r} is outside [{lo:g}, {hi:g}]")
+        try:
+            fval = float(val)
+        except OverflowError:  # a TOML integer beyond float range
+            fval = math.inf
+        # finite first: int(nan) / int(inf) raise ValueError / OverflowError (TOML allows nan and inf)
+        if not (math.isfinite(fval) and lo <= fval <= hi):
+            raise PresetError(f"{where}: '{name}.{key}' = {val!r:.40} is outside [{lo:g}, {hi:g}]")
+        if typ is int and fval != int(fval):
+            raise PresetError(f"{where}: '{name}.{key}' must be a whole number, got {val!r:.40}")
+        val = typ(val)
         out[key] = val
     return out
 
