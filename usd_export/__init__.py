@@ -12,9 +12,11 @@ Public API (importing `usd_export` itself does not import pxr):
         .close(validate=True) -> Path   # validate, then os.replace into place
         .abort()                        # delete temporaries, publish nothing
         context manager: close() on success, abort() on exception.
-    validate_usd(path, *, usd_validators=True) -> list[str]
+    validate_usd(path, *, usd_validators=True, every_sample=True) -> list[str]
         Every registered pxr.UsdValidation validator (errors fail, warnings are
-        returned) plus pdtool's own checks; raises UsdExportError.
+        returned) plus pdtool's own checks (array lengths agree, unit quaternions,
+        extent contains the points, stage metadata) at every time sample, or at the
+        first and last with every_sample=False; raises UsdExportError.
     UsdExportError   (pd_tool.errors; a PdToolError: the CLI exits 2)
 
 Scales: the PointInstancer's unit-sphere prototype is scaled by
@@ -30,7 +32,13 @@ Example:
             w.write_frame(f, positions[f], quats_wxyz[f], sigmas[f])
 
 On disk: a single binary crate file OUT.usd (no sidecar files; while writing,
-a hidden .OUT.usd.tmp-<pid>-<hex>.usdc sits next to it). See docs/parts/usd.md.
+a hidden .OUT.usd.tmp-<pid>-<hex>.usdc sits next to it). Memory stays bounded
+because the crate layer is saved incrementally every `flush_bytes` of samples
+(saved arrays are then read back lazily from the mapped file), not through
+value clips. Prims: /Root/Instancer (PointInstancer, unit-sphere prototype in
+/Root/Instancer/Prototypes), /Root/SplatColors (Points with displayColor: the
+only colour Blender imports), /Root/Splats (ParticleField3DGaussianSplat).
+See docs/parts/usd.md.
 """
 from __future__ import annotations
 
