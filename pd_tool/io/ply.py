@@ -115,6 +115,9 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     if not np.isfinite(scales).all():
         raise PlyFormatError(f"{path}: scale_* values overflow exp() (log-scale > 709); the file is corrupt")
 
+    with np.errstate(over="ignore"):  # exp(-logit) -> inf for logits below -709 gives opacity 0, as it should
+        opacities = 1.0 / (1.0 + np.exp(-opacity_logits))
+
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=torch.float32).to(device)
 
@@ -124,7 +127,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
         positions=t(xyz),
         quats=t(rot / norms[:, None]),
         scales=t(scales),
-        opacities=t(1.0 / (1.0 + np.exp(-opacity_logits))),
+        opacities=t(opacities),
         sh=t(sh),
         raw=np.array(data),  # own a contiguous copy independent of the PlyData object
         source=path,
