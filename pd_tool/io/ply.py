@@ -20,6 +20,7 @@ NORMAL_PROPERTIES = ("nx", "ny", "nz")
 LABEL_PROPERTY = "region"  # optional integer region label (pdtool's synthetic scenes write it)
 _REST_RE = re.compile(r"^f_rest_(\d+)$")
 _VALID_REST_COUNTS = {3 * (sh_coeff_count(d) - 1): d for d in range(4)}  # 0, 9, 24, 45
+F32_MAX = float(np.finfo(np.float32).max)  # the scene holds float32: larger values would become inf
 
 
 def _read_plydata(path: Path):
@@ -89,14 +90,15 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     else:
         sh = f_dc[:, None, :]
 
-    for label, arr, props in (
-        ("position", xyz, "x y z"),
-        ("scale", log_scales, "scale_0..2"),
-        ("rotation", rot, "rot_0..3"),
-        ("opacity", opacity_logits, "opacity"),
-        ("colour", sh, "f_dc/f_rest"),
+    for label, arr, props, limit in (
+        ("position", xyz, "x y z", F32_MAX),
+        ("scale", log_scales, "scale_0..2", np.inf),
+        ("rotation", rot, "rot_0..3", F32_MAX),  # a double beyond 1e154 would overflow the norm
+        ("opacity", opacity_logits, "opacity", np.inf),
+        ("colour", sh, "f_dc/f_rest", F32_MAX),
     ):
-        bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
+        # a double-precision PLY can hold finite values that are inf once stored as float32
+        bad = ~(np.abs(arr.reshape(len(arr), -1)) <= limit).all(axis=1)  # also true for NaN
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
             raise PlyFormatError(
@@ -112,8 +114,8 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
         )
     with np.errstate(over="ignore"):
         scales = np.exp(log_scales)
-    if not np.isfinite(scales).all():
-        raise PlyFormatError(f"{path}: scale_* values overflow exp() (log-scale > 709); the file is corrupt")
+    if not (scales <= F32_MAX).all():
+        raise PlyFormatError(f"{path}: scale_* values overflow exp() (log-scale > 88.7, beyond float32); the file is corrupt")
 
     with np.errstate(over="ignore"):  # exp(-logit) -> inf for logits below -709 gives opacity 0, as it should
         opacities = 1.0 / (1.0 + np.exp(-opacity_logits))
