@@ -168,47 +168,62 @@ class _FrameFunction(torch.autograd.Function):
     def backward(ctx, gx, gv, gC, gF):
         x, v, C, F, E = ctx.saved_tensors
         sim: DiffSim = ctx.sim
-        dev, n, n_sub = sim.device, sim.n, ctx.substeps
-        dt = ctx.frame_dt / n_sub
-        seg = max(1, int(sim.config.segment))
         gx, gv, gC, gF = (torch.zeros_like(t) if g is None else g.contiguous()
                           for g, t in ((gx, x), (gv, v), (gC, C), (gF, F)))
-        with _stream_scope(dev):
-            base = _copy(x, wp.vec3, requires_grad=True)
-            E_w = _copy(E, wp.float32, requires_grad=True)
-            order, fixed = sim._order_fixed(base)
-            sctx = sim._context(base, E_w, order, fixed, ctx.forces, ctx.t0)
-            # 1. recompute without a tape, keeping a checkpoint at every segment start
-            st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=dev), _copy(v, wp.vec3),
-                               _copy(C, wp.mat33), _copy(F, wp.mat33))
-            starts = list(range(0, n_sub, seg))
-            ckpts = {}
-            for s in range(n_sub):
-                if s in starts:
-                    ckpts[s] = st.clone()
-                launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
-            del st
-            # 2. replay segments in reverse under a tape, one array set per substep
-            adj = [_vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF)]  # x_out = base + u: du = gx
-            for k0 in reversed(starts):
-                k1 = min(k0 + seg, n_sub)
-                states = [ckpts.pop(k0).clone(requires_grad=True)]
-                states += [ParticleState.zeros(n, dev, requires_grad=True) for _ in range(k1 - k0)]
-                grids = [GridArrays.alloc(sim.geo, dev, requires_grad=True) for _ in range(k1 - k0)]
-                tape = wp.Tape()
-                with tape:
-                    for i in range(k1 - k0):
-                        launch_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i])
-                last, first = states[-1], states[0]
-                tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.F: adj[3]})
-                adj = [wp.clone(first.u.grad), wp.clone(first.v.grad), wp.clone(first.C.grad), wp.clone(first.F.grad)]
-                del tape, states, grids
-            grad_x = wp.to_torch(base.grad).clone() + gx
-            grad_v = wp.to_torch(adj[1]).clone()
-            grad_C = wp.to_torch(adj[2]).clone()
-            grad_F = wp.to_torch(adj[3]).clone()
-            grad_E = wp.to_torch(E_w.grad).clone()
-        return grad_x, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
+        with _stream_scope(sim.device):
+            grads = backward_frame(
+                sim, _copy(x, wp.vec3), _copy(v, wp.vec3), _copy(C, wp.mat33), _copy(F, wp.mat33),
+                _copy(E, wp.float32), ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps,
+                _vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
+            grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
+        return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
+
+
+def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
+                   forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
+                   gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
+    """Adjoint of one frame on warp arrays (used by the autograd bridge and the benchmark).
+
+    Inputs are the frame's start state and the cotangents of its end state (gu = cotangent
+    of the end displacement, i.e. of the end position). Returns warp arrays
+    (grad_x through the stencil and stress only, grad_v, grad_C, grad_F, grad_E); the caller
+    adds the direct term gx of x_out = x + u to grad_x. The input arrays are not modified.
+    """
+    dev, n = sim.device, sim.n
+    dt = frame_dt / substeps
+    seg = max(1, int(sim.config.segment))
+    base = wp.clone(x)
+    base.requires_grad = True
+    E_w = wp.clone(E)
+    E_w.requires_grad = True
+    order, fixed = sim._order_fixed(base)
+    sctx = sim._context(base, E_w, order, fixed, forces, t0)
+    # 1. recompute without a tape, keeping a checkpoint at every segment start
+    st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=dev), wp.clone(v), wp.clone(C), wp.clone(F))
+    starts = list(range(0, substeps, seg))
+    ckpts = {}
+    for s in range(substeps):
+        if s in starts:
+            ckpts[s] = st.clone()
+        launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
+    del st
+    # 2. replay the segments in reverse under a tape, one array set per substep
+    adj = [gu, gv, gC, gF]
+    for k0 in reversed(starts):
+        k1 = min(k0 + seg, substeps)
+        states = [ckpts.pop(k0).clone(requires_grad=True)]
+        states += [ParticleState.zeros(n, dev, requires_grad=True) for _ in range(k1 - k0)]
+        grids = [GridArrays.alloc(sim.geo, dev, requires_grad=True) for _ in range(k1 - k0)]
+        tape = wp.Tape()
+        with tape:
+            for i in range(k1 - k0):
+                launch_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i])
+        last, first = states[-1], states[0]
+        tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.F: adj[3]})
+        adj = [first.u.grad, first.v.grad, first.C.grad, first.F.grad]
+        # no tape.reset(): it would zero base.grad and E.grad, which accumulate over segments
+        del tape, states, grids
+    return base.grad, adj[1], adj[2], adj[3], E_w.grad
 
 
 def simulate_frame(state: State, E: torch.Tensor, static, volume, mass, config: SimConfig,

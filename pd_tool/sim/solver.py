@@ -253,6 +253,13 @@ def sort_by_cell(geo: GridGeometry, base: wp.array, u: wp.array, keys: wp.array,
     wp.utils.radix_sort_pairs(keys, values, n)
 
 
+def cell_order(geo: GridGeometry, x: np.ndarray) -> np.ndarray:
+    """[N] permutation that sorts particles by the cell of their stencil base (host, once)."""
+    b = np.clip(np.floor(x / geo.dx - 0.5), 0, np.array(geo.nodes) - 3).astype(np.int64)
+    key = (b[:, 0] * geo.nodes[1] + b[:, 1]) * geo.nodes[2] + b[:, 2]
+    return np.argsort(key, kind="stable")
+
+
 def fixed_nodes(geo: GridGeometry, base: wp.array, u: wp.array, static: wp.array, device) -> wp.array:
     """[nodes] int array, 1 where a static particle pins the grid velocity to zero."""
     fixed = wp.zeros(geo.nodes, dtype=int, device=device)
@@ -295,10 +302,12 @@ class MPMSolver:
         static: [N] bool, particles that never move (their nodes become Dirichlet cells).
         config: SimConfig.
         device: "cpu" or "cuda" (warp device string).
+        sorted_particles: store particles in grid-cell order (faster; False = input order,
+            the baseline of bench/sim_speed.py). Results are returned in input order.
     """
 
     def __init__(self, x0, volume, mass, E, static, config: SimConfig | None = None,
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", sorted_particles: bool = True) -> None:
         cfg = config or SimConfig()
         cfg.validate()
         x0 = np.ascontiguousarray(np.asarray(x0, np.float32))
@@ -314,23 +323,31 @@ class MPMSolver:
         self.n = x0.shape[0]
         self.time = 0.0
         self.frame = 0
-        self._c = wave_speed(E[~static] if np.any(~static) else E,
-                             (mass / volume)[~static] if np.any(~static) else mass / volume, cfg.nu)
+        moving = ~static if np.any(~static) else np.ones_like(static)
+        self._c = wave_speed(E[moving], (mass / volume)[moving], cfg.nu)
         self._vmax = 0.0
+        self._kinetic = 0.0
         self._substeps: int | None = None
         self._forces: list[Force] = []
         self._graphs: dict = {}
+        # Particles are stored sorted by grid cell of the rest shape: neighbouring threads then
+        # touch neighbouring nodes (cache-friendly atomics) and read contiguous particle data.
+        # An elastic body keeps this order coherent while it moves, so it is done once.
+        # Inputs are permuted with self._perm, outputs back with self._inv.
+        self._perm = cell_order(self.geo, x0) if sorted_particles else np.arange(self.n)
+        self._inv = np.empty_like(self._perm)
+        self._inv[self._perm] = np.arange(self.n)
+        pm = self._perm
         d = self.device
-        self._base = wp.array(x0, dtype=wp.vec3, device=d)
+        self._base = wp.array(x0[pm], dtype=wp.vec3, device=d)
         self.mat = Materials(
-            E=wp.array(E, dtype=float, device=d), volume=wp.array(volume, dtype=float, device=d),
-            mass=wp.array(mass, dtype=float, device=d), static=wp.array(static.astype(np.int32), dtype=int, device=d))
+            E=wp.array(E[pm], dtype=float, device=d), volume=wp.array(volume[pm], dtype=float, device=d),
+            mass=wp.array(mass[pm], dtype=float, device=d),
+            static=wp.array(static[pm].astype(np.int32), dtype=int, device=d))
         self.state = ParticleState.zeros(self.n, d)
         self.state.F.fill_(wp.mat33(np.eye(3, dtype=np.float32)))
         self.grid = GridArrays.alloc(self.geo, d)
-        self._keys = wp.zeros(2 * self.n, dtype=int, device=d)
-        self._values = wp.zeros(2 * self.n, dtype=int, device=d)
-        self._order = self._values[: self.n]
+        self._order = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=d)
         self._x = wp.zeros(self.n, dtype=wp.vec3, device=d)
         self._t_frame = wp.zeros(1, dtype=float, device=d)
         self._stats = wp.zeros(K.N_STATS, dtype=float, device=d)
@@ -343,12 +360,15 @@ class MPMSolver:
         v = np.asarray(v, np.float32)
         if v.shape != (self.n, 3):
             raise SimConfigError(f"set_velocity: shape {v.shape}, expected ({self.n}, 3) m/s")
-        self.state.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+        self.state.v.assign(wp.array(v[self._perm], dtype=wp.vec3, device=self.device))
         self._vmax = float(np.max(np.linalg.norm(v, axis=1))) if self.n else 0.0
 
     def add_force(self, mask, accel, t_start: float = 0.0, t_end: float = math.inf) -> None:
         """Push the particles in mask [N] bool with accel (3,) m/s^2 during [t_start, t_end) s."""
-        self._forces.append(Force(np.asarray(mask).astype(bool), tuple(accel), float(t_start), float(t_end)))
+        mask = np.asarray(mask).astype(bool)
+        if mask.shape != (self.n,):
+            raise SimConfigError(f"add_force: mask has shape {mask.shape}, expected ({self.n},) bool")
+        self._forces.append(Force(mask[self._perm], tuple(accel), float(t_start), float(t_end)))
         self._force_arrays = ForceArrays.build(self._forces, self.n, self.device)
         self._graphs.clear()  # graphs hold the old force arrays
 
@@ -382,7 +402,6 @@ class MPMSolver:
         dt = frame_dt / n
         d = self.device
         self._t_frame.fill_(self.time)
-        sort_by_cell(self.geo, self._base, self.state.u, self._keys, self._values, d)
         if d.is_cuda:
             key = (n, float(frame_dt))
             graph = self._graphs.get(key)
@@ -410,19 +429,19 @@ class MPMSolver:
         """[N, 3] float32 particle positions, m."""
         wp.launch(K.compose_positions, dim=self.n, device=self.device,
                   inputs=[self._base, self.state.u, self._x])
-        return self._x.numpy()
+        return self._x.numpy()[self._inv]
 
     def displacements(self) -> np.ndarray:
         """[N, 3] float32 displacement from the rest position, m (no rounding from x)."""
-        return self.state.u.numpy()
+        return self.state.u.numpy()[self._inv]
 
     def velocities(self) -> np.ndarray:
         """[N, 3] float32 particle velocities, m/s."""
-        return self.state.v.numpy()
+        return self.state.v.numpy()[self._inv]
 
     def deformation_gradients(self) -> np.ndarray:
         """[N, 3, 3] float32 deformation gradients F (rest = identity)."""
-        return self.state.F.numpy()
+        return self.state.F.numpy()[self._inv]
 
     def kinetic_energy(self) -> float:
         """Kinetic energy sum 0.5 m |v|^2 of the particles, J (one device sync)."""
