@@ -109,7 +109,10 @@ def plant_reference_video(
         ratio=driver_ratio, seed=seed,
     )
     labels = scene.labels[prep.foreground]
-    table = np.array([region_E[name] for name in scene.label_names], np.float64)
+    from pd_tool.synthetic import REGIONS
+
+    names = scene.label_names or REGIONS  # a plant read back from .ply keeps labels, not names
+    table = np.array([region_E[name] for name in names], np.float64)
     gaussian_E = table[labels]
     member = drivers.labels.cpu().numpy()
     q = len(drivers.positions)

@@ -41,6 +41,7 @@ class FitSettings:
     velocity_iters: int | None = None
     material_iters: int | None = None
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
+    material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
     warmup: int = 3  # iterations of linear warm-up per stage
@@ -212,8 +213,11 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
     for i, video in enumerate(pb.videos):
         sub = pb.substeps(E, v0s[i])
         state = pb.initial_state(v0s[i])
+        h = pb.s.material_horizon
         for k in range(1, video.num_frames):
-            state = pb.step(tuple(t.detach() for t in state), E, sub, k)
+            if h is not None and (k - 1) % h == 0:
+                state = tuple(t.detach() for t in state)
+            state = pb.step(state, E, sub, k)
             total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
             count += 1
     loss = total / max(count, 1)
