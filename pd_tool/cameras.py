@@ -146,9 +146,20 @@ def _num(path: Path, where: str, obj: dict, key: str, default: Any = None) -> fl
             return default
         raise CameraError(f"{path}: {where} has no '{key}'; add it (see the camera.json schema in docs)")
     v = obj[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CameraError(f"{path}: {where} '{key}' must be a finite number, found {v!r}")
+    if not _is_finite_number(v):
+        raise CameraError(f"{path}: {where} '{key}' must be a finite number, found {v!r:.40}")
     return float(v)
+
+
+def _is_finite_number(v: Any) -> bool:
+    """A JSON number that is finite as a float (an integer beyond 1e308 is not: float() and
+    math.isfinite() raise OverflowError on it)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _focal(path: Path, where: str, obj: dict, key: str, default: Any = None) -> float:
@@ -171,7 +182,7 @@ def _fov_focal(path: Path, where: str, obj: dict, key: str, size: int) -> float:
 def _matrix(path: Path, where: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         m = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
         m = None
     if m is None or m.shape != shape or not np.all(np.isfinite(m)):
         raise CameraError(f"{path}: {where} must be a finite {'x'.join(map(str, shape))} array of numbers, found {v!r:.80}")
@@ -191,8 +202,8 @@ def _size(path: Path, where: str, obj: dict, key: str, default: int | None = Non
     if v is None:
         raise CameraError(f"{path}: {where} has no '{key}'; add the image {key} in pixels")
     # isfinite first: int(inf) raises OverflowError and int(nan) ValueError (JSON allows both)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v) or v <= 0:
-        raise CameraError(f"{path}: {where} '{key}' must be a positive integer, found {v!r}")
+    if not _is_finite_number(v) or v != int(v) or v <= 0:
+        raise CameraError(f"{path}: {where} '{key}' must be a positive integer, found {v!r:.40}")
     return int(v)
 
 
