@@ -268,6 +268,8 @@ def _load_nerf(path: Path, data: dict) -> list[Camera]:
 
 
 def _load_pdtool(path: Path, obj: dict, where: str) -> Camera:
+    if not isinstance(obj, dict):  # e.g. {"cameras": [[...]]}
+        raise CameraError(f"{path}: {where} is not a JSON object; each camera is {{\"width\": ..., \"fx\": ..., \"world_to_camera\": ...}}")
     version = obj.get("version", CAMERA_JSON_VERSION)
     if version != CAMERA_JSON_VERSION:
         raise CameraError(f"{path}: {where} has camera.json version {version!r}, this pdtool reads version {CAMERA_JSON_VERSION}; upgrade pdtool or rewrite the file")
