@@ -260,6 +260,8 @@ def _load_nerf(path: Path, data: dict) -> list[Camera]:
         cx = _num(path, where, merged, "cx", w / 2.0)
         cy = _num(path, where, merged, "cy", h / 2.0)
         c2w_gl = _matrix(path, f"{where} 'transform_matrix'", f["transform_matrix"], (4, 4))
+        if not np.allclose(c2w_gl[3], [0, 0, 0, 1], atol=1e-6):  # else its inverse is not a rigid transform
+            raise CameraError(f"{path}: {where} 'transform_matrix' last row must be [0, 0, 0, 1], found {c2w_gl[3].tolist()}")
         c2w_gl[:3, :3] = _rigid(path, where, c2w_gl[:3, :3])
         w2c = np.linalg.inv(c2w_gl @ _GL_TO_CV)
         name = Path(str(f.get("file_path", f"frame_{i:04d}"))).stem
