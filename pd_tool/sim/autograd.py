@@ -135,6 +135,15 @@ class DiffSim:
                               fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
                               device=self.device)
 
+    def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
+        # count + 1 particle states and count grids with gradients, for one taped segment.
+        pool = getattr(self, "_pool", None)
+        if pool is None or len(pool[1]) < count:
+            pool = self._pool = (
+                [ParticleState.zeros(self.n, self.device, requires_grad=True) for _ in range(count + 1)],
+                [GridArrays.alloc(self.geo, self.device, requires_grad=True) for _ in range(count)])
+        return pool
+
     def _order_fixed(self, base: wp.array) -> tuple[wp.array, wp.array]:
         zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
         keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
@@ -207,23 +216,38 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
             ckpts[s] = st.clone()
         launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
     del st
-    # 2. replay the segments in reverse under a tape, one array set per substep
+    # 2. replay the segments in reverse under a tape, one array set per substep (a pool
+    #    reused by every segment and frame: allocating it per segment costs more than the
+    #    adjoint kernels on the CPU)
+    pool_states, pool_grids = sim._tape_pool(min(seg, substeps))
     adj = [gu, gv, gC, gF]
     for k0 in reversed(starts):
         k1 = min(k0 + seg, substeps)
-        states = [ckpts.pop(k0).clone(requires_grad=True)]
-        states += [ParticleState.zeros(n, dev, requires_grad=True) for _ in range(k1 - k0)]
-        grids = [GridArrays.alloc(sim.geo, dev, requires_grad=True) for _ in range(k1 - k0)]
+        states = pool_states[: k1 - k0 + 1]
+        grids = pool_grids[: k1 - k0]
+        for a in _arrays(states, grids):
+            a.grad.zero_()
+        first = states[0]
+        ck = ckpts.pop(k0)
+        for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
+            wp.copy(dst, src)
         tape = wp.Tape()
         with tape:
             for i in range(k1 - k0):
                 launch_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i])
-        last, first = states[-1], states[0]
+        last = states[-1]
         tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.F: adj[3]})
-        adj = [first.u.grad, first.v.grad, first.C.grad, first.F.grad]
+        adj = [wp.clone(first.u.grad), wp.clone(first.v.grad), wp.clone(first.C.grad), wp.clone(first.F.grad)]
         # no tape.reset(): it would zero base.grad and E.grad, which accumulate over segments
-        del tape, states, grids
+        del tape
     return base.grad, adj[1], adj[2], adj[3], E_w.grad
+
+
+def _arrays(states: list[ParticleState], grids: list[GridArrays]):
+    for st in states:
+        yield from (st.u, st.v, st.C, st.F)
+    for g in grids:
+        yield from (g.m, g.mv, g.v)
 
 
 def simulate_frame(state: State, E: torch.Tensor, static, volume, mass, config: SimConfig,

@@ -1,0 +1,169 @@
+"""MPM speed: particle-substeps per second, forward and forward+backward.
+
+Scenes: an elastic block of N particles at random positions (8 per occupied cell on
+average) given in random order, in a unit box with a res^3 grid. Variants:
+
+- baseline: the obvious implementation: particles in input (random) order, one atomic add
+  per node per particle, one launch per kernel per substep, no graph.
+- fast: MPMSolver as bake uses it: particles stored in grid-cell order once, CUDA graph of
+  a frame's substeps on GPU, guard read once per frame.
+- fwd+bwd: the differentiable path's cost per frame: the checkpointed forward plus the
+  backward (recompute and taped replay of segments), on warp arrays.
+
+    python bench/sim_speed.py --device cpu --sizes 20000:32 --json cpu.json
+    python bench/sim_speed.py --device cuda --json h100.json      # 20k/32, 100k/64, 300k/128
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pd_tool.sim import DiffSim, MPMSolver, SimConfig  # noqa: E402
+from pd_tool.sim.autograd import backward_frame  # noqa: E402
+
+DEFAULT_SIZES = "20000:32,100000:64,300000:128"
+E_PA = 1.0e5
+RHO = 1000.0
+
+
+def make_block(n: int, res: int, seed: int = 0):
+    """n particles uniformly at random in a centred cube holding ~8 particles per cell."""
+    rng = np.random.default_rng(seed)
+    side = min(0.6, (n / 8.0) ** (1.0 / 3.0) / res)
+    x = 0.5 + (rng.random((n, 3)) - 0.5) * side
+    vol = np.full(n, side**3 / n)
+    static = x[:, 2] < 0.5 - 0.45 * side  # a thin clamped layer at the bottom
+    return x.astype(np.float32), vol, vol * RHO, np.full(n, E_PA), static
+
+
+def sync(device) -> None:
+    wp.synchronize_device(device)
+
+
+def time_forward(n: int, res: int, substeps: int, frames: int, device: str, variant: str) -> float:
+    x, vol, mass, E, static = make_block(n, res)
+    cfg = SimConfig(grid_res=res, substeps=substeps, gravity=(0.0, 0.0, -9.81))
+    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, sorted_particles=(variant == "fast"))
+    frame_dt = 1e-3
+    dt = frame_dt / substeps
+    if variant == "fast":
+        sim.step_frame(frame_dt)  # compile, capture the graph
+        sync(device)
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            sim.step_frame(frame_dt)
+        sync(device)
+    else:
+        sim._run_substeps(substeps, dt)
+        sync(device)
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            sim._run_substeps(substeps, dt)
+        sync(device)
+    return n * substeps * frames / (time.perf_counter() - t0)
+
+
+def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int) -> float:
+    x, vol, mass, E, static = make_block(n, res)
+    cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment)
+    import torch
+
+    dsim = DiffSim.__new__(DiffSim)  # warp-only construction: torch tensors stay on the CPU
+    dsim.config, dsim.n = cfg, n
+    from pd_tool.sim.solver import GridGeometry
+
+    dsim.geo = GridGeometry.from_config(cfg)
+    dsim.device = device
+    dsim._vol, dsim._mass = torch.tensor(vol), torch.tensor(mass)
+    dsim.volume = wp.array(vol, dtype=float, device=device)
+    dsim.mass = wp.array(mass, dtype=float, device=device)
+    dsim.static = wp.array(static.astype(np.int32), dtype=int, device=device)
+    xw = wp.array(x, dtype=wp.vec3, device=device)
+    vw = wp.zeros(n, dtype=wp.vec3, device=device)
+    Cw = wp.zeros(n, dtype=wp.mat33, device=device)
+    Fw = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=device)
+    Ew = wp.array(E, dtype=float, device=device)
+    forces = dsim.forces([])
+    ones = wp.array(np.ones((n, 3), np.float32), dtype=wp.vec3, device=device)
+    zv = wp.zeros(n, dtype=wp.vec3, device=device)
+    zm = wp.zeros(n, dtype=wp.mat33, device=device)
+    frame_dt = 1e-3
+
+    def one_frame():
+        # forward (no tape) + backward (recompute + taped segments), as the autograd bridge does
+        order, fixed = dsim._order_fixed(xw)
+        from pd_tool.sim.solver import ParticleState, launch_substep
+
+        sctx = dsim._context(xw, Ew, order, fixed, forces, 0.0)
+        st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=device), wp.clone(vw), wp.clone(Cw), wp.clone(Fw))
+        for s in range(substeps):
+            launch_substep(sctx, frame_dt / substeps, s * frame_dt / substeps, st, st, dsim._grid_cache())
+        sctx.stats.numpy()
+        backward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, ones, zv, zm, zm)
+
+    one_frame()
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        one_frame()
+    sync(device)
+    return n * substeps * frames / (time.perf_counter() - t0)
+
+
+def hardware(device: str) -> str:
+    if device.startswith("cuda"):
+        return wp.get_device(device).name
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if "Model name" in line)
+    except Exception:
+        return platform.processor()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
+    ap.add_argument("--sizes", default=DEFAULT_SIZES, help="N:res pairs, comma separated")
+    ap.add_argument("--substeps", type=int, default=None, help="substeps per frame (default 64 cuda, 8 cpu)")
+    ap.add_argument("--frames", type=int, default=None, help="timed frames (default 10 cuda, 2 cpu)")
+    ap.add_argument("--segment", type=int, default=16, help="substeps per taped segment in backward")
+    ap.add_argument("--no-backward", action="store_true", help="forward only")
+    ap.add_argument("--json", type=Path, help="write results here")
+    args = ap.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    cuda = args.device.startswith("cuda")
+    substeps = args.substeps or (64 if cuda else 8)
+    frames = args.frames or (10 if cuda else 2)
+    rows = []
+    for item in args.sizes.split(","):
+        n, res = (int(v) for v in item.split(":"))
+        row = {"particles": n, "grid": res, "substeps_per_frame": substeps, "frames": frames}
+        row["baseline_fwd"] = time_forward(n, res, substeps, frames, args.device, "baseline")
+        row["fast_fwd"] = time_forward(n, res, substeps, frames, args.device, "fast")
+        if not args.no_backward:
+            row["fwd_bwd"] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device, args.segment)
+            row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
+        rows.append(row)
+        print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}  fast {row['fast_fwd']:.3e}"
+              + (f"  fwd+bwd {row['fwd_bwd']:.3e} (backward = {row['bwd_over_fwd']:.2f} x forward)"
+                 if "fwd_bwd" in row else "") + "  particle-substeps/s", flush=True)
+    out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",
+           "rows": rows}
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
