@@ -1265,21 +1265,61 @@ def check_target(name: str, rng: random.Random, device: str = "cpu", keep: Path 
 
 
 # ============================================================================ CLI
-def cli_check(path: Path, runner: Any = None) -> tuple[int, str, str]:
-    """`pdtool info PATH` through click's CliRunner: (exit code, stdout, stderr)."""
+def tiny_scene(path: Path) -> Path:
+    """A valid 8-Gaussian .ply for the commands that need a scene beside the fuzzed input."""
+    path.write_bytes(_ply_bytes(_ply_records(random.Random(0), 8, 0, normals=False, extra=False), "le"))
+    return path
+
+
+def cli_args(target: str, case: Case, work: Path, scene: Path) -> list[str] | None:
+    """The pdtool command line that reads this input, or None when no command reads it as
+    a plain file argument (click refuses folders given where a file is expected, with its
+    own usage text, before pdtool runs). Only inputs the loader rejects are given to the
+    commands other than `info`, so that none of them starts a real fit or bake."""
+    p = str(case.path)
+    out = work / "cli-out"
+    if target in ("ply", "splat"):
+        return ["info", p]
+    if target == "cameras" and case.path.is_file():
+        return ["render", str(scene), "-o", str(out.with_suffix(".png")), "--camera", p, "--width", "16",
+                "--height", "16", "--device", "cpu"]
+    if target == "video":
+        return ["fit", str(scene), p, "-o", str(out.with_suffix(".pdmat")), "--no-preview", "--device", "cpu"]
+    if target == "material" and case.path.is_file():
+        return ["bake", str(out.with_suffix(".usd")), "--scene", str(scene), "--material", p, "--force", "0,0,1",
+                "--device", "cpu"]
+    if target == "preset":
+        kind = case.note.split()[1]
+        opt = {"materials": ["--preset", p], "quality": ["--preset", "jelly", "--quality", p],
+               "forces": ["--preset", "jelly", "--interaction", p]}[kind]
+        return ["bake", str(out.with_suffix(".usd")), "--scene", str(scene), *opt, "--force", "0,0,1", "--device", "cpu"]
+    if target == "record":
+        return ["bake", str(out.with_suffix(".usd")), "--force", "0,0,1", "--device", "cpu"]  # run in `work`
+    return None
+
+
+def cli_run(args: list[str], cwd: Path | None = None, runner: Any = None) -> tuple[int, str, str]:
+    """`pdtool ARGS` through click's CliRunner: (exit code, stdout, stderr + any traceback)."""
     from click.testing import CliRunner
 
     from cli import main
 
     runner = runner or CliRunner()
-    res = runner.invoke(main, ["info", str(path)], catch_exceptions=True)
-    err = res.stderr if res.exception is None or isinstance(res.exception, SystemExit) else (
-        res.stderr + "".join(traceback.format_exception(res.exception)))
+    old = Path.cwd()
+    try:
+        if cwd is not None:
+            os.chdir(cwd)
+        res = runner.invoke(main, args, catch_exceptions=True)
+    finally:
+        os.chdir(old)
+    err = res.stderr
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        err += "".join(traceback.format_exception(res.exception))
     return res.exit_code, res.stdout, err
 
 
 def cli_property(code: int, out: str, err: str, loaded_ok: bool) -> str | None:
-    """None when `pdtool info` behaved: exit 0 for a good file, else exit 2 with exactly one
+    """None when pdtool behaved: exit 0 for a good file (info), else exit 2 with exactly one
     stderr line starting 'Error: ' and no traceback. Otherwise what went wrong."""
     if "Traceback" in err or "Traceback" in out:
         return f"traceback (exit {code}): {err[-500:]}"
@@ -1293,35 +1333,68 @@ def cli_property(code: int, out: str, err: str, loaded_ok: bool) -> str | None:
     return None
 
 
-def run_cli(n: int, seed: int, subprocess_n: int = 10) -> dict[str, Any]:
-    """n splat inputs through `pdtool info` (CliRunner), the first subprocess_n of them
-    also through the installed console script."""
+CLI_WEIGHTS = {"ply": 0.35, "splat": 0.1, "cameras": 0.15, "video": 0.1, "material": 0.1, "preset": 0.15, "record": 0.05}
+
+
+def cli_one(target: str, rng: random.Random, runner: Any = None, subprocess_too: bool = False) -> tuple[str | None, str]:
+    """Generate one input for `target`, run the command that reads it, check the CLI
+    property. Returns (problem or None, note); (None, note) also when no command applies."""
     import subprocess
 
+    with tempfile.TemporaryDirectory(prefix=f"pdfuzz-cli-{target}-") as d:
+        work = Path(d)
+        case = TARGETS[target](rng, work, "cpu")
+        if target == "video":  # the CLI's own settings: working size 256, fps from the files
+            from pd_tool.fit.video import load_reference_video
+
+            src = case.path
+            case = Case(lambda: load_reference_video(src, working_size=256), sane_video, src, case.note)
+        ok = run_checked(case.load, case.sanity).kind == "ok"
+        if ok and target not in ("ply", "splat"):
+            return None, case.note + " (loads: no command run)"
+        scene = tiny_scene(work / "tiny_scene.ply")
+        args = cli_args(target, case, work, scene)
+        if args is None:
+            return None, case.note + " (no command reads it)"
+        code, out, err = cli_run(args, cwd=work if target == "record" else None, runner=runner)
+        bad = cli_property(code, out, err, ok)
+        if subprocess_too and bad is None:
+            exe = Path(sys.executable).with_name("pdtool")
+            cmd = [str(exe)] if exe.exists() else [sys.executable, str(Path(__file__).resolve().parents[1] / "cli.py")]
+            proc = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=300,
+                                  cwd=work if target == "record" else None)
+            bad = cli_property(proc.returncode, proc.stdout, proc.stderr, ok)
+            if bad:
+                bad = "subprocess: " + bad
+        return bad, f"pdtool {args[0]} on {case.note}"
+
+
+def run_cli(n: int, seed: int, subprocess_n: int = 10) -> dict[str, Any]:
+    """n inputs through the commands that read them (CliRunner); every n // subprocess_n-th
+    one also through the installed console script."""
     from click.testing import CliRunner
 
-    rng = random.Random(seed + 1)
+    rng = random.Random(f"{seed}-cli")
     runner = CliRunner()
-    exe = Path(sys.executable).with_name("pdtool")
-    cmd = [str(exe)] if exe.exists() else [sys.executable, str(Path(__file__).resolve().parents[1] / "cli.py")]
-    stats = {"tried": 0, "exit0": 0, "exit2": 0, "bugs": 0, "subprocess": 0, "examples": []}
+    names = list(CLI_WEIGHTS)
+    stats: dict[str, Any] = {"tried": 0, "commands_run": 0, "subprocess": 0, "bugs": 0, "per_target": {}, "examples": []}
+    every = max(1, n // subprocess_n) if subprocess_n else 0
     for i in range(n):
-        with tempfile.TemporaryDirectory(prefix="pdfuzz-cli-") as d:
-            case = (make_ply if rng.random() < 0.75 else make_splat)(rng, Path(d))
-            ok = run_checked(case.load, case.sanity).kind == "ok"
-            code, out, err = cli_check(case.path, runner)
-            bad = cli_property(code, out, err, ok)
-            if i < subprocess_n:
-                proc = subprocess.run([*cmd, "info", str(case.path)], capture_output=True, text=True, timeout=120)
-                bad = bad or cli_property(proc.returncode, proc.stdout, proc.stderr, ok)
-                stats["subprocess"] += 1
-            stats["tried"] += 1
-            if code in (0, 2):
-                stats["exit0" if code == 0 else "exit2"] += 1
-            if bad:
-                stats["bugs"] += 1
-                if len(stats["examples"]) < 10:
-                    stats["examples"].append({"note": case.note, "problem": bad})
+        target = rng.choices(names, weights=[CLI_WEIGHTS[t] for t in names])[0]
+        sub = bool(every) and i % every == 0
+        bad, note = cli_one(target, rng, runner, subprocess_too=sub)
+        stats["tried"] += 1
+        ran = "no command" not in note and "no command run" not in note
+        stats["commands_run"] += ran
+        stats["subprocess"] += sub and ran
+        pt = stats["per_target"].setdefault(target, {"tried": 0, "commands_run": 0, "bugs": 0})
+        pt["tried"] += 1
+        pt["commands_run"] += ran
+        if bad:
+            stats["bugs"] += 1
+            pt["bugs"] += 1
+            if len(stats["examples"]) < 10:
+                stats["examples"].append({"note": note, "problem": bad})
     return stats
 
 
@@ -1339,7 +1412,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n", type=int, default=12000, help="total generated inputs over all targets")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--targets", default=",".join(TARGETS), help="comma-separated subset of " + ", ".join(TARGETS))
-    ap.add_argument("--cli", type=int, default=300, help="splat inputs also run through `pdtool info` (0: none)")
+    ap.add_argument("--cli", type=int, default=300, help="inputs also run through the pdtool command that reads them (0: none)")
     ap.add_argument("--subprocess", type=int, default=10, help="of those, how many through the real console script")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where loaded tensors go")
     ap.add_argument("--json", type=Path, help="write the figures here")
@@ -1380,8 +1453,10 @@ def main(argv: list[str] | None = None) -> int:
         report["cli"] = run_cli(args.cli, args.seed, args.subprocess)
         report["cli"]["seconds"] = round(time.perf_counter() - t0, 2)
         c = report["cli"]
-        print(f"cli       tried {c['tried']:6d}  exit0 {c['exit0']:6d}  exit2 {c['exit2']:6d}  bugs {c['bugs']:5d}  "
+        print(f"cli       tried {c['tried']:6d}  commands run {c['commands_run']:6d}  bugs {c['bugs']:5d}  "
               f"(subprocess {c['subprocess']}, {c['seconds']:.1f} s)")
+        for t, v in c["per_target"].items():
+            print(f"    {t:9s} {v['tried']:5d} inputs, {v['commands_run']:5d} commands run, {v['bugs']} bugs")
         for ex in c["examples"]:
             print(f"    {ex['note']}: {ex['problem'][:200]}")
         any_bug |= c["bugs"] > 0
