@@ -176,6 +176,44 @@ def mark_fixed_nodes(
         fixed[i, j, k] = 1
 
 
+@wp.func
+def p2g_scatter(
+    x: wp.vec3,
+    v: wp.vec3,
+    C: wp.mat33,
+    F: wp.mat33,
+    E: float,
+    vol: float,
+    m: float,
+    a_ext: wp.vec3,
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """Scatter one particle's mass and MLS momentum to its 27 nodes."""
+    inv_dx = 1.0 / dx
+    b = stencil_base(x, inv_dx, nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    lm = lame(E, nu)
+    tau = kirchhoff_stress(F, lm[0], lm[1])
+    affine = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
+    mv = m * (v + a_ext * dt)
+    wx = bspline_w(fx[0])
+    wy = bspline_w(fx[1])
+    wz = bspline_w(fx[2])
+    for i in range(3):
+        for j in range(3):
+            wij = wx[i] * wy[j]
+            for k in range(3):
+                w = wij * wz[k]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                wp.atomic_add(grid_m, b[0] + i, b[1] + j, b[2] + k, w * m)
+                wp.atomic_add(grid_mv, b[0] + i, b[1] + j, b[2] + k, w * (mv + affine * dpos))
+
+
 @wp.kernel
 def p2g(
     order: wp.array(dtype=int),
@@ -205,29 +243,50 @@ def p2g(
     m_i v_i += N [m_p v_p + m_p a_ext dt + (m_p C_p - 4/dx^2 dt V_p tau_p)(x_i - x_p)].
     """
     p = order[wp.tid()]
-    inv_dx = 1.0 / dx
-    x = base[p] + u[p]
-    b = stencil_base(x, inv_dx, nodes)
-    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
-
-    lm = lame(E[p], nu)
-    tau = kirchhoff_stress(F[p], lm[0], lm[1])
-    m = mass[p]
-    affine = m * C[p] - (4.0 * inv_dx * inv_dx * dt * volume[p]) * tau
     a_ext = external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    mv = m * (v[p] + a_ext * dt)
+    p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
+                grid_m, grid_mv)
 
-    wx = bspline_w(fx[0])
-    wy = bspline_w(fx[1])
-    wz = bspline_w(fx[2])
-    for i in range(3):
-        for j in range(3):
-            wij = wx[i] * wy[j]
-            for k in range(3):
-                w = wij * wz[k]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                wp.atomic_add(grid_m, b[0] + i, b[1] + j, b[2] + k, w * m)
-                wp.atomic_add(grid_mv, b[0] + i, b[1] + j, b[2] + k, w * (mv + affine * dpos))
+
+@wp.func
+def node_velocity(
+    m: float,
+    mv: wp.vec3,
+    is_fixed: int,
+    i: int,
+    j: int,
+    k: int,
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+) -> wp.vec3:
+    """Velocity of one node (m/s) from its mass and momentum, with every boundary condition."""
+    vel = wp.vec3(0.0)
+    if m > 0.0:
+        vel = (mv / m + dt * gravity) * damping_factor
+        if i < pad and vel[0] < 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if i >= nodes[0] - pad and vel[0] > 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if j < pad and vel[1] < 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if j >= nodes[1] - pad and vel[1] > 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if k < pad and vel[2] < 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+        if k >= nodes[2] - pad and vel[2] > 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+        if use_ground != 0:
+            if float(k) * dx <= ground_z and vel[2] < 0.0:
+                vel = wp.vec3(vel[0], vel[1], 0.0)
+        if is_fixed != 0:
+            vel = wp.vec3(0.0)
+    return vel
 
 
 @wp.kernel
@@ -252,33 +311,36 @@ def grid_update(
     their downward velocity. Dirichlet: fixed nodes get zero velocity.
     """
     i, j, k = wp.tid()
-    m = grid_m[i, j, k]
-    vel = wp.vec3(0.0)
-    if m > 0.0:
-        vel = (grid_mv[i, j, k] / m + dt * gravity) * damping_factor
-        if i < pad and vel[0] < 0.0:
-            vel = wp.vec3(0.0, vel[1], vel[2])
-        if i >= nodes[0] - pad and vel[0] > 0.0:
-            vel = wp.vec3(0.0, vel[1], vel[2])
-        if j < pad and vel[1] < 0.0:
-            vel = wp.vec3(vel[0], 0.0, vel[2])
-        if j >= nodes[1] - pad and vel[1] > 0.0:
-            vel = wp.vec3(vel[0], 0.0, vel[2])
-        if k < pad and vel[2] < 0.0:
-            vel = wp.vec3(vel[0], vel[1], 0.0)
-        if k >= nodes[2] - pad and vel[2] > 0.0:
-            vel = wp.vec3(vel[0], vel[1], 0.0)
-        if use_ground != 0:
-            if float(k) * dx <= ground_z and vel[2] < 0.0:
-                vel = wp.vec3(vel[0], vel[1], 0.0)
-        if fixed[i, j, k] != 0:
-            vel = wp.vec3(0.0)
-    grid_v[i, j, k] = vel
+    grid_v[i, j, k] = node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+                                    gravity, damping_factor, pad, nodes, use_ground, ground_z)
 
 
-@wp.kernel
-def g2p(
-    order: wp.array(dtype=int),
+@wp.kernel(enable_backward=False)
+def grid_update_and_clear(
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    fixed: wp.array3d(dtype=int),
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """grid_update that also zeroes mass and momentum for the next P2G (fast path only)."""
+    i, j, k = wp.tid()
+    grid_v[i, j, k] = node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+                                    gravity, damping_factor, pad, nodes, use_ground, ground_z)
+    grid_m[i, j, k] = 0.0
+    grid_mv[i, j, k] = wp.vec3(0.0)
+
+
+@wp.func
+def g2p_gather(
+    p: int,
     base: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
@@ -296,13 +358,7 @@ def g2p(
     F_out: wp.array(dtype=wp.mat33),
     stats: wp.array(dtype=float),
 ):
-    """Grid to particle: v, C from the grid; F <- (I + dt C) F; u <- u + dt v.
-
-    Each thread reads and writes only its own particle, so in the fast path the outputs may
-    alias the inputs. Under a tape they must be separate arrays. Guard counters go to
-    `stats` only on failure (no atomics in the normal case).
-    """
-    p = order[wp.tid()]
+    """Grid to particle p: v, C from the grid; F <- (I + dt C) F; u <- u + dt v; guard."""
     inv_dx = 1.0 / dx
     up = u[p]
     x = base[p] + up
@@ -343,6 +399,79 @@ def g2p(
             wp.atomic_add(stats, STAT_COLLAPSED, 1.0)
         if wp.min(xn - edge_lo) < 0.0 or wp.max(xn - edge_hi) > 0.0:
             wp.atomic_add(stats, STAT_EDGE, 1.0)
+
+
+@wp.kernel
+def g2p(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    is_static: wp.array(dtype=int),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    min_det_f: float,
+    edge_lo: wp.vec3,
+    edge_hi: wp.vec3,
+    u_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    stats: wp.array(dtype=float),
+):
+    """Grid to particle (see g2p_gather).
+
+    Each thread reads and writes only its own particle, so in the fast path the outputs may
+    alias the inputs. Under a tape they must be separate arrays. Guard counters go to
+    `stats` only on failure (no atomics in the normal case).
+    """
+    p = order[wp.tid()]
+    g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
+               u_out, v_out, C_out, F_out, stats)
+
+
+@wp.kernel(enable_backward=False)
+def g2p_p2g(
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    is_static: wp.array(dtype=int),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    min_det_f: float,
+    edge_lo: wp.vec3,
+    edge_hi: wp.vec3,
+    t_frame: wp.array(dtype=float),
+    t_offset_next: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    stats: wp.array(dtype=float),
+):
+    """Fast path only: G2P of this substep, in place, fused with the P2G of the next one.
+
+    The particle's state is read once per substep instead of twice, and one launch is saved.
+    Particles are in cell order already (thread = particle).
+    """
+    p = wp.tid()
+    g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
+               u, v, C, F, stats)
+    a_ext = external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
+    p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
+                grid_m, grid_mv)
 
 
 @wp.kernel(enable_backward=False)
