@@ -176,7 +176,10 @@ def _fov_focal(path: Path, where: str, obj: dict, key: str, size: int) -> float:
     angle = _num(path, where, obj, key)
     if not 0.0 < angle < math.pi:
         raise CameraError(f"{path}: {where} '{key}' = {angle!r} is not a field of view in radians (0 < angle < pi)")
-    return 0.5 * size / math.tan(0.5 * angle)
+    focal = 0.5 * size / math.tan(0.5 * angle)
+    if not math.isfinite(focal):  # an angle like 1e-320 gives an infinite focal length
+        raise CameraError(f"{path}: {where} '{key}' = {angle!r} is too small a field of view; give it in radians")
+    return focal
 
 
 def _matrix(path: Path, where: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
