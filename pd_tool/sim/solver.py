@@ -8,6 +8,7 @@ and reuses `launch_substep` with separate per-substep arrays.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -331,6 +332,7 @@ class MPMSolver:
         self._substeps: int | None = None
         self._forces: list[Force] = []
         self._graphs: dict = {}
+        self._use_graphs = True
         # Particles are stored sorted by grid cell of the rest shape: neighbouring threads then
         # touch neighbouring nodes (cache-friendly atomics) and read contiguous particle data.
         # An elastic body keeps this order coherent while it moves, so it is done once.
@@ -434,13 +436,20 @@ class MPMSolver:
         if d.is_cuda:
             key = (n, float(frame_dt))
             graph = self._graphs.get(key)
-            if graph is None:
+            if graph is None and self._use_graphs:
                 if len(self._graphs) > 8:
                     self._graphs.clear()
-                with wp.ScopedCapture(device=d) as cap:
-                    self._run_substeps(n, dt)
-                graph = self._graphs[key] = cap.graph
-            wp.capture_launch(graph)
+                try:
+                    with wp.ScopedCapture(device=d) as cap:
+                        self._run_substeps(n, dt)
+                    graph = self._graphs[key] = cap.graph
+                except Exception as e:  # capture unsupported here: plain launches, same result
+                    warnings.warn(f"CUDA graph capture failed ({e}); launching kernels directly")
+                    self._use_graphs = False
+            if graph is not None:
+                wp.capture_launch(graph)
+            else:
+                self._run_substeps(n, dt)
         else:
             self._run_substeps(n, dt)
         wp.launch(K.frame_stats, dim=self.n, device=d, inputs=[self.state.v, self.mat.mass, self._stats])
