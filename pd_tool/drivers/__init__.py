@@ -1,0 +1,66 @@
+"""Driving particles: simulate a few, move every Gaussian with its nearest ones.
+
+Public API (torch, CPU or CUDA; shapes in the docstrings of each function):
+
+    from pd_tool.drivers import build_drivers, DriverInterpolator
+
+    drivers = build_drivers(points_sim, volume, mass, static, dx)   # K-Means + 8-NN
+    # ... simulate drivers.positions -> x_now [Q, 3] ...
+    move = DriverInterpolator(drivers.points_rest, quats, drivers.positions,
+                              drivers.neighbors)                    # once
+    points_now, quats_now = move(x_now)                              # every frame
+
+- kmeans(points [N,3], k, *, seed=0, iters=20, tol=1e-4, chunk=2**22, init="morton")
+  -> (centres [k,3], labels [N]): Lloyd with exact grid-accelerated assignment, memory
+  O(N + k + chunk) (never N x k), deterministic per seed and device, no empty cluster.
+- driver_count(points_sim [N,3], dx, *, ratio=None, count=None, min_per_cell=8) -> int:
+  default: 8 drivers per occupied grid cell (the paper's rule); or ratio * N; or count;
+  always 1..N.
+- build_drivers(points_sim, volume [N], mass [N], static [N] bool, dx, *, ratio=None,
+  count=None, seed=0) -> DriverSet(positions [Q,3], volume [Q], mass [Q], static [Q],
+  labels [N], neighbors [N,8], points_rest [N,3], counts [Q]).
+- nearest_drivers(points [N,3], drivers [Q,3], k=8) -> [N,k] long: exact, grid-based.
+- interpolate(rest_points, rest_quats, drivers_rest, drivers_now, neighbors,
+  mode="rigid") -> (points_now [N,3], quats_now [N,4] wxyz) for "rigid", plus
+  F [N,3,3] for "affine". DriverInterpolator is the same with the rest state computed
+  once (use it per frame). Differentiable in drivers_now with finite gradients even for
+  pure translations (Horn quaternion + power method, no SVD/eigh backward).
+  Default "rigid", the paper's: shape-preserving, robust for thin (coplanar)
+  neighbourhoods; "affine" also stretches/shears Gaussians (apply_deformation turns
+  F into new quats and scales for baking).
+- rotate_quats(q_rot, quats_rest) = normalise(q_rot * quats_rest), wxyz.
+- kabsch(rest [...,K,3], now [...,K,3]) -> (q, R, c_rest, c_now): batched rigid fit.
+"""
+from pd_tool.drivers.build import MIN_PER_CELL, NEIGHBORS, DriverSet, build_drivers, driver_count
+from pd_tool.drivers.interpolate import (
+    DriverInterpolator,
+    apply_deformation,
+    interpolate,
+    kabsch,
+    matrix_to_quat,
+    quat_multiply,
+    quat_to_matrix,
+    rotate_quats,
+)
+from pd_tool.drivers.kmeans import DriverError, kmeans
+from pd_tool.drivers.knn import knn, nearest_drivers
+
+__all__ = [
+    "MIN_PER_CELL",
+    "NEIGHBORS",
+    "DriverError",
+    "DriverInterpolator",
+    "DriverSet",
+    "apply_deformation",
+    "build_drivers",
+    "driver_count",
+    "interpolate",
+    "kabsch",
+    "kmeans",
+    "knn",
+    "matrix_to_quat",
+    "nearest_drivers",
+    "quat_multiply",
+    "quat_to_matrix",
+    "rotate_quats",
+]

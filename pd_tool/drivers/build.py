@@ -1,0 +1,135 @@
+"""Driving particles of a prepared scene: how many, where, and what they carry."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from pd_tool.drivers.kmeans import DriverError, kmeans
+from pd_tool.drivers.knn import nearest_drivers
+
+MIN_PER_CELL = 8  # paper: occupied grid cells hold at least 8 drivers on average
+NEIGHBORS = 8  # drivers per Gaussian for the interpolation (paper)
+
+
+def driver_count(
+    points_sim: Tensor,
+    dx: float,
+    *,
+    ratio: float | None = None,
+    count: int | None = None,
+    min_per_cell: int = MIN_PER_CELL,
+) -> int:
+    """Number of driving particles for N Gaussians.
+
+    Args:
+        points_sim: [N, 3] Gaussian centres in simulation units.
+        dx: simulation grid spacing (same units).
+        ratio: drivers per Gaussian in (0, 1]; overrides the default rule.
+        count: an exact number of drivers (>= 1); overrides ratio and the rule.
+        min_per_cell: the default rule: min_per_cell drivers times the number of grid
+            cells (spacing dx, origin 0) holding at least one Gaussian.
+    Returns:
+        Q with 1 <= Q <= N.
+    """
+    n = int(points_sim.shape[0])
+    if n == 0:
+        raise DriverError("driver_count: the scene has no Gaussians to drive; check the foreground selection")
+    if count is not None:
+        if int(count) < 1:
+            raise DriverError(f"driver_count: count={count}; give at least 1 driver")
+        q = int(count)
+    elif ratio is not None:
+        if not 0.0 < float(ratio) <= 1.0:
+            raise DriverError(f"driver_count: ratio={ratio}; use a fraction in (0, 1], e.g. 0.1")
+        q = int(round(float(ratio) * n))
+    else:
+        if not dx > 0.0:
+            raise DriverError(f"driver_count: grid spacing dx={dx}; it must be > 0")
+        cells = torch.floor(points_sim / dx).long()
+        occupied = int(torch.unique(cells, dim=0).shape[0])
+        q = min_per_cell * occupied
+    return max(1, min(q, n))
+
+
+@dataclass
+class DriverSet:
+    """Driving particles and how the Gaussians hang on them.
+
+    Attributes:
+        positions: [Q, 3] driver positions at rest (cluster means), simulation units.
+        volume: [Q] summed volume of the members (simulation units^3).
+        mass: [Q] summed mass of the members (kg, or whatever unit mass came in).
+        static: [Q] bool, True where most (strictly more than half) members are static.
+        labels: [N] long, the driver (cluster) of each Gaussian.
+        neighbors: [N, K] long, each Gaussian's K = min(8, Q) nearest drivers at rest.
+        points_rest: [N, 3] Gaussian centres at rest (what neighbors refers to).
+        counts: [Q] long, members per driver (>= 1).
+    """
+
+    positions: Tensor
+    volume: Tensor
+    mass: Tensor
+    static: Tensor
+    labels: Tensor
+    neighbors: Tensor
+    points_rest: Tensor
+    counts: Tensor
+
+    @property
+    def rest_positions(self) -> Tensor:
+        """[Q, 3] drivers at rest (alias of positions)."""
+        return self.positions
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
+def build_drivers(
+    points_sim: Tensor,
+    volume: Tensor,
+    mass: Tensor,
+    static: Tensor,
+    dx: float,
+    *,
+    ratio: float | None = None,
+    count: int | None = None,
+    seed: int = 0,
+    neighbors: int = NEIGHBORS,
+    **kmeans_options,
+) -> DriverSet:
+    """Cluster the Gaussians into driving particles (K-Means) and link each to its drivers.
+
+    Args:
+        points_sim: [N, 3] float Gaussian centres at rest, simulation units.
+        volume: [N] particle volumes; mass: [N] particle masses; static: [N] bool.
+        dx: simulation grid spacing, for the default count rule (driver_count).
+        ratio / count: override the number of drivers (driver_count).
+        seed: K-Means seed (deterministic per seed and device).
+        neighbors: drivers per Gaussian (8, the paper's).
+        kmeans_options: passed to kmeans (iters, tol, chunk, init).
+    """
+    n = int(points_sim.shape[0])
+    for name, t in (("volume", volume), ("mass", mass), ("static", static)):
+        if t.shape != (n,):
+            raise DriverError(f"build_drivers: {name} must be [{n}] like points_sim, got {tuple(t.shape)}")
+    q = driver_count(points_sim, dx, ratio=ratio, count=count)
+    centres, labels = kmeans(points_sim, q, seed=seed, **kmeans_options)
+    acc = torch.float64
+    vol = torch.zeros(q, dtype=acc, device=points_sim.device).index_add_(0, labels, volume.to(acc))
+    m = torch.zeros(q, dtype=acc, device=points_sim.device).index_add_(0, labels, mass.to(acc))
+    counts = torch.bincount(labels, minlength=q)
+    n_static = torch.zeros(q, dtype=torch.long, device=points_sim.device)
+    n_static.index_add_(0, labels, static.to(torch.long))
+    nb = nearest_drivers(points_sim, centres, min(neighbors, q))
+    return DriverSet(
+        positions=centres,
+        volume=vol.to(volume.dtype),
+        mass=m.to(mass.dtype),
+        static=2 * n_static > counts,
+        labels=labels,
+        neighbors=nb,
+        points_rest=points_sim,
+        counts=counts,
+    )

@@ -1,0 +1,219 @@
+"""K-Means, nearest drivers, driver count and driver sets."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pd_tool.drivers import DriverError, build_drivers, driver_count, kmeans, nearest_drivers
+from pd_tool.drivers._ref import knn_ref, lloyd_ref
+from pd_tool.drivers.knn import knn
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # On a shared 2-core machine torch's intra-op threads spin against each other and
+    # make small tensor ops ten times slower; these tests are serial anyway.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def torus(n: int, gen: torch.Generator, noise: float = 0.0) -> torch.Tensor:
+    """Points on a torus surface (radii 1 and 0.3): Gaussians lie on surfaces."""
+    u = torch.rand(n, 2, generator=gen) * 2 * torch.pi
+    r = 1 + 0.3 * u[:, 1].cos()
+    p = torch.stack([r * u[:, 0].cos(), r * u[:, 0].sin(), 0.3 * u[:, 1].sin()], 1)
+    return p + noise * torch.randn(n, 3, generator=gen)
+
+
+@pytest.mark.parametrize("k", [1, 8])
+@pytest.mark.parametrize("layout", ["volume", "surface", "outside", "sparse"])
+def test_knn_matches_dense_reference(device, k, layout):
+    gen = torch.Generator().manual_seed(0)
+    if layout == "volume":
+        q, r = torch.rand(6000, 3, generator=gen), torch.rand(700, 3, generator=gen)
+    elif layout == "surface":
+        q = torus(6000, gen)
+        r = torus(800, gen, noise=0.002)
+    elif layout == "outside":  # queries far outside the references' box
+        q, r = 4 * torch.randn(3000, 3, generator=gen), torch.rand(300, 3, generator=gen)
+    else:  # two far clusters and a few stragglers: very uneven density
+        r = torch.cat([torch.rand(400, 3, generator=gen) * 0.01, 5 + torch.rand(400, 3, generator=gen), torch.rand(8, 3, generator=gen) * 5])
+        q = torch.cat([torch.rand(2000, 3, generator=gen) * 0.01, 5 + torch.rand(2000, 3, generator=gen), torch.rand(500, 3, generator=gen) * 6])
+    d2, idx = knn(q.to(device), r.to(device), k, chunk=1 << 16)
+    d2_ref, idx_ref = knn_ref(q, r, k)
+    assert torch.allclose(d2.cpu().double(), d2_ref, atol=1e-6, rtol=1e-5)
+    # Indices may differ only where distances tie.
+    recomputed = ((q[:, None, :] - r[idx.cpu()]) ** 2).sum(-1).double()
+    assert torch.allclose(recomputed, d2_ref, atol=1e-6, rtol=1e-5)
+    assert (idx.cpu() == idx_ref).float().mean() > 0.999
+
+
+def test_nearest_drivers_shape_and_order(device):
+    gen = torch.Generator().manual_seed(1)
+    pts, drv = torch.rand(1000, 3, generator=gen), torch.rand(100, 3, generator=gen)
+    nb = nearest_drivers(pts.to(device), drv.to(device), 8)
+    assert nb.shape == (1000, 8) and nb.dtype == torch.long
+    d = ((pts[:, None] - drv[nb.cpu()]) ** 2).sum(-1)
+    assert (d[:, 1:] >= d[:, :-1]).all()
+
+
+def test_kmeans_follows_dense_lloyd_from_the_same_start(device):
+    gen = torch.Generator().manual_seed(2)
+    # Well separated blobs plus background: no empty cluster, no ties.
+    centres = torch.rand(40, 3, generator=gen) * 10
+    pts = (centres[torch.randint(0, 40, (4000,), generator=gen)] + torch.randn(4000, 3, generator=gen)).to(device)
+    k = 60
+    km = sys.modules["pd_tool.drivers.kmeans"]
+    init = km._init_morton(pts, k, torch.Generator().manual_seed(5))
+    c_ref, l_ref = lloyd_ref(pts.cpu(), init.cpu(), iters=8)
+    assert torch.bincount(l_ref, minlength=k).min() > 0
+    c, labels = kmeans(pts, k, seed=5, iters=8, tol=0.0)
+    assert torch.equal(labels.cpu(), l_ref)
+    assert torch.allclose(c.cpu().double(), c_ref, atol=1e-5)
+
+
+@pytest.mark.parametrize("init", ["morton", "kmeans++"])
+def test_kmeans_is_deterministic_and_seeded(device, init):
+    gen = torch.Generator().manual_seed(3)
+    pts = torus(5000, gen, noise=0.01).to(device)
+    c1, l1 = kmeans(pts, 300, seed=7, init=init)
+    c2, l2 = kmeans(pts, 300, seed=7, init=init)
+    assert torch.equal(c1, c2) and torch.equal(l1, l2)
+    c3, _ = kmeans(pts, 300, seed=8, init=init)
+    assert not torch.equal(c1, c3)
+    # Centres are the means of their members, and every cluster has members.
+    counts = torch.bincount(l1, minlength=300)
+    assert counts.min() >= 1
+    means = torch.zeros(300, 3, dtype=torch.float64, device=device).index_add_(0, l1, pts.double()) / counts[:, None]
+    assert torch.allclose(c1.double(), means, atol=1e-6)
+
+
+def test_kmeans_improves_on_its_start():
+    gen = torch.Generator().manual_seed(4)
+    pts = torus(20000, gen, noise=0.01)
+    km = sys.modules["pd_tool.drivers.kmeans"]
+    init = km._init_morton(pts, 500, torch.Generator().manual_seed(0))
+    inertia0 = knn_ref(pts, init, 1)[0].mean()
+    c, labels = kmeans(pts, 500, seed=0)
+    inertia = ((pts - c[labels]) ** 2).sum(1).double().mean()
+    assert inertia < 0.8 * inertia0
+
+
+def test_kmeans_reseeds_empty_clusters_with_duplicate_points():
+    # 10 distinct locations, each 50 times: with k = 25 many starting centres coincide and
+    # their clusters empty out; every cluster must still end with a member.
+    gen = torch.Generator().manual_seed(5)
+    pts = torch.rand(10, 3, generator=gen).repeat(50, 1)
+    pts[::7] += 0.01 * torch.rand(pts[::7].shape, generator=gen)
+    c, labels = kmeans(pts, 25, seed=0)
+    counts = torch.bincount(labels, minlength=25)
+    assert counts.min() >= 1
+    means = torch.zeros(25, 3, dtype=torch.float64).index_add_(0, labels, pts.double()) / counts[:, None]
+    assert torch.allclose(c.double(), means, atol=1e-6)
+    # k = N: every point its own cluster.
+    few = torch.rand(30, 3, generator=gen)
+    c, labels = kmeans(few, 30)
+    assert torch.equal(torch.sort(labels).values, torch.arange(30))
+
+
+def test_kmeans_rejects_bad_input():
+    with pytest.raises(DriverError, match="clusters"):
+        kmeans(torch.rand(10, 3), 11)
+    with pytest.raises(DriverError, match="NaN"):
+        kmeans(torch.tensor([[0.0, 0.0, float("nan")]] * 3), 2)
+
+
+def test_kmeans_memory_is_bounded_on_200k_points():
+    # In a fresh process: peak resident memory (ru_maxrss, which sees torch's allocations)
+    # grown by clustering 200k points into 20k drivers and finding 8 nearest drivers each.
+    # A full distance matrix would be 200k x 20k x 4 bytes = 16 GB; the bound is 1/64 of it
+    # (the chunk of 2^20 candidate pairs costs about 60 bytes a pair).
+    script = textwrap.dedent(
+        """
+        import resource, torch
+        from pd_tool.drivers import kmeans, nearest_drivers
+        torch.set_num_threads(1)
+        g = torch.Generator().manual_seed(0)
+        n = 200_000
+        u = torch.rand(n, 2, generator=g) * 6.283
+        r = 1 + 0.3 * u[:, 1].cos()
+        pts = torch.stack([r * u[:, 0].cos(), r * u[:, 0].sin(), 0.3 * u[:, 1].sin()], 1)
+        pts = pts + 0.01 * torch.randn(n, 3, generator=g)
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        c, l = kmeans(pts, 20_000, seed=0, iters=4, chunk=1 << 20)
+        nb = nearest_drivers(pts, c, 8, chunk=1 << 20)
+        after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        assert torch.bincount(l, minlength=20_000).min() >= 1 and nb.shape == (n, 8)
+        print((after - before) * 1024)  # ru_maxrss is in KiB on Linux
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr
+    grown = int(out.stdout.strip().splitlines()[-1])
+    full_matrix = 200_000 * 20_000 * 4
+    assert grown < full_matrix / 64, f"K-Means grew the peak RSS by {grown / 2**20:.0f} MiB"
+
+
+def test_driver_count_rules():
+    dx = 0.1
+    # 3 occupied cells, 100 points each.
+    pts = torch.cat([torch.full((100, 3), 0.05), torch.full((100, 3), 0.15), torch.full((100, 3), 0.55)])
+    assert driver_count(pts, dx) == 24
+    assert driver_count(pts, dx, min_per_cell=200) == 300  # never more than N
+    assert driver_count(pts, dx, ratio=0.1) == 30
+    assert driver_count(pts, dx, count=7) == 7
+    assert driver_count(pts, dx, count=10**6) == 300
+    assert driver_count(pts[:1], dx, ratio=0.01) == 1
+    with pytest.raises(DriverError, match="ratio"):
+        driver_count(pts, dx, ratio=1.5)
+    with pytest.raises(DriverError, match="count"):
+        driver_count(pts, dx, count=0)
+    with pytest.raises(DriverError, match="no Gaussians"):
+        driver_count(pts[:0], dx)
+
+
+def test_build_drivers_inherits_cluster_properties(device):
+    gen = torch.Generator().manual_seed(6)
+    pts = torus(3000, gen, noise=0.01).to(device)
+    volume = torch.rand(3000, generator=gen).to(device)
+    mass = 2.0 * volume
+    static = (pts[:, 2] < -0.1).to(device)
+    ds = build_drivers(pts, volume, mass, static, dx=0.1, ratio=0.1, seed=0)
+    q = len(ds)
+    assert q == 300 and ds.positions.shape == (q, 3) and ds.neighbors.shape == (3000, 8)
+    labels = ds.labels.cpu()
+    assert torch.allclose(ds.volume.cpu().double(), torch.zeros(q, dtype=torch.float64).index_add_(0, labels, volume.cpu().double()), atol=1e-5)
+    assert torch.allclose(ds.mass.sum().cpu(), mass.sum().cpu(), rtol=1e-5)
+    frac = torch.zeros(q).index_add_(0, labels, static.cpu().float()) / torch.bincount(labels, minlength=q)
+    assert torch.equal(ds.static.cpu(), frac > 0.5)
+    _, nb_ref = knn_ref(pts.cpu(), ds.positions.cpu(), 8)
+    assert (ds.neighbors.cpu() == nb_ref).float().mean() > 0.999
+    means = torch.zeros(q, 3, dtype=torch.float64).index_add_(0, labels, pts.cpu().double()) / ds.counts.cpu()[:, None]
+    assert torch.allclose(ds.positions.cpu().double(), means, atol=1e-6)
+
+
+def test_build_drivers_on_a_real_capture(shared_data):
+    from plyfile import PlyData
+
+    v = PlyData.read(str(shared_data / "udon.ply"))["vertex"]
+    pts = torch.from_numpy(np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32))
+    n = pts.shape[0]
+    ext = float((pts.max(0).values - pts.min(0).values).max())
+    dx = ext / 32
+    ds = build_drivers(pts, torch.ones(n), torch.ones(n), torch.zeros(n, dtype=torch.bool), dx)
+    occupied = torch.unique(torch.floor(pts / dx).long(), dim=0).shape[0]
+    assert len(ds) == min(8 * occupied, n)
+    assert ds.counts.min() >= 1 and int(ds.counts.sum()) == n
+    # Each Gaussian's own driver is among its nearest few (K-Means converged).
+    own = (ds.neighbors == ds.labels[:, None]).any(1).float().mean()
+    assert own > 0.95
