@@ -74,6 +74,11 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     degree = _VALID_REST_COUNTS[len(rest_idx)]
     known = set(REQUIRED_PLY_PROPERTIES) | set(NORMAL_PROPERTIES) | {f"f_rest_{i}" for i in rest_idx}
     extra = tuple(n for n in names if n not in known)
+    # plyfile stores a `property list ...` as an object array of arrays; 3DGS values are scalars
+    lists = [p for p in names if p in known and data.dtype[p].kind not in "biuf"]
+    if lists:
+        raise PlyFormatError(f"{path}: {', '.join(repr(p) for p in lists[:3])} declared as a list property; "
+                             f"a 3DGS PLY stores one number per property (export the splat again)")
 
     def col(*props: str) -> np.ndarray:
         return np.stack([np.asarray(data[p], dtype=np.float64) for p in props], axis=1)
@@ -123,7 +128,9 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=torch.float32).to(device)
 
-    labels = np.asarray(data[LABEL_PROPERTY], np.int32) if LABEL_PROPERTY in names else None
+    # integer labels only: casting a float or list 'region' would warn or fail (it stays in raw)
+    has_labels = LABEL_PROPERTY in names and data.dtype[LABEL_PROPERTY].kind in "iu"
+    labels = np.asarray(data[LABEL_PROPERTY], np.int32) if has_labels else None
 
     return GaussianScene(
         positions=t(xyz),
