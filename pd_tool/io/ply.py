@@ -7,6 +7,7 @@ coefficients, f_rest_* the higher ones grouped by colour channel (all R, then G,
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,11 @@ def _read_plydata(path: Path):
     if magic[:3] != b"ply":
         raise PlyFormatError(f"{path}: not a PLY file (it does not start with 'ply'); pass a 3DGS .ply or .splat file")
     try:
-        return PlyData.read(str(path))
+        # plyfile / numpy warn on some malformed bodies (loadtxt: "input contained no data");
+        # the values are validated after parsing, and a warning would break the one-line error
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return PlyData.read(str(path))
     except MemoryError:
         raise PlyFormatError(f"{path}: header declares more data than memory holds; the file is corrupt") from None
     except Exception as e:  # plyfile raises several types (PlyParseError, ValueError, EOFError...)
