@@ -276,6 +276,12 @@ def load_reference_video(
     folder, frame_files, video_file = _find_source(Path(folder))
     # Camera first: a missing camera is found before decoding a large video.
     cam, cam_src = _load_camera(folder, camera_path, view)
+    if not (0.0 < cam.cx < cam.width and 0.0 < cam.cy < cam.height):
+        # intrinsics written for another image size (e.g. cx = 960 in a 512-px-wide camera):
+        # the frames would be compared with a view of something else
+        raise VideoError(f"{cam_src}: the camera's principal point ({cam.cx:g}, {cam.cy:g}) lies outside its "
+                         f"{cam.width}x{cam.height} image, so its intrinsics are for another image size; use the "
+                         f"camera the first frame was rendered with")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise VideoError(f"fps must be a positive number, got {fps}; pass e.g. --fps 30")
 
