@@ -28,6 +28,7 @@ _RANGES = {
     "duration": (0.0, 1e6), "magnitude": (0.0, 1e9), "damping": (0.0, 1e4),
 }
 _OPTIONAL = {"materials": {"damping": float}}
+_CHOICES = {"at": ("top", "all")}  # string settings with a fixed set of values
 
 
 def _parse_toml(text: str, where: str) -> dict[str, Any]:
@@ -59,6 +60,10 @@ def _validate(kind: str, name: str, table: Any, where: str) -> dict[str, Any]:
         if typ is str:
             if not isinstance(val, str):
                 raise PresetError(f"{where}: '{name}.{key}' must be a string")
+            if key in _CHOICES and val not in _CHOICES[key]:
+                # caught here, not after the scene is prepared: a force aimed at nothing pushes nothing
+                raise PresetError(f"{where}: '{name}.{key}' = {val!r:.40} is not one of "
+                                  f"{', '.join(repr(c) for c in _CHOICES[key])}")
             continue
         if isinstance(val, bool) or not isinstance(val, (int, float)):
             raise PresetError(f"{where}: '{name}.{key}' must be a number, got {val!r:.40}")
