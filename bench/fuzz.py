@@ -378,6 +378,8 @@ def sane_video(v: Any) -> list[str]:
             if bool(((v.masks < 0) | (v.masks > 1)).any()):
                 p.append("masks: outside 0-1")
     p += sane_camera(v.camera)
+    if not (0 < v.camera.cx < v.camera.width and 0 < v.camera.cy < v.camera.height):
+        p.append(f"camera principal point: ({v.camera.cx}, {v.camera.cy}) outside the {w}x{h} frames")
     if (v.camera.width, v.camera.height) != (w, h):
         p.append(f"camera size: {v.camera.width}x{v.camera.height} but frames {w}x{h}")
     if not (math.isfinite(v.fps) and v.fps > 0):
@@ -453,8 +455,8 @@ def sane_preset(kind: str) -> Callable[[Any], list[str]]:
         for key, typ in _REQUIRED[kind].items():
             v = d.get(key)
             if typ is str:
-                if not isinstance(v, str):
-                    p.append(f"preset {key}: {v!r} is not a string")
+                if not isinstance(v, str) or (key == "at" and v not in ("top", "all")):
+                    p.append(f"preset {key}: {v!r} is not a known string")
                 continue
             if not isinstance(v, typ) or isinstance(v, bool):
                 p.append(f"preset {key}: {v!r} is not a {typ.__name__}")
