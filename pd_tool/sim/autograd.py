@@ -30,6 +30,7 @@ from pd_tool.sim.solver import (
     SubstepContext,
     fixed_nodes,
     launch_substep,
+    run_substeps_fused,
     sort_by_cell,
 )
 
@@ -164,8 +165,7 @@ class _FrameFunction(torch.autograd.Function):
             order, fixed = sim._order_fixed(base)
             sctx = sim._context(base, wp.from_torch(E.detach().contiguous()), order, fixed, forces, t0)
             st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), _vec3(v_out), _mat33(C_out), _mat33(F_out))
-            for s in range(substeps):
-                launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
+            run_substeps_fused(sctx, substeps, dt, st, sim._grid_cache())
             wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, _vec3(x_out)])
             stats = sctx.stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
@@ -211,10 +211,12 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=dev), wp.clone(v), wp.clone(C), wp.clone(F))
     starts = list(range(0, substeps, seg))
     ckpts = {}
-    for s in range(substeps):
-        if s in starts:
-            ckpts[s] = st.clone()
-        launch_substep(sctx, dt, s * dt, st, st, sim._grid_cache())
+    for k0 in starts:
+        ckpts[k0] = st.clone()
+        k1 = min(k0 + seg, substeps)
+        sctx.t_frame.fill_(t0 + k0 * dt)  # the fused run counts time from its first substep
+        run_substeps_fused(sctx, k1 - k0, dt, st, sim._grid_cache())
+    sctx.t_frame.fill_(t0)
     del st
     # 2. replay the segments in reverse under a tape, one array set per substep (a pool
     #    reused by every segment and frame: allocating it per segment costs more than the

@@ -434,6 +434,7 @@ def g2p(
 
 @wp.kernel(enable_backward=False)
 def g2p_p2g(
+    order: wp.array(dtype=int),
     base: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -464,9 +465,8 @@ def g2p_p2g(
     """Fast path only: G2P of this substep, in place, fused with the P2G of the next one.
 
     The particle's state is read once per substep instead of twice, and one launch is saved.
-    Particles are in cell order already (thread = particle).
     """
-    p = wp.tid()
+    p = order[wp.tid()]
     g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
                u, v, C, F, stats)
     a_ext = external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)

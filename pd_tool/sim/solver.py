@@ -245,6 +245,39 @@ def launch_substep(ctx: SubstepContext, dt: float, t_offset: float,
         s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
 
 
+def run_substeps_fused(ctx: SubstepContext, n: int, dt: float, st: ParticleState, g: GridArrays) -> None:
+    """n substeps in place without a tape, two launches per substep.
+
+    The grid update also clears mass and momentum, and each G2P is fused with the next
+    substep's P2G; the run starts with a plain P2G and ends with a plain G2P. Same result
+    as n calls of launch_substep up to the order of float atomics.
+    """
+    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
+    nodes = geo.nodes_vec
+    count = st.u.shape[0]
+    g.m.zero_()
+    g.mv.zero_()
+    wp.launch(K.p2g, dim=count, device=dev, inputs=[
+        ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
+        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel,
+        fa.window, g.m, g.mv])
+    grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
+                 float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
+                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v]
+    for s in range(n):
+        wp.launch(K.grid_update_and_clear, dim=geo.nodes, device=dev, inputs=grid_args)
+        if s < n - 1:
+            wp.launch(K.g2p_p2g, dim=count, device=dev, inputs=[
+                ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
+                mat.static, g.v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
+                geo.edge_lo, geo.edge_hi, ctx.t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
+                fa.window, g.m, g.mv, ctx.stats])
+        else:
+            wp.launch(K.g2p, dim=count, device=dev, inputs=[
+                ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,
+                float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, st.u, st.v, st.C, st.F, ctx.stats])
+
+
 def sort_by_cell(geo: GridGeometry, base: wp.array, u: wp.array, keys: wp.array,
                  values: wp.array, device) -> None:
     """Fill values[:N] with particle indices sorted by stencil cell (keys/values hold 2N)."""
@@ -342,6 +375,7 @@ class MPMSolver:
         self._inv = np.empty_like(self._perm)
         self._inv[self._perm] = np.arange(self.n)
         pm = self._perm
+        self._static_np = static[pm]
         d = self.device
         self._base = wp.array(x0[pm], dtype=wp.vec3, device=d)
         self.mat = Materials(
@@ -364,7 +398,9 @@ class MPMSolver:
         v = np.asarray(v, np.float32)
         if v.shape != (self.n, 3):
             raise SimConfigError(f"set_velocity: shape {v.shape}, expected ({self.n}, 3) m/s")
-        self.state.v.assign(wp.array(v[self._perm], dtype=wp.vec3, device=self.device))
+        v = v[self._perm]
+        v[self._static_np] = 0.0  # static particles never move (and must not push in P2G)
+        self.state.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
         self._vmax = float(np.max(np.linalg.norm(v, axis=1))) if self.n else 0.0
 
     def add_force(self, mask, accel, t_start: float = 0.0, t_end: float = math.inf) -> None:
@@ -393,35 +429,11 @@ class MPMSolver:
 
     def _run_substeps(self, n: int, dt: float) -> None:
         ctx = self._context()
-        if not self._optimized:
+        if self._optimized:
+            run_substeps_fused(ctx, n, dt, self.state, self.grid)
+        else:
             for s in range(n):
                 launch_substep(ctx, dt, s * dt, self.state, self.state, self.grid)
-            return
-        # Two launches per substep: grid update (which also clears m, mv) and G2P fused with
-        # the next substep's P2G. The frame starts with a plain P2G and ends with a plain G2P.
-        geo, cfg, dev, st, g, fa = self.geo, self.config, self.device, self.state, self.grid, self._force_arrays
-        nodes = geo.nodes_vec
-        g.m.zero_()
-        g.mv.zero_()
-        wp.launch(K.p2g, dim=self.n, device=dev, inputs=[
-            self._order, self._base, st.u, st.v, st.C, st.F, self.mat.E, self.mat.volume, self.mat.mass,
-            float(cfg.nu), float(geo.dx), float(dt), nodes, self._t_frame, 0.0, fa.n, fa.mask, fa.accel,
-            fa.window, g.m, g.mv])
-        grid_args = [g.m, g.mv, self._fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
-                     float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                     float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v]
-        for s in range(n):
-            wp.launch(K.grid_update_and_clear, dim=geo.nodes, device=dev, inputs=grid_args)
-            if s < n - 1:
-                wp.launch(K.g2p_p2g, dim=self.n, device=dev, inputs=[
-                    self._base, st.u, st.v, st.C, st.F, self.mat.E, self.mat.volume, self.mat.mass,
-                    self.mat.static, g.v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
-                    geo.edge_lo, geo.edge_hi, self._t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
-                    fa.window, g.m, g.mv, self._stats])
-            else:
-                wp.launch(K.g2p, dim=self.n, device=dev, inputs=[
-                    self._order, self._base, st.u, st.F, self.mat.static, g.v, float(geo.dx), float(dt), nodes,
-                    float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, st.u, st.v, st.C, st.F, self._stats])
 
     def step_frame(self, frame_dt: float) -> int:
         """Advance one output frame of frame_dt seconds; return the substeps used.
