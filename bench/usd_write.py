@@ -10,6 +10,10 @@ writer opens; "writer peak" is peak RSS minus that baseline.
 
 The write time includes close(), which by default validates (all registered
 UsdValidation validators + our checks at the end samples), as a bake does.
+--threaded 0,1 --sim-ms 30 compares writing in the caller's thread with the
+background writer while a 30 ms GIL-releasing wait per frame stands in for
+the GPU simulation (the wall time is what a bake would see).
+
 --flush-mb 0 means "never flush before close" (the whole bake in memory): the
 comparison that shows what streaming buys.
 """
@@ -31,7 +35,8 @@ def _rss_peak_mb() -> float:
 
 
 def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
-            validate: bool, out_dir: str, close_validate: bool = True) -> dict:
+            validate: bool, out_dir: str, close_validate: bool = True,
+            threaded: bool = False, sim_ms: float = 0.0) -> dict:
     import numpy as np
     import torch
 
@@ -52,10 +57,16 @@ def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
     t0 = time.perf_counter()
     flush = int(flush_mb * 2**20) if flush_mb > 0 else 1 << 62
     w = UsdBakeWriter(path, n_points=points, fps=30, fmt=fmt, colors=rgb.cpu().numpy(),
-                      opacities=opac.cpu().numpy(), sh=sh.cpu().numpy(), flush_bytes=flush)
+                      opacities=opac.cpu().numpy(), sh=sh.cpu().numpy(), flush_bytes=flush,
+                      threaded=threaded)
     t_open = time.perf_counter() - t0
     t_frames = 0.0
+    t_loop = time.perf_counter()
     for f in range(frames):
+        if sim_ms:
+            # stand-in for the simulation's GPU time: a wait that releases the GIL,
+            # like a CUDA synchronize
+            time.sleep(sim_ms / 1e3)
         pos = (x0 + f * vel).cpu().numpy()  # what the bake hands over: host arrays
         # every array changes every frame, as in a real bake (the crate file would
         # otherwise store a repeated array once and flatter the size per frame)
@@ -67,6 +78,7 @@ def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
     t1 = time.perf_counter()
     w.close(validate=close_validate)  # default bake path: validators + end-sample checks
     t_close = time.perf_counter() - t1
+    t_wall = time.perf_counter() - t_loop  # frames loop (with sim stand-in) + close
     peak = _rss_peak_mb()
     t_validate = None
     if validate:
@@ -77,6 +89,7 @@ def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
     path.unlink()
     return {
         "points": points, "frames": frames, "fmt": fmt, "flush_mb": flush_mb, "device": device,
+        "threaded": threaded, "sim_ms": sim_ms, "wall_s": t_wall,
         "write_s": t_open + t_frames + t_close, "per_frame_ms": 1e3 * t_frames / frames,
         "close_s": t_close, "close_validates": close_validate, "full_validate_s": t_validate,
         "baseline_rss_mb": baseline, "peak_rss_mb": peak, "writer_peak_mb": peak - baseline,
@@ -94,6 +107,10 @@ def main() -> None:
     ap.add_argument("--flush-mb", default="64")
     ap.add_argument("--validate", action="store_true",
                     help="also time a full validate_usd (every sample) after close")
+    ap.add_argument("--threaded", default="0",
+                    help="0, 1 or 0,1: UsdBakeWriter(threaded=...)")
+    ap.add_argument("--sim-ms", type=float, default=0.0,
+                    help="per-frame GIL-releasing wait standing in for GPU simulation time")
     ap.add_argument("--no-close-validate", action="store_true",
                     help="close(validate=False): time the write alone")
     ap.add_argument("--repeat", type=int, default=1,
@@ -103,9 +120,9 @@ def main() -> None:
     ap.add_argument("--_one", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a._one:  # child: one configuration, result as JSON on stdout
-        p, f, fmt, fl = a._one.split(":")
+        p, f, fmt, fl, th = a._one.split(":")
         res = run_one(int(p), int(f), fmt, float(fl), a.device, a.validate, a.dir,
-                      close_validate=not a.no_close_validate)
+                      close_validate=not a.no_close_validate, threaded=th == "1", sim_ms=a.sim_ms)
         print("RESULT" + json.dumps(res))
         return
     results = []
@@ -113,9 +130,10 @@ def main() -> None:
         for p in a.points.split(","):
             for f in a.frames.split(","):
                 for fmt in a.fmt.split(","):
-                    for fl in a.flush_mb.split(","):
+                    for fl, th in [(x, y) for x in a.flush_mb.split(",") for y in a.threaded.split(",")]:
                         cmd = [sys.executable, __file__, "--device", a.device, "--dir", d,
-                               "--_one", f"{p}:{f}:{fmt}:{fl}"] + (["--validate"] if a.validate else [])
+                               "--sim-ms", str(a.sim_ms),
+                               "--_one", f"{p}:{f}:{fmt}:{fl}:{th}"] + (["--validate"] if a.validate else [])
                         cmd += ["--no-close-validate"] if a.no_close_validate else []
                         runs = []
                         for _ in range(a.repeat):
@@ -125,7 +143,8 @@ def main() -> None:
                         r = min(runs, key=lambda x: x["write_s"])
                         r["repeats"] = a.repeat
                         results.append(r)
-                        print(f"N={r['points']} frames={r['frames']} fmt={r['fmt']} flush={fl}MB: "
+                        print(f"N={r['points']} frames={r['frames']} fmt={r['fmt']} flush={fl}MB "
+                              f"threaded={th} sim={a.sim_ms:g}ms: wall {r['wall_s']:.2f}s, "
                               f"write {r['write_s']:.2f}s ({r['per_frame_ms']:.0f} ms/frame, "
                               f"close {r['close_s']:.2f}s)"
                               + (f", full validate {r['full_validate_s']:.2f}s" if r["full_validate_s"] is not None else "")

@@ -15,7 +15,9 @@ destination (same file system) and moved into place with os.replace only by
 from __future__ import annotations
 
 import os
+import queue
 import secrets
+import threading
 import weakref
 from pathlib import Path
 
@@ -32,6 +34,7 @@ FORMATS = ("instancer", "splat", "both")
 SUFFIXES = (".usd", ".usdc", ".usda")
 DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma ellipsoid
 DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
+QUEUE_FRAMES = 2  # threaded mode: frames waiting for the writer thread (bounds memory)
 ROOT = "/Root"
 
 
@@ -63,6 +66,11 @@ class UsdBakeWriter:
             displayColor), the only place Blender reads per-splat colour from.
         flush_bytes: save (append to the file) after this many bytes of new
             samples; bounds the writer's memory.
+        threaded: write in a background thread so that USD work overlaps the
+            caller's simulation (GPU waits release the GIL). `write_frame` then
+            copies its inputs, checks them, queues them (at most QUEUE_FRAMES
+            waiting, so memory stays bounded) and returns; an error in the thread
+            is raised by the next call or by `close()`.
 
     Example:
         >>> with UsdBakeWriter("out.usd", n_points=n, fps=30, colors=rgb,
@@ -78,7 +86,8 @@ class UsdBakeWriter:
                  fmt: str = "instancer", colors: np.ndarray | None = None,
                  opacities: np.ndarray | None = None, sh: np.ndarray | None = None,
                  scale_factor: float = DEFAULT_SCALE_FACTOR, ids: np.ndarray | None = None,
-                 color_points: bool = True, flush_bytes: int = DEFAULT_FLUSH_BYTES) -> None:
+                 color_points: bool = True, flush_bytes: int = DEFAULT_FLUSH_BYTES,
+                 threaded: bool = False) -> None:
         self.path = Path(path)
         n = int(n_points)
         self._check_args(n, fps, up_axis, meters_per_unit, fmt, scale_factor)
@@ -86,14 +95,21 @@ class UsdBakeWriter:
         self.n_points, self.fps, self.fmt = n, float(fps), fmt
         self.start_frame = float(start_frame)
         self.flush_bytes = int(flush_bytes)
+        # caller side: what has been accepted (time checks, end time code)
         self.frames_written = 0
-        self.bytes_written = 0  # array bytes of all time samples handed to USD
         self._last_t: float | None = None
-        self._last_samples: list[tuple[Sdf.Path, object]] = []
         self._held_until: float | None = None
-        self._unsaved = 0
         self._closed = False
         self.warnings: list[str] = []
+        # writer side (the writer thread in threaded mode): what is in the layer
+        self.bytes_written = 0  # array bytes of all time samples handed to USD
+        self._w_frames = 0
+        self._w_last_samples: list[tuple[Sdf.Path, object]] = []
+        self._w_held_until: float | None = None
+        self._unsaved = 0
+        self._thread: threading.Thread | None = None
+        self._thread_error: BaseException | None = None
+        self._cancel = False
 
         token = f"{os.getpid()}-{secrets.token_hex(4)}"
         self._tmp = self.path.parent / f".{self.path.name}.tmp-{token}.usdc"
@@ -125,6 +141,10 @@ class UsdBakeWriter:
         # From here on samples go straight into the layer: no stage, so no change
         # processing per sample.
         del stage
+        if threaded:
+            self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
+            self._thread = threading.Thread(target=self._worker, name="UsdBakeWriter", daemon=True)
+            self._thread.start()
 
     # ---------------------------------------------------------------- setup
     @staticmethod
@@ -180,28 +200,10 @@ class UsdBakeWriter:
         """
         self._check_open()
         t = float(time_code)
-        positions, quats, sigmas = self._check_frame(t, positions, orientations, scales)
-        layer = self._layer
-        if self._held_until is not None and t > self._held_until:
-            # Re-author the held values at the end of the hold so that USD's linear
-            # interpolation does not blend the rest pose into the hold.
-            for p, v in self._last_samples:
-                layer.SetTimeSample(p, self._held_until, v)
-        if self.frames_written == 0:
-            for part in self._parts:
-                for p, v in part.first_frame_defaults(positions, quats, sigmas):
-                    layer.GetAttributeAtPath(p).default = v
-        samples = [s for part in self._parts for s in part.samples(positions, quats, sigmas)]
-        nbytes = 0
-        for p, v in samples:
-            layer.SetTimeSample(p, t, v)
-            nbytes += _vt_nbytes(v)
-        self._last_samples, self._last_t, self._held_until = samples, t, None
+        pos, q, sig = self._check_frame(t, positions, orientations, scales, copy=self._thread is not None)
+        self._last_t, self._held_until = t, None
         self.frames_written += 1
-        self.bytes_written += nbytes
-        self._unsaved += nbytes
-        if self._unsaved >= self.flush_bytes:
-            self._save()
+        self._submit(("frame", t, pos, q, sig))
 
     def hold_frames(self, until_time_code: float) -> None:
         """Extend the animation to `until_time_code` with the object at rest.
@@ -216,6 +218,59 @@ class UsdBakeWriter:
         if t <= self.end_time_code:
             raise UsdExportError(f"hold_frames({t:g}): must be after time code {self.end_time_code:g}")
         self._held_until = t
+        self._submit(("hold", t))
+
+    def _submit(self, item: tuple) -> None:
+        if self._thread is None:
+            self._apply(item)
+        else:
+            self._queue.put(item)  # blocks while QUEUE_FRAMES frames wait: bounded memory
+
+    def _apply(self, item: tuple) -> None:
+        if item[0] == "hold":
+            self._w_held_until = item[1]
+            return
+        _, t, positions, quats, sigmas = item
+        quats = normalize_quats(quats)
+        layer = self._layer
+        if self._w_held_until is not None and t > self._w_held_until:
+            # Re-author the held values at the end of the hold so that USD's linear
+            # interpolation does not blend the rest pose into the hold.
+            for p, v in self._w_last_samples:
+                layer.SetTimeSample(p, self._w_held_until, v)
+        if self._w_frames == 0:
+            for part in self._parts:
+                for p, v in part.first_frame_defaults(positions, quats, sigmas):
+                    layer.GetAttributeAtPath(p).default = v
+        samples = [s for part in self._parts for s in part.samples(positions, quats, sigmas)]
+        nbytes = 0
+        for p, v in samples:
+            layer.SetTimeSample(p, t, v)
+            nbytes += _vt_nbytes(v)
+        self._w_last_samples, self._w_held_until = samples, None
+        self._w_frames += 1
+        self.bytes_written += nbytes
+        self._unsaved += nbytes
+        if self._unsaved >= self.flush_bytes:
+            self._save()
+
+    def _worker(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._thread_error is not None or self._cancel:
+                continue  # drain: the caller will raise or has given up
+            try:
+                self._apply(item)
+            except BaseException as e:  # handed to the caller thread
+                self._thread_error = e
+
+    def _join_thread(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
 
     @property
     def end_time_code(self) -> float:
@@ -223,16 +278,21 @@ class UsdBakeWriter:
         ends = [x for x in (self._last_t, self._held_until) if x is not None]
         return max(ends) if ends else self.start_frame
 
-    def _check_frame(self, t: float, positions, orientations, scales):
+    def _check_frame(self, t: float, positions, orientations, scales, copy: bool = False):
+        # Everything is checked here, in the caller's thread, so errors surface at
+        # the call that caused them even in threaded mode.
+        if self._thread_error is not None:
+            raise self._thread_error
         n = self.n_points
         if not np.isfinite(t) or t < self.start_frame:
             raise UsdExportError(f"time code {t:g}: must be finite and >= start_frame {self.start_frame:g}")
         if self._last_t is not None and t <= self.end_time_code:
             raise UsdExportError(f"time code {t:g}: frames must increase "
                                  f"(last covered {self.end_time_code:g})")
-        pos = np.ascontiguousarray(_np(positions), dtype=np.float32)
-        q = _np(orientations)
-        s = np.ascontiguousarray(_np(scales), dtype=np.float32)
+        # copy: a queued frame must not change when the caller reuses its buffers
+        pos = np.array(_np(positions), dtype=np.float32, order="C", copy=copy)
+        q = np.array(_np(orientations), dtype=np.float32, order="C", copy=copy)
+        s = np.array(_np(scales), dtype=np.float32, order="C", copy=copy)
         for name, a, cols in (("positions", pos, 3), ("orientations", q, 4), ("scales", s, 3)):
             if a.shape != (n, cols):
                 raise UsdExportError(f"frame {t:g}: {name} has shape {tuple(a.shape)}, "
@@ -243,11 +303,19 @@ class UsdBakeWriter:
         if not (s > 0).all():
             raise UsdExportError(f"frame {t:g}: scales must be linear sigmas > 0 "
                                  f"(min {s.min():g}); pass exp(log_scales)")
-        return pos, normalize_quats(q), s
+        return pos, q, s
 
     # ---------------------------------------------------------------- finish
     def _save(self) -> None:
-        self._layer.Save()
+        try:
+            ok = self._layer.Save()
+        except Exception as e:  # Tf.ErrorException: disk full, folder removed, ...
+            raise UsdExportError(f"{self.path}: writing the USD file failed "
+                                 f"({_pxr_message(e)}); check free disk space "
+                                 f"and that {self.path.parent} still exists") from e
+        if not ok:
+            raise UsdExportError(f"{self.path}: writing the USD file failed; check free disk "
+                                 f"space and that {self.path.parent} still exists")
         self._unsaved = 0
 
     def close(self, *, validate: bool = True) -> Path:
@@ -263,6 +331,9 @@ class UsdBakeWriter:
             self.abort()
             raise UsdExportError(f"{self.path}: no frames were written; nothing to save")
         try:
+            self._join_thread()
+            if self._thread_error is not None:
+                raise self._thread_error
             self._layer.endTimeCode = self.end_time_code
             self._save()
             src = self._tmp
@@ -284,6 +355,8 @@ class UsdBakeWriter:
 
     def abort(self) -> None:
         """Drop the bake: delete the temporary files; `path` is left untouched."""
+        self._cancel = True
+        self._join_thread()
         self._layer = None
         self._closed = True
         self._remove_temporaries()
@@ -305,6 +378,14 @@ class UsdBakeWriter:
             self.close()
         else:
             self.abort()
+
+
+def _pxr_message(e: Exception) -> str:
+    """The human part of a Tf error: "Error in 'Func' at line .. : 'msg'" -> "msg"."""
+    text = " ".join(str(e).split())
+    if " : " in text:
+        text = text.rsplit(" : ", 1)[1]
+    return text.strip("'\" ")
 
 
 def _unlink_all(paths) -> None:
