@@ -5,7 +5,7 @@ Public API (importing `usd_export` itself does not import pxr):
     UsdBakeWriter(path, *, n_points, fps, start_frame=0, up_axis="Z",
                   meters_per_unit=1.0, fmt="instancer" | "splat" | "both",
                   colors=None, opacities=None, sh=None, scale_factor=2.0,
-                  ids=None, color_points=True, flush_bytes=64 MiB)
+                  ids=None, color_points=True, flush_bytes=64 MiB, threaded=False)
         .write_frame(time_code, positions [N,3] scene units,
                      orientations [N,4] (w,x,y,z) unit, scales [N,3] linear sigma)
         .hold_frames(until_time_code)   # object at rest: no samples, end time grows
