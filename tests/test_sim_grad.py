@@ -237,3 +237,15 @@ def test_backward_memory_does_not_grow_with_frames(tmp_path):
     assert peaks[2] > 5e6  # the measurement sees the taped segment's arrays (~27 MB)
     print(peaks)
     assert peaks[20] <= 1.5 * peaks[2], peaks
+
+
+def test_frame_rejects_wrong_inputs():
+    x, static, vol, rng = scene(seed=5)
+    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=8), device="cpu")
+    xt, v, C, F, E = random_state(x, static, rng, near_rest=True)
+    from pd_tool.sim import SimConfigError
+
+    with pytest.raises(SimConfigError, match="E is"):
+        sim.frame((xt, v, C, F), E.double(), 0.01, 4)
+    with pytest.raises(SimConfigError, match="v is"):
+        sim.frame((xt, v[:-1], C, F), E, 0.01, 4)

@@ -116,6 +116,14 @@ class DiffSim:
         """
         fa = forces if isinstance(forces, ForceArrays) else self.forces(forces)
         x, v, C, F = state
+        n = self.n
+        for name, t, shape in (("x", x, (n, 3)), ("v", v, (n, 3)), ("C", C, (n, 3, 3)),
+                               ("F", F, (n, 3, 3)), ("E", E, (n,))):
+            if tuple(t.shape) != shape or t.dtype != torch.float32 or t.device != self.torch_device:
+                raise SimConfigError(f"DiffSim.frame: {name} is {tuple(t.shape)} {t.dtype} on {t.device}, "
+                                     f"expected {shape} torch.float32 on {self.torch_device}")
+        if substeps < 1:
+            raise SimConfigError(f"DiffSim.frame: substeps={substeps}, need >= 1")
         return _FrameFunction.apply(x, v, C, F, E, self, float(frame_dt), int(substeps), fa,
                                     float(t0), int(frame_index))
 
