@@ -936,7 +936,7 @@ def make_video(rng: random.Random, work: Path, device: str = "cpu") -> Case:
     kwargs: dict[str, Any] = {"working_size": rng.choice([None, 16, 1024, (w, h)])}
     n_ops = rng.choice([1, 1, 1, 2, 3])
     for _ in range(n_ops):
-        op = rng.randrange(14)
+        op = rng.randrange(15)
         files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() != ".json")
         if op == 0:  # camera.json mutated
             tree = mutate_tree(rng, cam, JSON_NASTY)
@@ -1027,6 +1027,14 @@ def make_video(rng: random.Random, work: Path, device: str = "cpu") -> Case:
         elif op == 13:
             kwargs["fps"] = rng.choice([None, 0.0, -1.0, float("nan"), 25.0])
             notes.append(f"fps arg {kwargs['fps']}")
+        elif op == 14:  # --camera FILE --view ID: a (possibly mutated) camera file elsewhere
+            data, name, how = camera_bytes(rng)
+            ext = work / "cams"
+            ext.mkdir(exist_ok=True)
+            (ext / name).write_bytes(data)
+            kwargs["camera_path"] = ext / name
+            kwargs["view"] = rng.choice([None, 0, 1, -1, 7, "0", "view0", "00000", "r_0", "nope", ""])
+            notes.append(f"--camera {name} ({how}) --view {kwargs['view']!r}")
     if cam_data:
         (folder / "camera.json").write_bytes(cam_data)
     src = folder / "clip.mp4" if use_mp4 and (folder / "clip.mp4").is_file() and rng.random() < 0.3 else folder
