@@ -77,18 +77,7 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int) -> float:
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment)
-    import torch
-
-    dsim = DiffSim.__new__(DiffSim)  # warp-only construction: torch tensors stay on the CPU
-    dsim.config, dsim.n = cfg, n
-    from pd_tool.sim.solver import GridGeometry
-
-    dsim.geo = GridGeometry.from_config(cfg)
-    dsim.device = device
-    dsim._vol, dsim._mass = torch.tensor(vol), torch.tensor(mass)
-    dsim.volume = wp.array(vol, dtype=float, device=device)
-    dsim.mass = wp.array(mass, dtype=float, device=device)
-    dsim.static = wp.array(static.astype(np.int32), dtype=int, device=device)
+    dsim = DiffSim(vol, mass, static, cfg, device=device)
     xw = wp.array(x, dtype=wp.vec3, device=device)
     vw = wp.zeros(n, dtype=wp.vec3, device=device)
     Cw = wp.zeros(n, dtype=wp.mat33, device=device)

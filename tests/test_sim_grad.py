@@ -249,3 +249,16 @@ def test_frame_rejects_wrong_inputs():
         sim.frame((xt, v, C, F), E.double(), 0.01, 4)
     with pytest.raises(SimConfigError, match="v is"):
         sim.frame((xt, v[:-1], C, F), E, 0.01, 4)
+
+
+def test_cfl_substeps_for_uses_stiffest_moving_particle():
+    from pd_tool.sim import cfl_substeps_for
+    from pd_tool.sim.cfl import cfl_substeps, wave_speed
+
+    x, static, vol, rng = scene(seed=6)
+    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=8, cfl_safety=0.3), device="cpu")
+    E = torch.full((len(x),), 1e5)
+    E[torch.tensor(static)] = 1e9  # static particles do not limit the substep
+    E[np.nonzero(~static)[0][0]] = 4e5
+    c = wave_speed(np.array([4e5]), np.array([1000.0]), 0.3)
+    assert cfl_substeps_for(E, sim, 1 / 30) == cfl_substeps(1 / 30, sim.geo.dx, c, 0.0, 0.3)

@@ -37,10 +37,6 @@ from pd_tool.sim.solver import (
 State = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
-def _wp_device(t: torch.Tensor) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
 def _vec3(t: torch.Tensor) -> wp.array:
     return wp.from_torch(t.detach().contiguous(), dtype=wp.vec3)
 
@@ -75,7 +71,8 @@ class DiffSim:
     """Differentiable MPM for a fixed particle set (the fit's simulation).
 
     Args:
-        volume: [N] m^3.  mass: [N] kg.  static: [N] bool (Dirichlet particles).
+        volume: [N] m^3.  mass: [N] kg.  static: [N] bool (Dirichlet particles); numpy or
+            CPU tensors.
         config: SimConfig (grid, gravity, nu, walls; `segment` = substeps per tape).
         device: torch device of every tensor passed later ("cpu" or "cuda").
     """
@@ -87,17 +84,18 @@ class DiffSim:
         self.config = cfg
         self.geo = GridGeometry.from_config(cfg)
         self.torch_device = torch.device(device)
-        self.device = _wp_device(torch.empty(0, device=self.torch_device))
-        vol = torch.as_tensor(np.asarray(volume, np.float32), device=self.torch_device)
-        m = torch.as_tensor(np.asarray(mass, np.float32), device=self.torch_device)
-        st = torch.as_tensor(np.asarray(static).astype(np.int32), device=self.torch_device)
+        # warp arrays straight from numpy: the warp-only users (bench) need no CUDA torch build
+        self.device = "cpu" if self.torch_device.type == "cpu" else f"cuda:{self.torch_device.index or 0}"
+        vol = np.asarray(volume, np.float32).reshape(-1)
+        m = np.asarray(mass, np.float32).reshape(-1)
+        st = np.asarray(static).astype(np.int32).reshape(-1)
         self.n = vol.shape[0]
         if m.shape != (self.n,) or st.shape != (self.n,):
             raise SimConfigError(f"volume, mass, static must all have shape ({self.n},)")
-        self._vol, self._mass, self._static = vol, m, st  # keep torch owners alive
-        self.volume = wp.from_torch(vol)
-        self.mass = wp.from_torch(m)
-        self.static = wp.from_torch(st, dtype=wp.int32)
+        self._vol, self._mass, self._static = vol, m, st.astype(bool)
+        self.volume = wp.array(vol, dtype=float, device=self.device)
+        self.mass = wp.array(m, dtype=float, device=self.device)
+        self.static = wp.array(st, dtype=wp.int32, device=self.device)
 
     def forces(self, forces: Sequence[Force]) -> ForceArrays:
         return ForceArrays.build(list(forces), self.n, self.device)
@@ -292,10 +290,8 @@ def cfl_substeps_for(E: torch.Tensor, sim: DiffSim, frame_dt: float, vmax: float
     """CFL substeps per frame for the current E (stiffest moving particle)."""
     from pd_tool.sim.cfl import cfl_substeps, wave_speed
 
-    moving = ~(sim._static.bool())
-    Em = E.detach()[moving] if bool(moving.any()) else E.detach()
-    rho = (sim._mass / sim._vol)[moving] if bool(moving.any()) else sim._mass / sim._vol
-    c = wave_speed(Em.cpu().numpy(), rho.cpu().numpy(), sim.config.nu)
+    moving = ~sim._static if sim._static.any() and not sim._static.all() else np.ones(sim.n, bool)
+    c = wave_speed(E.detach().cpu().numpy()[moving], (sim._mass / sim._vol)[moving], sim.config.nu)
     return cfl_substeps(frame_dt, sim.geo.dx, c, vmax, sim.config.cfl_safety)
 
 
