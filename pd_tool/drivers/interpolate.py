@@ -34,32 +34,53 @@ MODES = ("rigid", "affine")
 # --------------------------------------------------------------------------- quaternions
 
 
+def _bilinear_basis(rows: list[str]) -> Tensor:
+    """[16, len(rows)] float64 coefficients of c_k = sum_ij B[4i+j, k] a_i b_j, from rows of
+    text such as "+0*0 -1*1": each term is sign, index into a, index into b."""
+    B = torch.zeros(16, len(rows), dtype=torch.float64)
+    for k, row in enumerate(rows):
+        for term in row.split():
+            sign, i, j = (1.0 if term[0] == "+" else -1.0), int(term[1]), int(term[3])
+            B[4 * i + j, k] += sign
+    return B
+
+
+# Hamilton product (w, x, y, z): c = a * b as one small matmul over the 16 products a_i b_j
+# (one kernel instead of thirty on a GPU).
+_QMUL = _bilinear_basis([
+    "+0*0 -1*1 -2*2 -3*3", "+0*1 +1*0 +2*3 -3*2", "+0*2 -1*3 +2*0 +3*1", "+0*3 +1*2 -2*1 +3*0",
+])
+# Rotation matrix of a unit quaternion, row-major, from the products q_i q_j; the
+# constant 1 of the diagonal is written as w^2 + x^2 + y^2 + z^2.
+_QMAT = _bilinear_basis([
+    "+0*0 +1*1 -2*2 -3*3", "+1*2 +2*1 -0*3 -3*0", "+1*3 +3*1 +0*2 +2*0",
+    "+1*2 +2*1 +0*3 +3*0", "+0*0 -1*1 +2*2 -3*3", "+2*3 +3*2 -0*1 -1*0",
+    "+1*3 +3*1 -0*2 -2*0", "+2*3 +3*2 +0*1 +1*0", "+0*0 -1*1 -2*2 +3*3",
+])
+_CACHE: dict = {}
+
+
+def _basis(name: str, B: Tensor, like: Tensor) -> Tensor:
+    key = (name, like.dtype, like.device)
+    if key not in _CACHE:
+        _CACHE[key] = B.to(like.device, like.dtype)
+    return _CACHE[key]
+
+
+def _bilinear(a: Tensor, b: Tensor, name: str, B: Tensor) -> Tensor:
+    ab = (a[..., :, None] * b[..., None, :]).reshape(a.shape[:-1] + (16,))
+    return ab @ _basis(name, B, ab)
+
+
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product a * b of wxyz quaternions [..., 4] (apply b, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
+    a, b = torch.broadcast_tensors(a, b)
+    return _bilinear(a, b, "qmul", _QMUL)
 
 
 def quat_to_matrix(q: Tensor) -> Tensor:
     """Rotation matrices [..., 3, 3] of unit wxyz quaternions [..., 4]."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))
+    return _bilinear(q, q, "qmat", _QMAT).reshape(q.shape[:-1] + (3, 3))
 
 
 def rotate_quats(q_rot: Tensor, quats_rest: Tensor) -> Tensor:
@@ -71,22 +92,36 @@ def rotate_quats(q_rot: Tensor, quats_rest: Tensor) -> Tensor:
 # --------------------------------------------------------------------------- rigid fit
 
 
+def _horn_basis() -> Tensor:
+    """[9, 16] map from S (row-major) to Horn's 4x4 matrix (row-major)."""
+    sym = {  # entry (r, c) of N as signed S entries "ab"
+        (0, 0): "+xx +yy +zz", (0, 1): "+yz -zy", (0, 2): "+zx -xz", (0, 3): "+xy -yx",
+        (1, 1): "+xx -yy -zz", (1, 2): "+xy +yx", (1, 3): "+zx +xz",
+        (2, 2): "-xx +yy -zz", (2, 3): "+yz +zy", (3, 3): "-xx -yy +zz",
+    }
+    axis = {"x": 0, "y": 1, "z": 2}
+    B = torch.zeros(9, 16, dtype=torch.float64)
+    for (r, c), text in sym.items():
+        for term in text.split():
+            k = 3 * axis[term[1]] + axis[term[2]]
+            sign = 1.0 if term[0] == "+" else -1.0
+            B[k, 4 * r + c] += sign
+            if r != c:
+                B[k, 4 * c + r] += sign
+    return B
+
+
+_HORN = _horn_basis()
+
+
 def horn_matrix(S: Tensor) -> Tensor:
     """Horn's symmetric 4x4 matrix [..., 4, 4] of a cross-covariance S [..., 3, 3].
 
     S[a, b] = sum_j P_j[a] Y_j[b] (rest offsets P, current offsets Y). Its top eigenvector
     is the wxyz quaternion of the rotation R maximising sum_j Y_j . R P_j.
     """
-    sxx, sxy, sxz = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
-    syx, syy, syz = S[..., 1, 0], S[..., 1, 1], S[..., 1, 2]
-    szx, szy, szz = S[..., 2, 0], S[..., 2, 1], S[..., 2, 2]
-    rows = [
-        sxx + syy + szz, syz - szy, szx - sxz, sxy - syx,
-        syz - szy, sxx - syy - szz, sxy + syx, szx + sxz,
-        szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy,
-        sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz,
-    ]
-    return torch.stack(rows, -1).reshape(S.shape[:-2] + (4, 4))
+    flat = S.reshape(S.shape[:-2] + (9,))
+    return (flat @ _basis("horn", _HORN, flat)).reshape(S.shape[:-2] + (4, 4))
 
 
 def rotation_from_cross_covariance(S: Tensor, squarings: int = POWER_SQUARINGS) -> Tensor:
@@ -106,8 +141,13 @@ def rotation_from_cross_covariance(S: Tensor, squarings: int = POWER_SQUARINGS) 
     s = math.sqrt(3.0) * torch.sqrt((S * S).sum((-1, -2)) + tiny * tiny) + tiny
     eye = torch.eye(4, dtype=S.dtype, device=S.device)
     M = N + s[..., None, None] * eye
-    for _ in range(squarings):
-        M = M / M.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]  # trace > 0: PSD
+    # (lambda_1 + s) / (2 s) >= (1 + sqrt 3) / (2 sqrt 3) = 0.79, so the top eigenvalue of
+    # M / (2 s) shrinks at most to 0.79^8 over three squarings: normalising every third
+    # squaring is enough to stay far from underflow (and saves GPU kernels).
+    M = M / (2.0 * s)[..., None, None]
+    for i in range(squarings):
+        if i % 3 == 2:
+            M = M / M.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]  # trace > 0: PSD
         M = M @ M
     # M ~ q q^T (times a scale): the column on the largest diagonal entry is a safe pick
     # (q_j^2 >= 1/4 there).
@@ -162,6 +202,8 @@ class DriverInterpolator:
         neighbors: [N, K] long indices into drivers (K = 8 from build_drivers).
         mode: "rigid" (default) or "affine" (see the module docstring).
         squarings: power-method squarings of the rotation fit.
+        backend: "auto" (default): a fused warp kernel for rigid float32 calls that need no
+            gradient (bake), torch otherwise; "torch" or "warp" to force one.
         affine_reg: affine mode: weight of |F - R|^2 relative to the mean eigenvalue of
             the neighbours' rest second moment (keeps thin neighbourhoods from collapsing
             across their plane; biases F towards R by about affine_reg / anisotropy).
@@ -176,9 +218,16 @@ class DriverInterpolator:
         mode: str = "rigid",
         squarings: int = POWER_SQUARINGS,
         affine_reg: float = AFFINE_REG,
+        backend: str = "auto",
     ):
         if mode not in MODES:
             raise ValueError(f"interpolate: mode {mode!r} is not one of {MODES}")
+        if backend not in ("auto", "torch", "warp"):
+            raise ValueError(f"interpolate: backend {backend!r} is not 'auto', 'torch' or 'warp'")
+        if backend == "warp" and (mode != "rigid" or rest_points.dtype != torch.float32):
+            raise ValueError("interpolate: the warp backend does rigid float32 interpolation only")
+        self.backend = backend
+        self._warp = None  # rest-state warp arrays, made on first use
         n = rest_points.shape[0]
         if rest_quats.shape != (n, 4) or neighbors.ndim != 2 or neighbors.shape[0] != n:
             raise ValueError(
@@ -189,6 +238,8 @@ class DriverInterpolator:
         self.squarings = squarings
         self.neighbors = neighbors
         self.rest_quats = rest_quats
+        self.rest_points = rest_points
+        self.drivers_rest = drivers_rest
         nb_rest = drivers_rest[neighbors]  # [N, K, 3]
         self.c_rest = nb_rest.mean(1)
         self.P = nb_rest - self.c_rest[:, None, :]  # [N, K, 3] rest offsets, sum_j P_j = 0
@@ -209,6 +260,8 @@ class DriverInterpolator:
             the Gaussian's covariance becomes F Sigma_rest F^T (see apply_deformation);
             quats_now is the rigid part's rotation in both modes.
         """
+        if self._use_warp(drivers_now):
+            return self._warp_rigid(drivers_now)
         Y = drivers_now[self.neighbors]  # [N, K, 3]
         c_now = Y.mean(1)
         # Centred although sum_j P_j = 0: in float32, far from the origin, the uncentred
@@ -225,6 +278,53 @@ class DriverInterpolator:
         F = (S.transpose(1, 2) + self.lam[:, None, None] * R) @ self.G_inv
         points_now = (F @ self.offset[:, :, None])[:, :, 0] + c_now
         return points_now, quats_now, F
+
+
+    def _use_warp(self, drivers_now: Tensor) -> bool:
+        if self.backend == "warp":
+            return True
+        return (
+            self.backend == "auto"
+            and self.mode == "rigid"
+            and drivers_now.dtype == torch.float32
+            and self.rest_points.dtype == torch.float32
+            and not (torch.is_grad_enabled() and drivers_now.requires_grad)
+        )
+
+    def _warp_rigid(self, drivers_now: Tensor) -> tuple[Tensor, Tensor]:
+        """Forward-only fused kernel (kernels.rigid_interpolate); no autograd."""
+        import warp as wp
+
+        from pd_tool.device import init_warp_quietly
+        from pd_tool.drivers.kernels import rigid_interpolate
+
+        init_warp_quietly()
+        if self._warp is None:
+            keep = [
+                self.drivers_rest.detach().float().contiguous(),
+                self.neighbors.to(torch.int32).contiguous(),
+                self.rest_points.detach().float().contiguous(),
+                self.rest_quats.detach().float().contiguous(),
+            ]
+            self._warp = (keep, [
+                wp.from_torch(keep[0], dtype=wp.vec3),
+                wp.from_torch(keep[1], dtype=wp.int32),
+                wp.from_torch(keep[2], dtype=wp.vec3),
+                wp.from_torch(keep[3], dtype=wp.vec4),
+            ])
+        _, (d_rest, nb, x_rest, q_rest) = self._warp
+        n = self.rest_points.shape[0]
+        d_now = drivers_now.detach().float().contiguous()
+        points = torch.empty((n, 3), dtype=torch.float32, device=d_now.device)
+        quats = torch.empty((n, 4), dtype=torch.float32, device=d_now.device)
+        # On CUDA, launch on torch's current stream so that torch and warp work is ordered.
+        stream = wp.stream_from_torch(d_now.device) if d_now.is_cuda else None
+        wp.launch(
+            rigid_interpolate, dim=n, device=str(d_now.device) if d_now.is_cuda else "cpu", stream=stream,
+            inputs=[d_rest, wp.from_torch(d_now, dtype=wp.vec3), nb, x_rest, q_rest, self.squarings],
+            outputs=[wp.from_torch(points, dtype=wp.vec3), wp.from_torch(quats, dtype=wp.vec4)],
+        )
+        return points, quats
 
 
 def interpolate(
