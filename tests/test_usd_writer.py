@@ -402,3 +402,28 @@ def test_failed_save_raises_and_leaves_nothing(tmp_path, data, threaded):
     assert "\n" not in str(e.value) and "pxrInternal" not in str(e.value)
     # USD's writer may recreate the folder; it must hold no result and no temporary
     assert not folder.exists() or list(folder.iterdir()) == []
+
+
+def test_unwritable_folder(tmp_path):
+    # root writes into read-only folders, but not into /proc
+    if os.geteuid() == 0:
+        if not Path("/proc").is_dir():
+            pytest.skip("no unwritable folder available to root")
+        target = Path("/proc/x.usd")
+    else:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        target = ro / "x.usd"
+    try:
+        with pytest.raises(UsdExportError, match="cannot create a USD file there") as e:
+            UsdBakeWriter(target, n_points=3, fps=30)
+        assert "\n" not in str(e.value) and "pxrInternal" not in str(e.value)
+    finally:
+        if target.parent != Path("/proc"):
+            target.parent.chmod(0o700)
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(UsdExportError, match="does not exist"):
+        UsdBakeWriter(tmp_path / "nope" / "x.usd", n_points=3, fps=30)

@@ -127,7 +127,7 @@ class UsdBakeWriter:
             self._layer = Sdf.Layer.CreateNew(str(self._tmp))
             stage = Usd.Stage.Open(self._layer)
         except Exception as e:  # pxr raises Tf.ErrorException on unwritable paths
-            raise UsdExportError(f"{self.path}: cannot create a USD file there ({e}); "
+            raise UsdExportError(f"{self.path}: cannot create a USD file there ({_pxr_message(e)}); "
                                  f"check the folder is writable") from e
         try:
             self._setup_stage(stage, up_axis, meters_per_unit, colors, opacities, sh, ids,
