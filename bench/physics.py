@@ -5,8 +5,9 @@
 
 Both with Poisson's ratio 0 and gravity off. The object starts at rest in its rest shape
 with the velocity of the mode shape; the frequency is measured from the tip displacement by
-counting whole periods between upward zero crossings about the rest position (linear
-interpolation between samples), never from the mean of a partial period.
+counting whole periods between the first zero crossing about the rest position and the last
+crossing in the same direction (linear interpolation between samples), never from the mean
+of a partial period.
 
     python bench/physics.py --quick --json out.json        # CPU, under a minute
     python bench/physics.py --json out.json                # convergence table (slower)
@@ -59,18 +60,24 @@ def beam_setup(n_thick: int, slender: float, transverse_margin: int, pad: int):
     return x, static, domain, x0, L, h
 
 
-def upward_crossings(t: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Times (s) where d goes from < 0 to >= 0, linearly interpolated."""
-    idx = np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0]
-    return t[idx] - d[idx] * (t[idx + 1] - t[idx]) / (d[idx + 1] - d[idx])
+def zero_crossings(t: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Times (s, linearly interpolated) and directions (+1 up, -1 down) where d changes sign."""
+    s = np.sign(d)
+    idx = np.nonzero((s[:-1] != 0) & (s[1:] != s[:-1]))[0]  # a sample at exactly 0 starts none
+    times = t[idx] - d[idx] * (t[idx + 1] - t[idx]) / (d[idx + 1] - d[idx])
+    return times, np.where(d[idx] < 0, 1, -1)
 
 
 def measure_frequency(t: np.ndarray, d: np.ndarray) -> float:
-    """Whole periods between the first and last upward zero crossing -> frequency, Hz."""
-    c = upward_crossings(t, d)
-    if len(c) < 2:
+    """Whole periods between the first zero crossing and the last one in the same direction
+    -> frequency, Hz. (d starts at exactly 0 at t = 0; that start is not counted.)"""
+    times, dirs = zero_crossings(t, d)
+    if len(times) == 0:
         return float("nan")
-    return (len(c) - 1) / (c[-1] - c[0])
+    same = times[dirs == dirs[0]]
+    if len(same) < 2:
+        return float("nan")
+    return (len(same) - 1) / (same[-1] - same[0])
 
 
 def run_mode(x, static, domain, shape_v, tip_mask, axis, f_theory, periods, samples_per_period,
@@ -82,7 +89,8 @@ def run_mode(x, static, domain, shape_v, tip_mask, axis, f_theory, periods, samp
     sim = MPMSolver(x, vol, vol * RHO, np.full(n, E_PA), static, cfg, device=device)
     sim.set_velocity(shape_v)
     frame_dt = 1.0 / (f_theory * samples_per_period)
-    n_frames = int(math.ceil((periods + 0.5) * samples_per_period))
+    # the first crossing comes half a period in; keep a margin after the last one
+    n_frames = int(math.ceil((periods + 0.65) * samples_per_period))
     t = np.zeros(n_frames + 1)
     d = np.zeros(n_frames + 1)
     t0 = time.perf_counter()
@@ -101,7 +109,7 @@ def run_mode(x, static, domain, shape_v, tip_mask, axis, f_theory, periods, samp
     }
 
 
-def cantilever(n_thick: int, safety: float, periods: float = 2.0, slender: float = 10.0,
+def cantilever(n_thick: int, safety: float, periods: float = 1.0, slender: float = 10.0,
                pad: int = 3, device: str = "cpu") -> dict:
     """Clamped cantilever with a square n_thick-cell cross-section and length slender * h."""
     amp_cells = 1  # room for the tip amplitude
