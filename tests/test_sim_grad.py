@@ -14,7 +14,7 @@ import pytest
 import torch
 import warp as wp
 
-from pd_tool.sim import DiffSim, Force, SimConfig, initial_state, simulate_frames
+from pd_tool.sim import DiffSim, Force, SimConfig, simulate_frames
 from pd_tool.sim import _ref
 from pd_tool.sim.solver import GridArrays, ParticleState, launch_substep
 

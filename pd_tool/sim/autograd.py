@@ -9,7 +9,6 @@ frame-boundary states plus one segment's tape, whatever the number of frames.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
