@@ -218,9 +218,10 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     ckpts = {}
     for k0 in starts:
         ckpts[k0] = st.clone()
-        k1 = min(k0 + seg, substeps)
+        if k0 == starts[-1]:
+            break  # the last segment is replayed under the tape anyway
         sctx.t_frame.fill_(t0 + k0 * dt)  # the fused run counts time from its first substep
-        run_substeps_fused(sctx, k1 - k0, dt, st, sim._grid_cache())
+        run_substeps_fused(sctx, seg, dt, st, sim._grid_cache())
     sctx.t_frame.fill_(t0)
     del st
     # 2. replay the segments in reverse under a tape, one array set per substep (a pool
