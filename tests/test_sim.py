@@ -287,3 +287,20 @@ def test_optimized_path_matches_obvious_implementation(device):
     # atomics accumulate in a different order: float32 rounding only
     assert rel_err(out[True][0], out[False][0]) < 1e-4
     assert rel_err(out[True][1] - np.eye(3), out[False][1] - np.eye(3)) < 1e-4
+
+
+def test_block_lands_on_ground(device):
+    """A falling block stops on the ground plane (no tunnelling) and loses most of its speed."""
+    dx = 1 / 16
+    x = block((6, 6, 8), (10, 10, 11), dx)
+    vol = np.full(len(x), (dx / 2) ** 3)
+    ground = 5.0 * dx
+    cfg = SimConfig(grid_res=16, ground_z=ground, damping=5.0)
+    sim = MPMSolver(x, vol, vol * 1000, np.full(len(x), 2e4), np.zeros(len(x), bool), cfg, device=device)
+    lowest = []
+    for _ in range(20):
+        sim.step_frame(1 / 30)
+        lowest.append(float(sim.positions()[:, 2].min()))
+    assert min(lowest) > ground - 0.5 * dx  # nodes at z <= ground stop falling; particles rest on them
+    assert lowest[-1] < x[:, 2].min() - 2 * dx  # it did fall
+    assert np.abs(sim.velocities()[:, 2]).max() < 0.3  # ~1.3 m/s at impact, damped on the ground
