@@ -976,7 +976,7 @@ def make_video(rng: random.Random, work: Path, device: str = "cpu") -> Case:
             notes.append(f"{p.name} not an image ({what})")
         elif op == 6 and files:  # huge declared image size
             p = rng.choice(files)
-            big = rng.choice([(100000, 100000), (2 ** 31 - 1, 1), (0, 0), (1, 2 ** 31), (w * 2, h * 2), (65535, 65535)])
+            big = rng.choice([(100000, 100000), (2 ** 31 - 1, 1), (0, 0), (1, 2 ** 31), (w * 2, h * 2), (65535, 65535), (10000, 10000)])
             p.write_bytes(_png_with_size(p.read_bytes(), *big))
             notes.append(f"{p.name} IHDR {big}")
         elif op == 7:  # mask edits
