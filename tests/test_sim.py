@@ -184,6 +184,8 @@ def test_forward_frame_matches_twin(device):
     assert rel_err(sim.deformation_gradients() - np.eye(3), (ref[3] - torch.eye(3)).numpy()) < F32_REL_STEPS
     # static particles did not move
     assert np.all(sim.displacements()[static] == 0)
+    F = sim.deformation_gradients().astype(np.float64)
+    assert rel_err(sim.rotations(), polar_np(F)) < 1e-5
     assert abs(sim.time - frame_dt) < 1e-12
 
 

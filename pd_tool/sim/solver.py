@@ -493,6 +493,12 @@ class MPMSolver:
         """[N, 3, 3] float32 deformation gradients F (rest = identity)."""
         return self.state.F.numpy()[self._inv]
 
+    def rotations(self) -> np.ndarray:
+        """[N, 3, 3] float32 rotation R of each particle's F = R S (polar decomposition)."""
+        R = wp.empty(self.n, dtype=wp.mat33, device=self.device)
+        wp.launch(K.polar_kernel, dim=self.n, device=self.device, inputs=[self.state.F, R])
+        return R.numpy()[self._inv]
+
     def kinetic_energy(self) -> float:
         """Kinetic energy sum 0.5 m |v|^2 of the particles, J (one device sync)."""
         stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
