@@ -95,7 +95,11 @@ def _where(tb: traceback.StackSummary) -> str:
 def run_checked(load: Callable[[], Any], sanity: Callable[[Any], list[str]],
                 timeout_s: float = PER_INPUT_TIMEOUT_S) -> Outcome:
     """Run one loader call and classify it (see the module docstring)."""
-    use_alarm = timeout_s > 0 and hasattr(signal, "setitimer") and os.name == "posix"
+    import threading
+
+    # signals can only be set from the main thread (pytest-xdist workers and plain pytest run there)
+    use_alarm = (timeout_s > 0 and hasattr(signal, "setitimer") and os.name == "posix"
+                 and threading.current_thread() is threading.main_thread())
 
     def on_alarm(signum, frame):  # noqa: ARG001
         raise _Hang()
