@@ -351,7 +351,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
-@click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e5, show_default=True,
+@click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
               help="Starting Young's modulus, Pa (uniform).")
 @click.option("--nu", type=click.FloatRange(0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
 @click.option("--density", type=click.FloatRange(min=0, min_open=True), default=1000.0, show_default=True,

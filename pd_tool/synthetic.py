@@ -14,7 +14,7 @@ from pd_tool.scene import GaussianScene, rgb_to_sh
 REGIONS = ("pot", "stem", "leaf", "flower")
 # Ground-truth Young's modulus per region (Pa) used by the demo and the recovery benchmark;
 # stem and flower differ by 10x or more, as the recovery benchmark requires.
-REGION_TRUTH_E = {"pot": 1.0e6, "stem": 2.0e5, "leaf": 4.0e4, "flower": 1.5e4}
+REGION_TRUTH_E = {"pot": 1.0e7, "stem": 3.0e6, "leaf": 3.0e5, "flower": 2.0e5}
 REGION_COLORS = {
     "pot": (0.62, 0.32, 0.18),
     "stem": (0.20, 0.55, 0.18),
@@ -23,6 +23,7 @@ REGION_COLORS = {
 }
 POT_TOP = 0.2  # metres; everything below is the static pot
 STEM_TOP = 0.75  # metres
+STEM_RADIUS = 0.05  # metres
 # Fractions of the Gaussian budget per region (pot, stem, leaves, flower).
 _SHARES = (0.22, 0.28, 0.25, 0.25)
 
@@ -50,10 +51,11 @@ def _pot(rng, n):
 
 
 def _stem(rng, n):
-    # a solid slightly curved cylinder, radius 2 cm, from the soil to STEM_TOP
+    # a solid slightly curved cylinder from the soil to STEM_TOP; its radius is about one
+    # grid cell at the draft/default grids, so that MPM resolves its bending
     t = rng.uniform(0, 1, n)
     z = POT_TOP - 0.02 + t * (STEM_TOP - POT_TOP + 0.02)
-    r = 0.02 * np.sqrt(rng.uniform(0, 1, n))
+    r = STEM_RADIUS * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
     bend = 0.03 * t ** 2
     return np.stack([r * np.cos(th) + bend, r * np.sin(th), z], 1)
@@ -63,22 +65,22 @@ def _leaves(rng, n):
     out = []
     for k, (zc, ang) in enumerate(((0.42, 0.3), (0.56, 0.3 + np.pi))):
         m = n // 2 if k == 0 else n - n // 2
-        # an ellipse 16 cm x 6 cm, rising 25 degrees, 1 cm thick
+        # an ellipse 16 cm x 6 cm, rising 25 degrees, 2 cm thick
         u = rng.uniform(0, 1, m)
         v = rng.uniform(-1, 1, m) * np.sqrt(np.clip(1 - (2 * u - 1) ** 2, 0, 1))
-        along = 0.02 + 0.16 * u
+        along = STEM_RADIUS + 0.16 * u
         across = 0.03 * v
-        up = along * np.tan(np.radians(25)) + rng.uniform(-0.005, 0.005, m)
+        up = along * np.tan(np.radians(25)) + rng.uniform(-0.01, 0.01, m)
         c, s = np.cos(ang), np.sin(ang)
         out.append(np.stack([along * c - across * s, along * s + across * c, zc + up], 1))
     return np.concatenate(out)
 
 
 def _flower(rng, n):
-    # a flat head: a disc of petals of radius 13 cm, 3 cm thick, tilted a little
+    # a flat head: a disc of petals of radius 13 cm, 4 cm thick, cupped
     rr = 0.13 * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
-    z = STEM_TOP + 0.01 + rng.uniform(-0.015, 0.015, n) + 0.15 * rr
+    z = STEM_TOP + 0.02 + rng.uniform(-0.02, 0.02, n) + 0.15 * rr
     return np.stack([rr * np.cos(th) + 0.03, rr * np.sin(th), z], 1)
 
 

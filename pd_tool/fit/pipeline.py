@@ -42,16 +42,20 @@ class FitSettings:
     material_iters: int | None = None
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
+    refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
+    refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
     warmup: int = 3  # iterations of linear warm-up per stage
     grad_clip: float = 1.0
     tv_weight: float = 1e-4
     loss_lambda: float = 0.1
-    init_E: float = 1e5  # Pa, the uniform starting value (and the baseline it is compared with)
+    init_E: float = 1e6  # Pa, the uniform starting value (and the baseline it is compared with)
     E_min: float = 1e3  # Pa, bounds of the material field
     E_max: float = 1e8
     velocity_scale: float = 1.0  # m/s per unit of the velocity field's output
+    velocity_resolution: int = 24  # triplane texels per side of the v0 field (paper: 24)
+    material_resolution: int = 8  # ... of the E field (paper: 8)
     nu: float = 0.3
     density: float = 1000.0  # kg/m^3
     damping: float = 0.0  # 1/s
@@ -126,10 +130,10 @@ class FitProblem:
         self.mass = d.mass.to(self.device, torch.float32)
         # fields see positions normalised to the simulation box
         self.x_norm = (self.x_rest / torch.as_tensor(p.domain, dtype=torch.float32, device=self.device)).clamp(0, 1)
-        self.material = MaterialField(8, math.log(settings.E_min), math.log(settings.E_max),
+        self.material = MaterialField(settings.material_resolution, math.log(settings.E_min), math.log(settings.E_max),
                                       math.log(settings.init_E)).to(self.device)
         self.velocities = torch.nn.ModuleList(
-            [VelocityField(24, settings.velocity_scale) for _ in videos]).to(self.device)
+            [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         from pd_tool.sim import DiffSim, SimConfig
 
         cfg = SimConfig(grid_res=max(p.grid_dims), domain=p.domain, nu=settings.nu, gravity=(0.0, 0.0, 0.0),
@@ -200,14 +204,17 @@ def velocity_iteration(pb: FitProblem) -> float:
             state = pb.step(state, E, sub, k)
             loss = loss + pb.frame_loss(i, k, pb.render(i, state[0]))
         (loss / frames + pb.s.tv_weight * pb.velocities[i].tv()).backward()
-        total += float(loss) / frames
+        total += float(loss.detach()) / frames
         n += 1
     return total / max(n, 1)
 
 
-def material_iteration(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
-    """One stage-2 iteration: every frame of every video from the detached previous state."""
+def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
+    """One stage-2 iteration over every frame of every video. v0s: the frozen initial
+    velocities, or None to take them (with gradients) from the velocity fields."""
     E = pb.driver_E()
+    if v0s is None:
+        v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
     total = torch.zeros((), device=pb.device)
     count = 0
     for i, video in enumerate(pb.videos):
@@ -225,13 +232,16 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
     return float(loss)
 
 
-def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses) -> None:
+def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
+                     opt_v=None, sched_v=None) -> None:
     state = {
         "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "losses": losses,
         "torch_rng": torch.get_rng_state(),
     }
+    if opt_v is not None:
+        state["optimizer_v"], state["scheduler_v"] = opt_v.state_dict(), sched_v.state_dict()
     with atomic_output(path) as tmp:
         torch.save(state, tmp)
 
@@ -300,31 +310,42 @@ def run_fit(
             _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses)
     seconds["velocity"] = time.perf_counter() - t0
 
-    # ---- stage 2: material, v0 frozen
+    # ---- stage 2: material (v0 frozen, or refined at a lower rate)
     t0 = time.perf_counter()
     with torch.no_grad():
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
     opt, sched = make_optimizer(pb.material, s.lr_material, max(s.material_iters, 1),
                                 warmup_steps=min(s.warmup, max(s.material_iters, 1)))
+    opt_v = sched_v = None
+    if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
+        opt_v, sched_v = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor,
+                                        max(s.material_iters, 1), warmup_steps=min(s.warmup, max(s.material_iters, 1)))
     start = 0
     if ckpt is not None and ckpt["stage"] == "material":
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
+        if opt_v is not None and "optimizer_v" in ckpt:
+            opt_v.load_state_dict(ckpt["optimizer_v"])
+            sched_v.load_state_dict(ckpt["scheduler_v"])
         start = ckpt["iteration"]
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
-            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses)
-        loss = material_iteration(pb, v0s)
+            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v)
+        loss = material_iteration(pb, None if s.refine_velocity else v0s)
         _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip)
+        if opt_v is not None:
+            _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
         losses["material"].append(loss)
         if progress:
             progress("material", it + 1, s.material_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses)
+            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v)
     seconds["material"] = time.perf_counter() - t0
 
     # ---- result
     with torch.no_grad():
+        if s.refine_velocity:
+            v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
     labels = pb.drivers.labels.cpu().numpy()
