@@ -86,7 +86,10 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
                              f"a 3DGS PLY stores one number per property (export the splat again)")
 
     def col(*props: str) -> np.ndarray:
-        return np.stack([np.asarray(data[p], dtype=np.float64) for p in props], axis=1)
+        # a signalling NaN (garbage bytes) raises numpy's "invalid value in cast" warning when
+        # widened; NaNs are refused with one line below, so the warning would only add a line
+        with np.errstate(invalid="ignore"):
+            return np.stack([np.asarray(data[p], dtype=np.float64) for p in props], axis=1)
 
     xyz = col("x", "y", "z")
     log_scales = col("scale_0", "scale_1", "scale_2")
