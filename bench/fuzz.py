@@ -104,6 +104,15 @@ def run_checked(load: Callable[[], Any], sanity: Callable[[Any], list[str]],
     def on_alarm(signum, frame):  # noqa: ARG001
         raise _Hang()
 
+    def loud_warning() -> Outcome | None:
+        loud = [w for w in caught if not issubclass(w.category, QUIET_WARNINGS)]
+        if not loud:
+            return None
+        w = loud[0]
+        return Outcome("bug", f"warning {w.category.__name__}: {w.message} ({Path(w.filename).name}:{w.lineno})",
+                       f"warning {w.category.__name__} {Path(w.filename).name}:{w.lineno}")
+
+    caught: list[warnings.WarningMessage] = []
     old = signal.signal(signal.SIGALRM, on_alarm) if use_alarm else None
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -126,7 +135,8 @@ def run_checked(load: Callable[[], Any], sanity: Callable[[Any], list[str]],
             tb = traceback.extract_tb(e.__traceback__)
             return Outcome("bug", f"{type(e).__name__} message spans lines: {msg[:300]!r}",
                            f"multi-line {type(e).__name__} {_where(tb)}")
-        return Outcome("error", msg)
+        # a warning printed before the error line breaks the one-line promise too
+        return loud_warning() or Outcome("error", msg)
     except BaseException as e:  # noqa: BLE001 - the point is to catch everything else
         if isinstance(e, KeyboardInterrupt):
             raise
@@ -139,12 +149,7 @@ def run_checked(load: Callable[[], Any], sanity: Callable[[Any], list[str]],
             signal.signal(signal.SIGALRM, old)
     if problems:
         return Outcome("bug", "loaded but insane: " + "; ".join(problems), "insane: " + problems[0].split(":")[0])
-    loud = [w for w in caught if not issubclass(w.category, QUIET_WARNINGS)]
-    if loud:
-        w = loud[0]
-        return Outcome("bug", f"warning {w.category.__name__}: {w.message} ({Path(w.filename).name}:{w.lineno})",
-                       f"warning {w.category.__name__} {Path(w.filename).name}:{w.lineno}")
-    return Outcome("ok")
+    return loud_warning() or Outcome("ok")
 
 
 # ============================================================================ byte mutations
@@ -1363,9 +1368,13 @@ def cli_one(target: str, rng: random.Random, runner: Any = None, subprocess_too:
 
             src = case.path
             case = Case(lambda: load_reference_video(src, working_size=256), sane_video, src, case.note)
-        ok = run_checked(case.load, case.sanity).kind == "ok"
+        lib = run_checked(case.load, case.sanity)
+        ok = lib.kind == "ok"
         if ok and target not in ("ply", "splat"):
             return None, case.note + " (loads: no command run)"
+        if lib.signature.startswith(("insane", "warning")) and target not in ("ply", "splat"):
+            # the loader returned something: the command would start a real fit or bake
+            return f"loader: {lib.detail}", case.note + " (loads: no command run)"
         scene = tiny_scene(work / "tiny_scene.ply")
         args = cli_args(target, case, work, scene)
         if args is None:

@@ -115,6 +115,12 @@ def test_oracle_flags_bugs() -> None:
     assert fuzz.run_checked(raise_(CameraError("")), ok).kind == "bug"
     assert fuzz.run_checked(raise_(CameraError("f: bad; fix it")), ok).kind == "error"
     assert fuzz.run_checked(warn, ok).kind == "bug"
+
+    def warn_then_raise():
+        warnings.warn("overflow", RuntimeWarning)
+        raise CameraError("f: bad; fix it")
+
+    assert fuzz.run_checked(warn_then_raise, ok).kind == "bug"  # the CLI would print two lines
     assert fuzz.run_checked(lambda: 1, lambda obj: ["x: insane"]).kind == "bug"
     assert fuzz.run_checked(lambda: 1, ok).kind == "ok"
     assert fuzz.run_checked(sleep, ok, timeout_s=0.2).signature == "hang"

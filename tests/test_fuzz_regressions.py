@@ -240,3 +240,18 @@ def test_ply_float_region_is_not_a_label(tmp_path: Path) -> None:
         warnings.simplefilter("error")
         scene = load_splats(path)
     assert scene.labels is None and "region" in scene.extra
+
+
+def test_ply_signalling_nan_is_quiet(tmp_path: Path) -> None:
+    """A float32 signalling NaN (bytes 7fa00000) widened to float64 printed numpy's
+    'invalid value encountered in cast' warning before the one-line error."""
+    rec = fuzz._ply_records(random.Random(0), 2, 0, normals=False, extra=False)
+    rec["x"].view(np.uint32)[1] = 0x7FA00000
+    path = tmp_path / "s.ply"
+    path.write_bytes(fuzz._ply_bytes(rec, "le"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(PlyFormatError, match="NaN/inf position") as e:
+            load_splats(path)
+    _one_line(e, path)
+    assert not caught, [str(w.message) for w in caught]
