@@ -415,10 +415,15 @@ class MPMSolver:
     # ---------------------------------------------------------------- stepping
     def substeps_per_frame(self, frame_dt: float) -> int:
         """Substeps for one frame: config.substeps, or the CFL choice from the stiffest
-        particle's wave speed and the fastest particle seen so far (never decreases)."""
+        particle's wave speed, the last frame's fastest particle and the speed the active
+        forces can add in this frame (never decreases during a run)."""
         if self.config.substeps is not None:
             return int(self.config.substeps)
-        n = cfl_substeps(frame_dt, self.geo.dx, self._c, self._vmax, self.config.cfl_safety)
+        # speed term: the fastest particle of the last frame plus what the active forces can
+        # add during this frame
+        boost = sum(float(np.linalg.norm(f.accel)) * frame_dt for f in self._forces
+                    if f.t_start < self.time + frame_dt and f.t_end > self.time)
+        n = cfl_substeps(frame_dt, self.geo.dx, self._c, self._vmax + boost, self.config.cfl_safety)
         self._substeps = max(n, self._substeps or 0)
         return self._substeps
 
