@@ -194,6 +194,9 @@ def _matrix(path: Path, where: str, v: Any, shape: tuple[int, ...]) -> np.ndarra
 
 def _rigid(path: Path, where: str, rot: np.ndarray) -> np.ndarray:
     """Check that rot is a rotation (allowing float noise); re-orthonormalise it."""
+    if np.abs(rot).max() > 1.0 + 1e-3:  # a rotation's entries lie in [-1, 1]; 1e308 would overflow the SVD
+        raise CameraError(f"{path}: {where} rotation is not a proper rotation matrix (an entry is "
+                          f"{np.abs(rot).max():.3g}); fix the extrinsics")
     u, sv, vt = np.linalg.svd(rot)
     if np.max(np.abs(sv - 1.0)) > 1e-3 or np.linalg.det(u @ vt) < 0:
         raise CameraError(f"{path}: {where} rotation is not a proper rotation matrix (singular values {np.round(sv, 4).tolist()}); fix the extrinsics")
