@@ -139,13 +139,27 @@ def _why(e: Exception) -> str:
 
 
 def _imread(path: Path) -> np.ndarray:
+    import warnings
+
     import imageio.v3 as iio
+    from PIL import Image
 
     try:
         # pillow only: PNG/JPG need nothing else, and a broken file then fails fast
         # instead of being offered to every imageio plugin in turn
-        return np.asarray(iio.imread(path, plugin="pillow"))
+        with warnings.catch_warnings():
+            # Pillow only warns between 89 and 179 Mpx; a warning would print a second line
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            return np.asarray(iio.imread(path, plugin="pillow"))
     except Exception as e:  # imageio raises many types for broken files
+        cause: BaseException | None = e
+        for _ in range(8):  # imageio wraps Pillow's exception in an OSError (bounded: no cycles)
+            if cause is None:
+                break
+            if isinstance(cause, (Image.DecompressionBombWarning, Image.DecompressionBombError)):
+                raise VideoError(f"{path}: image header declares more than {Image.MAX_IMAGE_PIXELS:,} pixels (a "
+                                 f"corrupt file, or far beyond a reference video's size); export frames at most 8K") from None
+            cause = cause.__cause__ or cause.__context__
         raise VideoError(f"{path}: cannot read image ({_why(e)}); "
                          f"re-export it as PNG or JPG") from None
 
