@@ -255,3 +255,41 @@ def test_ply_signalling_nan_is_quiet(tmp_path: Path) -> None:
             load_splats(path)
     _one_line(e, path)
     assert not caught, [str(w.message) for w in caught]
+
+
+def test_camera_huge_rotation_entry_is_quiet(tmp_path: Path) -> None:
+    """A rotation entry of 1e308 printed numpy's overflow warning (from the SVD) before the
+    one-line error."""
+    m = np.eye(4)
+    m[0, 1] = 1e308
+    path = tmp_path / "camera.json"
+    path.write_text(json.dumps(_pdtool_cam(world_to_camera=m.tolist())))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(CameraError, match="not a proper rotation") as e:
+            load_cameras(path)
+    _one_line(e, path)
+    assert not caught, [str(w.message) for w in caught]
+
+
+@pytest.mark.parametrize("size", [(10000, 10000), (100000, 100000)])
+def test_video_frame_declaring_huge_size(tmp_path: Path, size: tuple[int, int]) -> None:
+    """A PNG header claiming 10^8 pixels printed Pillow's DecompressionBombWarning before the
+    error; both sizes now give one VideoError line."""
+    from pd_tool.cameras import Camera, save_camera_json
+    from pd_tool.errors import VideoError
+    from pd_tool.fit.video import load_reference_video
+
+    folder = tmp_path / "video"
+    folder.mkdir()
+    frame = fuzz._png_bytes(np.zeros((8, 8, 3), np.uint8))
+    for i in range(3):
+        (folder / f"frame_{i:04d}.png").write_bytes(frame)
+    (folder / "frame_0001.png").write_bytes(fuzz._png_with_size(frame, *size))
+    save_camera_json(folder / "camera.json", Camera(8, 8, 10.0, 10.0, 4.0, 4.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(VideoError, match="pixels") as e:
+            load_reference_video(folder)
+    _one_line(e, folder / "frame_0001.png")
+    assert not [w for w in caught if not issubclass(w.category, ResourceWarning)]
