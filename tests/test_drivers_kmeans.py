@@ -182,24 +182,57 @@ def test_driver_count_rules():
         driver_count(pts[:0], dx)
 
 
-def test_build_drivers_inherits_cluster_properties(device):
+def _sums_match(ds, pts, volume, mass):
+    q = len(ds)
+    labels = ds.labels.cpu()
+    vol_ref = torch.zeros(q, dtype=torch.float64).index_add_(0, labels, volume.cpu().double())
+    assert torch.allclose(ds.volume.cpu().double(), vol_ref, atol=1e-5)
+    assert torch.allclose(ds.mass.sum().cpu(), mass.sum().cpu(), rtol=1e-5)
+    means = torch.zeros(q, 3, dtype=torch.float64).index_add_(0, labels, pts.cpu().double()) / ds.counts.cpu()[:, None]
+    assert torch.allclose(ds.positions.cpu().double(), means, atol=1e-6)
+    _, nb_ref = knn_ref(pts.cpu(), ds.positions.cpu(), 8)
+    assert (ds.neighbors.cpu() == nb_ref).float().mean() > 0.999
+
+
+def test_build_drivers_majority_mode(device):
     gen = torch.Generator().manual_seed(6)
     pts = torus(3000, gen, noise=0.01).to(device)
     volume = torch.rand(3000, generator=gen).to(device)
     mass = 2.0 * volume
     static = (pts[:, 2] < -0.1).to(device)
-    ds = build_drivers(pts, volume, mass, static, dx=0.1, ratio=0.1, seed=0)
+    ds = build_drivers(pts, volume, mass, static, dx=0.1, ratio=0.1, seed=0, static_drivers="majority")
     q = len(ds)
     assert q == 300 and ds.positions.shape == (q, 3) and ds.neighbors.shape == (3000, 8)
+    _sums_match(ds, pts, volume, mass)
     labels = ds.labels.cpu()
-    assert torch.allclose(ds.volume.cpu().double(), torch.zeros(q, dtype=torch.float64).index_add_(0, labels, volume.cpu().double()), atol=1e-5)
-    assert torch.allclose(ds.mass.sum().cpu(), mass.sum().cpu(), rtol=1e-5)
     frac = torch.zeros(q).index_add_(0, labels, static.cpu().float()) / torch.bincount(labels, minlength=q)
     assert torch.equal(ds.static.cpu(), frac > 0.5)
-    _, nb_ref = knn_ref(pts.cpu(), ds.positions.cpu(), 8)
-    assert (ds.neighbors.cpu() == nb_ref).float().mean() > 0.999
-    means = torch.zeros(q, 3, dtype=torch.float64).index_add_(0, labels, pts.cpu().double()) / ds.counts.cpu()[:, None]
-    assert torch.allclose(ds.positions.cpu().double(), means, atol=1e-6)
+
+
+def test_build_drivers_static_nodes_mode(device):
+    # Default: free Gaussians by K-Means (the ratio counts those), static ones grouped by
+    # the grid node nearest to them, so that drivers pin exactly the Gaussians' nodes.
+    gen = torch.Generator().manual_seed(7)
+    pts = torus(3000, gen, noise=0.01).to(device) + 2.0  # positive, like a simulation box
+    volume = torch.rand(3000, generator=gen).to(device)
+    mass = 3.0 * volume
+    static = (pts[:, 2] < 1.9).to(device)
+    dx = 0.1
+    ds = build_drivers(pts, volume, mass, static, dx, ratio=0.1, seed=0)
+    _sums_match(ds, pts, volume, mass)
+    labels = ds.labels.cpu()
+    # No driver mixes static and free Gaussians.
+    mixed = torch.zeros(len(ds)).index_add_(0, labels, static.cpu().float()) / ds.counts.cpu()
+    assert ((mixed == 0) | (mixed == 1)).all()
+    assert torch.equal(ds.static.cpu(), mixed == 1)
+    n_free = int((~static).sum())
+    assert int((~ds.static).sum()) == round(0.1 * n_free)
+
+    def nodes(p):
+        return {tuple(v) for v in torch.floor(p.cpu().double() / dx + 0.5).long().tolist()}
+
+    assert nodes(ds.positions[ds.static]) == nodes(pts[static])
+    assert int(ds.static.sum()) == len(nodes(pts[static]))
 
 
 def test_build_drivers_on_a_real_capture(shared_data):
@@ -210,10 +243,23 @@ def test_build_drivers_on_a_real_capture(shared_data):
     n = pts.shape[0]
     ext = float((pts.max(0).values - pts.min(0).values).max())
     dx = ext / 32
-    ds = build_drivers(pts, torch.ones(n), torch.ones(n), torch.zeros(n, dtype=torch.bool), dx)
+    ds = build_drivers(pts - pts.min(0).values, torch.ones(n), torch.ones(n), torch.zeros(n, dtype=torch.bool), dx)
+    pts = pts - pts.min(0).values
     occupied = torch.unique(torch.floor(pts / dx).long(), dim=0).shape[0]
     assert len(ds) == min(8 * occupied, n)
     assert ds.counts.min() >= 1 and int(ds.counts.sum()) == n
     # Each Gaussian's own driver is among its nearest few (K-Means converged).
     own = (ds.neighbors == ds.labels[:, None]).any(1).float().mean()
     assert own > 0.95
+
+
+def test_build_drivers_all_free_all_static_and_bad_mode():
+    gen = torch.Generator().manual_seed(8)
+    pts = torch.rand(500, 3, generator=gen)
+    ones = torch.ones(500)
+    free = build_drivers(pts, ones, ones, torch.zeros(500, dtype=torch.bool), 0.1, count=40)
+    assert len(free) == 40 and not free.static.any()
+    fixed = build_drivers(pts, ones, ones, torch.ones(500, dtype=torch.bool), 0.1, count=40)
+    assert fixed.static.all() and int(fixed.counts.sum()) == 500
+    with pytest.raises(DriverError, match="static_drivers"):
+        build_drivers(pts, ones, ones, torch.zeros(500, dtype=torch.bool), 0.1, static_drivers="some")

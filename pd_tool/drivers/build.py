@@ -97,30 +97,72 @@ def build_drivers(
     count: int | None = None,
     seed: int = 0,
     neighbors: int = NEIGHBORS,
+    static_drivers: str = "nodes",
     **kmeans_options,
 ) -> DriverSet:
     """Cluster the Gaussians into driving particles (K-Means) and link each to its drivers.
 
     Args:
-        points_sim: [N, 3] float Gaussian centres at rest, simulation units.
+        points_sim: [N, 3] float Gaussian centres at rest, simulation units (the grid's
+            nodes sit at integer multiples of dx).
         volume: [N] particle volumes; mass: [N] particle masses; static: [N] bool.
-        dx: simulation grid spacing, for the default count rule (driver_count).
-        ratio / count: override the number of drivers (driver_count).
+        dx: simulation grid spacing: for the default count rule (driver_count) and for
+            grouping static Gaussians by grid node.
+        ratio / count: the number of moving drivers (driver_count over the free
+            Gaussians when static_drivers="nodes", over all of them with "majority").
         seed: K-Means seed (deterministic per seed and device).
         neighbors: drivers per Gaussian (8, the paper's).
+        static_drivers: "nodes" (default): free Gaussians are clustered by K-Means; static
+            Gaussians get one static driver per grid node nearest to them (the node the
+            simulator pins), so the drivers pin exactly the nodes that every Gaussian would.
+            "majority": one K-Means over all Gaussians; a driver is static where most of its
+            members are (the paper's recipe; it moves the clamped boundary, see
+            docs/parts/drivers.md).
         kmeans_options: passed to kmeans (iters, tol, chunk, init).
+    Returns:
+        DriverSet; with "nodes" the moving drivers come first, then the static ones.
     """
     n = int(points_sim.shape[0])
+    dev = points_sim.device
     for name, t in (("volume", volume), ("mass", mass), ("static", static)):
         if t.shape != (n,):
             raise DriverError(f"build_drivers: {name} must be [{n}] like points_sim, got {tuple(t.shape)}")
-    q = driver_count(points_sim, dx, ratio=ratio, count=count)
-    centres, labels = kmeans(points_sim, q, seed=seed, **kmeans_options)
+    static = static.to(device=dev, dtype=torch.bool)
+    if static_drivers == "majority":
+        q = driver_count(points_sim, dx, ratio=ratio, count=count)
+        centres, labels = kmeans(points_sim, q, seed=seed, **kmeans_options)
+    elif static_drivers == "nodes":
+        if not dx > 0.0:
+            raise DriverError(f"build_drivers: grid spacing dx={dx}; it must be > 0")
+        free_idx = torch.nonzero(~static).squeeze(1)
+        static_idx = torch.nonzero(static).squeeze(1)
+        labels = torch.empty(n, dtype=torch.long, device=dev)
+        parts = []
+        q_free = 0
+        if free_idx.numel() > 0:
+            q_free = driver_count(points_sim[free_idx], dx, ratio=ratio, count=count)
+            c_free, l_free = kmeans(points_sim[free_idx], q_free, seed=seed, **kmeans_options)
+            labels[free_idx] = l_free
+            parts.append(c_free)
+        if static_idx.numel() > 0:
+            node = torch.floor(points_sim[static_idx] / dx + 0.5).long()
+            _, l_static = torch.unique(node, dim=0, return_inverse=True)
+            labels[static_idx] = q_free + l_static
+            q_static = int(l_static.max()) + 1
+            sums = torch.zeros((q_static, 3), dtype=torch.float64, device=dev)
+            sums.index_add_(0, l_static, points_sim[static_idx].double())
+            cnt = torch.bincount(l_static, minlength=q_static)[:, None].double()
+            # The mean of points nearest to one node is nearest to it too (its cell is convex).
+            parts.append((sums / cnt).to(points_sim.dtype))
+        centres = torch.cat(parts)
+        q = centres.shape[0]
+    else:
+        raise DriverError(f"build_drivers: static_drivers={static_drivers!r}; use 'nodes' or 'majority'")
     acc = torch.float64
-    vol = torch.zeros(q, dtype=acc, device=points_sim.device).index_add_(0, labels, volume.to(acc))
-    m = torch.zeros(q, dtype=acc, device=points_sim.device).index_add_(0, labels, mass.to(acc))
+    vol = torch.zeros(q, dtype=acc, device=dev).index_add_(0, labels, volume.to(dev, acc))
+    m = torch.zeros(q, dtype=acc, device=dev).index_add_(0, labels, mass.to(dev, acc))
     counts = torch.bincount(labels, minlength=q)
-    n_static = torch.zeros(q, dtype=torch.long, device=points_sim.device)
+    n_static = torch.zeros(q, dtype=torch.long, device=dev)
     n_static.index_add_(0, labels, static.to(torch.long))
     nb = nearest_drivers(points_sim, centres, min(neighbors, q))
     return DriverSet(
