@@ -358,6 +358,9 @@ def save_camera_json(path: str | os.PathLike, camera: Camera) -> None:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             json.dump(camera.to_dict(), f, indent=2)
             f.write("\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -386,6 +389,7 @@ def look_at(eye: Iterable[float], target: Iterable[float], up: Iterable[float]) 
 
 _UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0),
        "-x": (-1.0, 0.0, 0.0), "-y": (0.0, -1.0, 0.0), "-z": (0.0, 0.0, -1.0)}
+_UP.update({"+" + k: v for k, v in list(_UP.items()) if not k.startswith("-")})
 
 
 def auto_camera(
@@ -404,8 +408,8 @@ def auto_camera(
     positions: [N, 3] Gaussian centres in world units. The bounds are the 1st-99th
     percentiles per axis so that a few stray floaters do not shrink the object; the camera
     sits where the bounding sphere of that box fits the smaller field of view with
-    ``margin``. up_axis: world axis shown upward: "x", "y", "z" or negated ("-y" for
-    COLMAP-style scenes whose y points down).
+    ``margin``. up_axis: world axis shown upward: "x", "y", "z" (or "+z" ...) or negated
+    ("-y" for COLMAP-style scenes whose y points down).
     """
     pts = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]

@@ -104,12 +104,19 @@ def _project_inputs(means, quats, scales, sh, s: RasterSettings, device):
 
 
 def _sort_pairs(rects, tiles_touched, depths, s: RasterSettings, device):
-    """Depth-sorted Gaussian ids per tile: (tile_ranges [T, 2] int32, sorted_ids [P] int32)."""
+    """Depth-sorted Gaussian ids per tile: (tile_ranges [T, 2] int32, sorted_ids [P] int32).
+
+    Two torch sorts instead of one sort of 64-bit (tile, depth) keys, which is several
+    times slower on CPU: Gaussians are sorted by depth, their pairs are emitted in that
+    order, and a stable sort by tile id (int16 when the tile count allows) keeps the depth
+    order within each tile.
+    """
     n_tiles = s.tiles_x * s.tiles_y
-    counts = tiles_touched.to(torch.int64)
+    tdev = tiles_touched.device
+    by_depth = torch.argsort(depths)
+    counts = tiles_touched[by_depth].to(torch.int64)
     offsets64 = torch.cumsum(counts, 0) - counts
     n_pairs = int(counts.sum().item()) if counts.numel() else 0
-    tdev = tiles_touched.device
     if n_pairs == 0:
         return torch.zeros((n_tiles, 2), dtype=torch.int32, device=tdev), torch.zeros(
             1, dtype=torch.int32, device=tdev
@@ -121,17 +128,19 @@ def _sort_pairs(rects, tiles_touched, depths, s: RasterSettings, device):
     wp.launch(
         K.emit_tile_pairs,
         dim=rects.shape[0],
-        inputs=[_wp(rects, wp.vec4i), _wp(offsets64.to(torch.int32), wp.int32), s.tiles_x],
+        inputs=[
+            _wp(by_depth.to(torch.int32), wp.int32),
+            _wp(rects, wp.vec4i),
+            _wp(offsets64.to(torch.int32), wp.int32),
+            s.tiles_x,
+        ],
         outputs=[_wp(pair_tile, wp.int32), _wp(pair_gauss, wp.int32)],
         device=device,
     )
-    # Depths are > near > 0, so their float32 bit patterns sort like the values.
-    depth_bits = depths.contiguous().view(torch.int32).to(torch.int64)
-    keys = (pair_tile.to(torch.int64) << 32) | depth_bits[pair_gauss.to(torch.int64)]
-    keys, order = torch.sort(keys)
+    tile_key = pair_tile.to(torch.int16) if n_tiles <= 32767 else pair_tile
+    sorted_tiles, order = torch.sort(tile_key, stable=True)
     sorted_ids = pair_gauss[order].contiguous()
-    sorted_tiles = (keys >> 32).contiguous()
-    tile_idx = torch.arange(n_tiles, device=tdev, dtype=torch.int64)
+    tile_idx = torch.arange(n_tiles, device=tdev, dtype=sorted_tiles.dtype)
     starts = torch.searchsorted(sorted_tiles, tile_idx)
     ends = torch.searchsorted(sorted_tiles, tile_idx, right=True)
     tile_ranges = torch.stack([starts, ends], 1).to(torch.int32).contiguous()
