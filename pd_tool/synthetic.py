@@ -14,7 +14,7 @@ from pd_tool.scene import GaussianScene, rgb_to_sh
 REGIONS = ("pot", "stem", "leaf", "flower")
 # Ground-truth Young's modulus per region (Pa) used by the demo and the recovery benchmark;
 # stem and flower differ by 10x or more, as the recovery benchmark requires.
-REGION_TRUTH_E = {"pot": 1.0e7, "stem": 3.0e6, "leaf": 3.0e5, "flower": 2.0e5}
+REGION_TRUTH_E = {"pot": 1.0e7, "stem": 3.0e6, "leaf": 5.0e4, "flower": 3.0e5}
 REGION_COLORS = {
     "pot": (0.62, 0.32, 0.18),
     "stem": (0.20, 0.55, 0.18),

@@ -182,11 +182,17 @@ class FitProblem:
 
 
 # ---------------------------------------------------------------------- stages
-def _clip_and_step(params, opt, sched, clip: float) -> None:
-    torch.nn.utils.clip_grad_norm_(params, clip)
-    opt.step()
+def _clip_and_step(params, opt, sched, clip: float) -> bool:
+    """Clip, step, advance the schedule. A non-finite gradient (a simulation that blew up
+    under a trial E) skips the step instead of writing NaN into the field; returns
+    whether the step was taken."""
+    norm = torch.nn.utils.clip_grad_norm_(params, clip)
+    ok = bool(torch.isfinite(norm))
+    if ok:
+        opt.step()
     sched.step()
     opt.zero_grad(set_to_none=True)
+    return ok
 
 
 def velocity_iteration(pb: FitProblem) -> float:
