@@ -97,6 +97,7 @@ class BakeResult:
     bytes_written: int
     peak_displacement: float  # scene units, over all Gaussians and frames
     displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: setup, simulate, interpolate, write, total
     report: list[str] = field(default_factory=list)
 
 
@@ -251,6 +252,7 @@ def bake(
     calm = 0
     simulated = 0
     substeps = solver.substeps_per_frame(frame_dt)
+    timings = {"setup": time.perf_counter() - t_start, "simulate": 0.0, "interpolate": 0.0, "write": 0.0}
     with writer:
         pos0, q0 = frame_arrays(None)
         writer.write_frame(0, pos0, q0, all_scales)
@@ -260,10 +262,17 @@ def bake(
         if progress:
             progress(1, n_frames)
         for f in range(1, n_frames):
+            t = time.perf_counter()
             substeps = solver.step_frame(frame_dt)
             simulated += 1
-            pos, q = frame_arrays(solver.positions())
+            d_now = solver.positions()  # the host copy synchronises, so the timing is honest
+            timings["simulate"] += time.perf_counter() - t
+            t = time.perf_counter()
+            pos, q = frame_arrays(d_now)
+            timings["interpolate"] += time.perf_counter() - t
+            t = time.perf_counter()
             writer.write_frame(f, pos, q, all_scales)
+            timings["write"] += time.perf_counter() - t
             disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
             if preview is not None:
                 snap(pos, q)
@@ -280,12 +289,13 @@ def bake(
                     if progress:
                         progress(n_frames, n_frames)
                     break
+    timings["total"] = time.perf_counter() - t_start
     out = Path(out)
     result = BakeResult(
         out=out, frames=n_frames, simulated_frames=simulated, substeps_per_frame=substeps,
         gaussians=scene.count, drivers=len(d_rest), seconds_elapsed=time.perf_counter() - t_start,
         bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
-        report=list(prep.report),
+        report=list(prep.report), timings=timings,
     )
     if simulated < n_frames - 1:
         result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")

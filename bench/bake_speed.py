@@ -1,0 +1,76 @@
+"""Bake time and peak memory for one second of animation of a synthetic plant.
+
+    python bench/bake_speed.py --device cuda --gaussians 300000 --json bake.json
+
+Times the whole `pd_tool.bake.bake` call (after a warm-up bake that compiles the kernels)
+and its parts: setup (preparation, K-Means, nearest drivers), simulation, interpolation,
+USD writing. Peak memory: host RSS (ru_maxrss) and, on CUDA, torch's peak allocation plus
+warp's mempool high-water mark where available.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--gaussians", type=int, default=300_000)
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--quality", default="default")
+    ap.add_argument("--fmt", default="instancer")
+    ap.add_argument("--preset", default="flower")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+
+    import torch
+
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.device import init_warp_quietly
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.presets import Material
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    init_warp_quietly()
+    scene = make_plant(args.gaussians, seed=0, device=args.device)
+    kw = dict(force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material=Material.from_preset(args.preset))
+    with tempfile.TemporaryDirectory() as tmp:
+        bake(make_plant(2000, seed=1, device=args.device), Path(tmp) / "warm.usd",
+             prepare_options=PrepareOptions(static_below=POT_TOP),
+             settings=BakeSettings(seconds=0.1, fps=args.fps, quality=args.quality, fmt=args.fmt,
+                                   device=args.device), **kw)
+        if args.device == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        t0 = time.perf_counter()
+        res = bake(scene, Path(tmp) / "out.usd", prepare_options=PrepareOptions(static_below=POT_TOP),
+                   settings=BakeSettings(seconds=args.seconds, fps=args.fps, quality=args.quality, fmt=args.fmt,
+                                         device=args.device, stop_at_rest=False), **kw)
+        wall = time.perf_counter() - t0
+        size = res.bytes_written
+    out = {
+        "device": args.device,
+        "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
+        "gaussians": args.gaussians, "drivers": res.drivers, "frames": res.frames,
+        "substeps_per_frame": res.substeps_per_frame, "quality": args.quality, "fmt": args.fmt,
+        "wall_s": wall, "timings_s": res.timings,
+        "sim_plus_interp_s": res.timings["simulate"] + res.timings["interpolate"],
+        "file_bytes": size, "bytes_per_frame": size / res.frames,
+        "host_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "cuda_peak_torch_mb": torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else None,
+    }
+    print(json.dumps(out, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
