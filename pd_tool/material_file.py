@@ -146,6 +146,23 @@ class MaterialFile:
         """Damping, 1/s (0 when the header lacks it)."""
         return self._header_number("damping", 0.0)
 
+    @property
+    def scene_path(self) -> Path | None:
+        """The scene the material was fitted to (absolute path as the fit saw it), or None
+        when the header does not say (a hand-made file)."""
+        p = self.meta.get("scene_path")
+        return Path(p) if isinstance(p, str) and p else None
+
+    @property
+    def prepare(self) -> dict[str, Any]:
+        """The fit's scene-preparation options (PrepareOptions.to_dict()); MaterialFileError
+        when the header lacks them, so a bake cannot silently prepare the scene differently."""
+        p = self.meta.get("prepare")
+        if not isinstance(p, dict):
+            raise MaterialFileError("material file has no 'prepare' settings in its header; run `pdtool fit` again "
+                                    "(a bake must prepare the scene as the fit did)")
+        return p
+
     def E_at(self, points_scene: np.ndarray) -> np.ndarray:
         """Young's modulus [M] (Pa) at points [M, 3] in scene units: the value of the
         nearest fitted driver, so a bake may use another grid or driver ratio than the fit."""

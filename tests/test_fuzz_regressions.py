@@ -293,3 +293,17 @@ def test_video_frame_declaring_huge_size(tmp_path: Path, size: tuple[int, int]) 
             load_reference_video(folder)
     _one_line(e, folder / "frame_0001.png")
     assert not [w for w in caught if not issubclass(w.category, ResourceWarning)]
+
+
+def test_material_scene_path_and_prepare_accessors(tmp_path: Path) -> None:
+    """A hand-made material without scene_path / prepare loads; the accessors a bake should
+    use say so with None / a MaterialFileError instead of KeyError (cli.py indexes meta)."""
+    path = tmp_path / "m.pdmat"
+    path.write_bytes(fuzz._zip_of({**_material_members(), "meta.npy": _meta_with(scene_path=None, prepare=None)}, False))
+    m = MaterialFile.load(path)
+    assert m.scene_path is None
+    with pytest.raises(MaterialFileError, match="no 'prepare'"):
+        m.prepare
+    path.write_bytes(fuzz._zip_of(_material_members(), False))
+    m = MaterialFile.load(path)
+    assert m.scene_path == Path("/tmp/scene.ply") and m.prepare["grid_res"] == 32
