@@ -130,7 +130,7 @@ def _read_json(path: Path) -> Any:
     if path.is_dir():
         for name in ("camera.json", "cameras.json", "transforms.json"):
             if (path / name).is_file():
-                return _read_json(path / name), path / name
+                return _read_json(path / name)
         raise CameraError(f"{path}: folder holds no camera.json, cameras.json or transforms.json; pass the camera file itself")
     try:
         return json.loads(path.read_text(encoding="utf-8")), path
@@ -200,6 +200,8 @@ def _rigid(path: Path, where: str, rot: np.ndarray) -> np.ndarray:
     u, sv, vt = np.linalg.svd(rot)
     if np.max(np.abs(sv - 1.0)) > 1e-3 or np.linalg.det(u @ vt) < 0:
         raise CameraError(f"{path}: {where} rotation is not a proper rotation matrix (singular values {np.round(sv, 4).tolist()}); fix the extrinsics")
+    if np.max(np.abs(sv - 1.0)) < 1e-9:
+        return rot  # already orthonormal: keep the file's values exactly (lossless round trip)
     return u @ vt
 
 
