@@ -219,6 +219,8 @@ def test_cfl_substeps_and_fixed(device):
     assert wave_speed(E[~static], np.full(int((~static).sum()), 1000.0), 0.3) == pytest.approx(c)
     assert sim.substeps_per_frame(1 / 30) == math.ceil((1 / 30) / (0.4 * dx / c))
     sim.set_velocity(np.tile([0.0, 0.0, 200.0], (len(x), 1)))  # the speed term raises it
+    m_moving = (vol * 1000)[~static].sum()  # static particles get no velocity
+    assert sim.kinetic_energy() == pytest.approx(0.5 * m_moving * 200.0**2, rel=1e-5)
     assert sim.substeps_per_frame(1 / 30) == cfl_substeps(1 / 30, dx, c, 200.0, 0.4)
     sim.add_force(np.ones(len(x), bool), (0.0, 3000.0, 4000.0), t_start=0.0, t_end=1.0)  # +5000 m/s^2
     assert sim.substeps_per_frame(1 / 30) == cfl_substeps(1 / 30, dx, c, 200.0 + 5000.0 / 30, 0.4)

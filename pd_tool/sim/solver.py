@@ -361,7 +361,7 @@ class MPMSolver:
         moving = ~static if np.any(~static) else np.ones_like(static)
         self._c = wave_speed(E[moving], (mass / volume)[moving], cfg.nu)
         self._vmax = 0.0
-        self._kinetic = 0.0
+        self._kinetic: float | None = 0.0  # of the current state; None = unknown
         self._substeps: int | None = None
         self._forces: list[Force] = []
         self._graphs: dict = {}
@@ -401,6 +401,7 @@ class MPMSolver:
         v = v[self._perm]
         v[self._static_np] = 0.0  # static particles never move (and must not push in P2G)
         self.state.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+        self._kinetic = None
         self._vmax = float(np.max(np.linalg.norm(v, axis=1))) if self.n else 0.0
 
     def add_force(self, mask, accel, t_start: float = 0.0, t_end: float = math.inf) -> None:
@@ -505,7 +506,12 @@ class MPMSolver:
         return R.numpy()[self._inv]
 
     def kinetic_energy(self) -> float:
-        """Kinetic energy sum 0.5 m |v|^2 of the particles, J (one device sync)."""
-        stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
-        wp.launch(K.frame_stats, dim=self.n, device=self.device, inputs=[self.state.v, self.mat.mass, stats])
-        return float(stats.numpy()[K.STAT_KINETIC])
+        """Kinetic energy sum 0.5 m |v|^2 of the particles, J.
+
+        Free after step_frame (the guard's reduction computed it); otherwise one device sync.
+        """
+        if self._kinetic is None:
+            stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
+            wp.launch(K.frame_stats, dim=self.n, device=self.device, inputs=[self.state.v, self.mat.mass, stats])
+            self._kinetic = float(stats.numpy()[K.STAT_KINETIC])
+        return self._kinetic
