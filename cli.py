@@ -297,13 +297,13 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                 scene = scene or rec_scene
             mat_file = MaterialFile.load(material)
         if scene is None:
-            scene = Path(mat_file.meta["scene_path"]) if mat_file is not None else None
+            scene = mat_file.scene_path if mat_file is not None else None
             if scene is None or not scene.is_file():
                 raise InputError("no scene: pass --scene FILE.ply (with --preset NAME or --material FILE)")
         if mat_file is not None:
             mat_file.check_scene(scene, material)
         load_preset("quality", quality)
-        base = PrepareOptions.from_dict(mat_file.meta["prepare"]) if mat_file is not None else None
+        base = PrepareOptions.from_dict(mat_file.prepare) if mat_file is not None else None
         opts = build_prepare_options(base, **prep_kw)
         overrides = dict(at=at, radius=radius, start=start, duration=duration,
                          box=None if force_box is None else (*Box.parse(force_box, "--box").lo,
