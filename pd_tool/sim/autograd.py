@@ -83,6 +83,10 @@ class DiffSim:
         self.config = cfg
         self.geo = GridGeometry.from_config(cfg)
         self.torch_device = torch.device(device)
+        if self.torch_device.type == "cuda" and self.torch_device.index is None:
+            # tensors report "cuda:0", never "cuda": compare against the indexed device
+            idx = torch.cuda.current_device() if torch.cuda.is_available() else 0
+            self.torch_device = torch.device("cuda", idx)
         # warp arrays straight from numpy: the warp-only users (bench) need no CUDA torch build
         self.device = "cpu" if self.torch_device.type == "cpu" else f"cuda:{self.torch_device.index or 0}"
         vol = np.asarray(volume, np.float32).reshape(-1)
