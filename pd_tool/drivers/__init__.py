@@ -17,9 +17,16 @@ Public API (torch, CPU or CUDA; shapes in the docstrings of each function):
   default: 8 drivers per occupied grid cell (the paper's rule); or ratio * N; or count;
   always 1..N.
 - build_drivers(points_sim, volume [N], mass [N], static [N] bool, dx, *, ratio=None,
-  count=None, seed=0) -> DriverSet(positions [Q,3], volume [Q], mass [Q], static [Q],
-  labels [N], neighbors [N,8], points_rest [N,3], counts [Q]).
+  count=None, seed=0, static_drivers="nodes") -> DriverSet(positions [Q,3], volume [Q]
+  (summed), mass [Q] (summed), static [Q], labels [N], neighbors [N,8], points_rest [N,3],
+  counts [Q]). Default "nodes": K-Means over the free Gaussians (ratio/count/rule count
+  those), plus one static driver per grid node pinned by static Gaussians, so the drivers
+  clamp the same nodes as all Gaussians would; "majority": one K-Means, static by majority.
+  Recommended ratio (docs/parts/drivers.md): 1/4 (RMS error < 1% of the object's size on
+  the plant for every poke tried); 1/10 for drafts.
 - nearest_drivers(points [N,3], drivers [Q,3], k=8) -> [N,k] long: exact, grid-based.
+- DriverInterpolator(..., backend="auto"): a fused warp kernel for rigid float32 calls
+  without gradient (bake), torch otherwise (fit).
 - interpolate(rest_points, rest_quats, drivers_rest, drivers_now, neighbors,
   mode="rigid") -> (points_now [N,3], quats_now [N,4] wxyz) for "rigid", plus
   F [N,3,3] for "affine". DriverInterpolator is the same with the rest state computed
