@@ -224,7 +224,6 @@ class RasterizeGaussians(torch.autograd.Function):
         rgb = out_rgb.view(s.height, s.width, 3)
         alpha = (1.0 - out_T).view(s.height, s.width, 1)
         depth = out_depth.view(s.height, s.width, 1)
-        ctx.mark_non_differentiable()
         return rgb, alpha, depth
 
     @staticmethod
