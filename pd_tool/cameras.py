@@ -433,7 +433,30 @@ def auto_camera(
     fy = 0.5 * height / math.tan(0.5 * math.radians(fov_y_deg))
     fx = fy
     half_fov = math.atan(0.5 * min(width, height) / fy)
+    # Start where the bounding sphere surely fits, then move closer until the points seen
+    # from this side (those inside the 1-99th percentile box) fill 1/margin of the frame:
+    # the sphere of a flat or long object wastes most of the picture.
     dist = margin * radius / math.sin(half_fov)
+    inner = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    if len(inner) == 0:
+        inner = pts
+    safe = dist  # the smallest distance measured to fit
+    for _ in range(6):
+        cam = Camera(int(width), int(height), fx, fy, width / 2.0, height / 2.0,
+                     look_at(centre + dist * direction, centre, up), name="auto")
+        uvz = cam.project(inner)
+        if np.any(uvz[:, 2] <= 0.05 * dist):
+            break  # points too close to the camera: keep the last safe distance
+        ext = max(np.abs(uvz[:, 0] - cam.cx).max() / (0.5 * width),
+                  np.abs(uvz[:, 1] - cam.cy).max() / (0.5 * height))
+        if ext * margin <= 1.0 + 1e-6:
+            safe = min(safe, dist)
+        # Image extent scales about like 1 / distance for a far camera; iterate for near ones.
+        new = dist * ext * margin
+        if ext <= 0 or abs(new - dist) < 0.005 * dist:
+            break
+        dist = new
+    dist = safe
     eye = centre + dist * direction
     w2c = look_at(eye, centre, up)
     return Camera(int(width), int(height), fx, fy, width / 2.0, height / 2.0, w2c, name="auto")
