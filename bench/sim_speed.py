@@ -5,6 +5,7 @@ average) given in random order, in a unit box with a res^3 grid. Variants:
 
 - baseline: the obvious implementation: particles in input (random) order, one atomic add
   per node per particle, one launch per kernel per substep, no graph.
+- sort_only / fuse_only / graph_only (--ablation): the baseline with one optimisation.
 - fast: MPMSolver as bake uses it: particles stored in grid-cell order once, G2P fused with
   the next substep's P2G and the grid clear fused into the grid update (two launches per
   substep), CUDA graph of a frame's substeps on GPU, guard read once per frame.
@@ -52,26 +53,26 @@ def sync(device) -> None:
     wp.synchronize_device(device)
 
 
+VARIANTS = {  # MPMSolver options of each forward variant
+    "baseline": dict(optimized=False),
+    "sort_only": dict(optimized=False, sort_particles=True),
+    "fuse_only": dict(optimized=False, fuse_kernels=True),
+    "graph_only": dict(optimized=False, cuda_graph=True),
+    "fast": dict(optimized=True),
+}
+
+
 def time_forward(n: int, res: int, substeps: int, frames: int, device: str, variant: str) -> float:
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, substeps=substeps, gravity=(0.0, 0.0, -9.81))
-    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, optimized=(variant == "fast"))
+    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, **VARIANTS[variant])
     frame_dt = 1e-3
-    dt = frame_dt / substeps
-    if variant == "fast":
-        sim.step_frame(frame_dt)  # compile, capture the graph
-        sync(device)
-        t0 = time.perf_counter()
-        for _ in range(frames):
-            sim.step_frame(frame_dt)
-        sync(device)
-    else:
-        sim._run_substeps(substeps, dt)
-        sync(device)
-        t0 = time.perf_counter()
-        for _ in range(frames):
-            sim._run_substeps(substeps, dt)
-        sync(device)
+    sim.step_frame(frame_dt)  # compile, capture the graph
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        sim.step_frame(frame_dt)  # includes the guard's one sync per frame
+    sync(device)
     return n * substeps * frames / (time.perf_counter() - t0)
 
 
@@ -126,6 +127,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="timed frames (default 10 cuda, 2 cpu)")
     ap.add_argument("--segment", type=int, default=16, help="substeps per taped segment in backward")
     ap.add_argument("--no-backward", action="store_true", help="forward only")
+    ap.add_argument("--ablation", action="store_true",
+                    help="also time each optimisation alone (sort_only, fuse_only, graph_only)")
     ap.add_argument("--json", type=Path, help="write results here")
     args = ap.parse_args(argv)
     wp.config.quiet = True
@@ -137,13 +140,17 @@ def main(argv=None) -> int:
     for item in args.sizes.split(","):
         n, res = (int(v) for v in item.split(":"))
         row = {"particles": n, "grid": res, "substeps_per_frame": substeps, "frames": frames}
-        row["baseline_fwd"] = time_forward(n, res, substeps, frames, args.device, "baseline")
-        row["fast_fwd"] = time_forward(n, res, substeps, frames, args.device, "fast")
+        variants = ["baseline", "sort_only", "fuse_only"] + (["graph_only"] if cuda else []) + ["fast"]
+        if not args.ablation:
+            variants = ["baseline", "fast"]
+        for v in variants:
+            row[f"{v}_fwd"] = time_forward(n, res, substeps, frames, args.device, v)
         if not args.no_backward:
             row["fwd_bwd"] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device, args.segment)
             row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
         rows.append(row)
-        print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}  fast {row['fast_fwd']:.3e}"
+        extra = "".join(f"  {v} {row[v + '_fwd']:.3e}" for v in variants if v not in ("baseline", "fast"))
+        print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}{extra}  fast {row['fast_fwd']:.3e}"
               + (f"  fwd+bwd {row['fwd_bwd']:.3e} (backward = {row['bwd_over_fwd']:.2f} x forward)"
                  if "fwd_bwd" in row else "") + "  particle-substeps/s", flush=True)
     out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",

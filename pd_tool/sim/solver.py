@@ -336,13 +336,17 @@ class MPMSolver:
         static: [N] bool, particles that never move (their nodes become Dirichlet cells).
         config: SimConfig.
         device: "cpu" or "cuda" (warp device string).
-        optimized: store particles in grid-cell order and fuse G2P with the next P2G (default).
-            False = the obvious implementation (input order, three kernels per substep), the
-            baseline of bench/sim_speed.py. Results are always returned in input order.
+        optimized: store particles in grid-cell order, fuse G2P with the next P2G and replay
+            a CUDA graph per frame (default). False = the obvious implementation (input
+            order, three kernels per substep, no graph), the baseline of bench/sim_speed.py.
+            Results are always returned in input order.
+        sort_particles, fuse_kernels, cuda_graph: override one part of `optimized` (for
+            benchmarking each optimisation on its own).
     """
 
     def __init__(self, x0, volume, mass, E, static, config: SimConfig | None = None,
-                 device: str = "cpu", optimized: bool = True) -> None:
+                 device: str = "cpu", optimized: bool = True, *, sort_particles: bool | None = None,
+                 fuse_kernels: bool | None = None, cuda_graph: bool | None = None) -> None:
         cfg = config or SimConfig()
         cfg.validate()
         x0 = np.ascontiguousarray(np.asarray(x0, np.float32))
@@ -365,13 +369,14 @@ class MPMSolver:
         self._substeps: int | None = None
         self._forces: list[Force] = []
         self._graphs: dict = {}
-        self._use_graphs = True
+        pick = lambda flag: bool(optimized) if flag is None else bool(flag)  # noqa: E731
+        self._use_graphs = pick(cuda_graph)
+        self._fuse = pick(fuse_kernels)
         # Particles are stored sorted by grid cell of the rest shape: neighbouring threads then
         # touch neighbouring nodes (cache-friendly atomics) and read contiguous particle data.
         # An elastic body keeps this order coherent while it moves, so it is done once.
         # Inputs are permuted with self._perm, outputs back with self._inv.
-        self._optimized = bool(optimized)
-        self._perm = cell_order(self.geo, x0) if optimized else np.arange(self.n)
+        self._perm = cell_order(self.geo, x0) if pick(sort_particles) else np.arange(self.n)
         self._inv = np.empty_like(self._perm)
         self._inv[self._perm] = np.arange(self.n)
         pm = self._perm
@@ -435,7 +440,7 @@ class MPMSolver:
 
     def _run_substeps(self, n: int, dt: float) -> None:
         ctx = self._context()
-        if self._optimized:
+        if self._fuse:
             run_substeps_fused(ctx, n, dt, self.state, self.grid)
         else:
             for s in range(n):
@@ -451,7 +456,7 @@ class MPMSolver:
         dt = frame_dt / n
         d = self.device
         self._t_frame.fill_(self.time)
-        if d.is_cuda:
+        if d.is_cuda and self._use_graphs:
             key = (n, float(frame_dt))
             graph = self._graphs.get(key)
             if graph is None and self._use_graphs:
