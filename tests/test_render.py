@@ -189,3 +189,15 @@ def test_udon_from_auto_camera(shared_data, tmp_path, device):
     d = out.depth.cpu()[out.alpha.cpu() > 0.5]
     dist = np.linalg.norm(cam.center - np.percentile(scene.positions.numpy(), 50, axis=0))
     assert abs(d.median().item() - dist) < 0.5 * dist  # depth is the distance to the object
+
+
+def test_lower_sh_degree_than_stored_and_empty_scene():
+    scene = make_scene(40, 13)  # K = 16 coefficients stored
+    out = render(*scene, CAM, sh_degree=1)
+    rgb, _, _ = render_ref(*[t.double() for t in scene[:4]], scene[4][:, :4].double(), settings(CAM, degree=1))
+    assert (out.rgb.double() - rgb).abs().max() < FWD_ATOL
+    empty = [t[:0].requires_grad_() for t in scene]
+    out = render(*empty, CAM, background=(0.1, 0.2, 0.3))
+    assert torch.allclose(out.rgb, torch.tensor([0.1, 0.2, 0.3]).expand(36, 40, 3))
+    out.rgb.sum().backward()
+    assert empty[0].grad.shape == (0, 3)
