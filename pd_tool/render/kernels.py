@@ -219,6 +219,7 @@ def rasterize_forward(
     conics: wp.array(dtype=wp.vec3),
     colors: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
+    log_cutoffs: wp.array(dtype=float),
     depths: wp.array(dtype=float),
     background: wp.vec3,
     width: int,
@@ -245,7 +246,9 @@ def rasterize_forward(
         d = p - means2d[g]
         q = conics[g]
         power = -0.5 * (q[0] * d[0] * d[0] + q[2] * d[1] * d[1]) - q[1] * d[0] * d[1]
-        if power > 0.0:
+        # log_cutoffs[g] = log(1/255 / opacity): most pairs of a tile fall below it, and
+        # this test saves their exp(); the exact alpha test below still decides.
+        if power > 0.0 or power < log_cutoffs[g]:
             continue
         alpha = wp.min(ALPHA_MAX, opacities[g] * wp.exp(power))
         if alpha < ALPHA_MIN:
@@ -272,6 +275,7 @@ def rasterize_backward(
     conics: wp.array(dtype=wp.vec3),
     colors: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
+    log_cutoffs: wp.array(dtype=float),
     depths: wp.array(dtype=float),
     background: wp.vec3,
     width: int,
@@ -315,7 +319,7 @@ def rasterize_backward(
         d = p - means2d[g]
         q = conics[g]
         power = -0.5 * (q[0] * d[0] * d[0] + q[2] * d[1] * d[1]) - q[1] * d[0] * d[1]
-        if power > 0.0:
+        if power > 0.0 or power < log_cutoffs[g]:  # the same skips as the forward
             continue
         G = wp.exp(power)
         o = opacities[g]

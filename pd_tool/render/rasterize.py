@@ -67,6 +67,13 @@ def _wp(t: torch.Tensor, dtype) -> wp.array:
     return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
 
 
+def log_cutoffs(opacities: torch.Tensor) -> torch.Tensor:
+    """[N] log(ALPHA_MIN / opacity): exponents below it give alpha < 1/255 (a cheap pre-test
+    that skips exp(); a bit below the exact bound so that the alpha test still decides)."""
+    with torch.no_grad():
+        return (torch.log(K.ALPHA_MIN / opacities.clamp_min(1e-30)) - 1e-4).contiguous()
+
+
 def _camera_args(s: RasterSettings):
     w2c = np.asarray(s.world_to_camera, dtype=np.float64)
     rot = w2c[:3, :3]
@@ -197,6 +204,7 @@ class RasterizeGaussians(torch.autograd.Function):
                 _wp(conics, wp.vec3),
                 _wp(colors, wp.vec3),
                 _wp(opacities, wp.float32),
+                _wp(log_cutoffs(opacities), wp.float32),
                 _wp(depths, wp.float32),
                 wp.vec3(*[float(c) for c in s.background]),
                 s.width,
@@ -267,6 +275,7 @@ class RasterizeGaussians(torch.autograd.Function):
                     _wp(conics, wp.vec3),
                     _wp(colors, wp.vec3),
                     _wp(opacities, wp.float32),
+                    _wp(log_cutoffs(opacities), wp.float32),
                     _wp(depths, wp.float32),
                     wp.vec3(*[float(c) for c in s.background]),
                     s.width,
