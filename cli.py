@@ -205,6 +205,51 @@ def _fmt_size(n: int) -> str:
 
 
 @main.command()
+@click.argument("scene", type=SCENE_PATH)
+@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Coloured copy of the scene (.ply): red = left out, blue = static, others as they are.")
+@click.option("--png", type=click.Path(dir_okay=False, path_type=Path), help="Also render it to this PNG.")
+@click.option("--grid-res", type=click.IntRange(10, 512), default=32, show_default=True,
+              help="Grid cells along the simulation box's longest side (for the report).")
+@prepare_options_decorator
+@DEVICE_OPTION
+def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str, **prep_kw) -> None:
+    """Show which Gaussians a fit or bake would move, fix or leave out.
+
+    Takes the same foreground and static-region options as fit and bake, prints what
+    they select, and writes a coloured copy of the scene to look at (in pdtool render,
+    a splat viewer or a DCC).
+
+    \b
+    Example:
+      pdtool select donut.ply --static-below 0.005 -o selection.ply --png selection.png
+    """
+    if out.suffix.lower() != ".ply":
+        raise click.BadParameter("must end in .ply", param_hint="--out")
+    with user_errors():
+        from pd_tool.device import resolve_device
+        from pd_tool.io import load_splats, save_ply
+        from pd_tool.prepare import prepare_scene
+        from pd_tool.selection import selection_scene
+
+        dev = resolve_device(device)
+        splats = load_splats(scene, device=dev)
+        opts = build_prepare_options(None, **prep_kw)
+        opts.grid_res = grid_res
+        prep = prepare_scene(splats, opts)
+        coloured = selection_scene(prep)
+        save_ply(coloured, out)
+        if png is not None:
+            from pd_tool.preview import save_png
+            from pd_tool.views import render_image, scene_camera
+
+            save_png(png, render_image(coloured, scene_camera(coloured, up_axis=opts.up_axis)))
+    for line in prep.report:
+        click.echo(line)
+    click.echo(f"wrote {out}" + (f" and {png}" if png else "") + " (red: left out, blue: static)")
+
+
+@main.command()
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--scene", type=SCENE_PATH, help="Splat to animate (.ply/.splat). Default: the last fit's scene.")
 @click.option("--material", type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -235,6 +280,12 @@ def _fmt_size(n: int) -> str:
                    "schema (usd 26.03+); both.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
               help="Also render the animation to a video (.mp4 or .gif) from an automatic camera.")
+@click.option("--frames-out", type=click.Path(file_okay=False, path_type=Path),
+              help="Also write the rendered frames and their camera.json into this folder "
+                   "(a reference-video folder that `pdtool fit` reads).")
+@click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Camera file for --preview/--frames-out. Default: an automatic view.")
+@click.option("--view", help="View id or name in --camera.")
 @click.option("--gravity/--no-gravity", default=False, show_default=True,
               help="Simulate gravity. Off by default: a scan already shows the object at rest under gravity.")
 @click.option("--substeps", type=click.IntRange(min=1), help="Fix the substeps per frame. Default: from the CFL bound.")
@@ -244,8 +295,8 @@ def _fmt_size(n: int) -> str:
 def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: str,
          interaction: str | None, at_point: str | None, radius: float | None, force_box: str | None,
          start: float | None, duration: float | None, seconds: float | None, frames: int | None, fps: float,
-         quality: str, fmt: str, preview: Path | None, gravity: bool, substeps: int | None, seed: int,
-         device: str, **prep_kw) -> None:
+         quality: str, fmt: str, preview: Path | None, frames_out: Path | None, camera: Path | None,
+         view: str | None, gravity: bool, substeps: int | None, seed: int, device: str, **prep_kw) -> None:
     """Simulate the object under a force and write an animated USD to OUT.
 
     The material comes from --preset, from --material, or, with neither, from the
@@ -320,10 +371,16 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=dev,
                                 gravity=gravity, substeps=substeps, seed=seed)
         splats = load_splats(scene, device=dev)
+        cam = None
+        if camera is not None:
+            from pd_tool.views import scene_camera
+
+            cam = scene_camera(splats, camera, int(view) if view is not None and view.isdigit() else view)
         bar = _tqdm(settings.frames, "bake", "frame")
         try:
             result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
                               prepare_options=opts, settings=settings, preview=preview,
+                              frames_dir=frames_out, camera=cam,
                               progress=lambda done, total: bar.update(done - bar.n))
         finally:
             bar.close()

@@ -156,11 +156,16 @@ def bake(
     settings: BakeSettings | None = None,
     progress: Callable[[int, int], None] | None = None,
     preview: str | Path | None = None,
+    frames_dir: str | Path | None = None,
+    camera=None,
 ) -> BakeResult:
     """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
 
     Give either a homogeneous `material` (a preset) or a fitted `material_file`
     (pd_tool.material_file.MaterialFile). `progress(done, total)` is called once per frame.
+    preview: also render the animation to this .mp4/.gif; frames_dir: also write the
+    rendered frames with their camera.json as a reference-video folder (what `pdtool fit`
+    reads); camera: the pd_tool.cameras.Camera for both (default: an automatic view).
     """
     from pd_tool.animate import GaussianAnimator
     from pd_tool.drivers import build_drivers
@@ -236,10 +241,11 @@ def bake(
         opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
     )
     preview_images: list[np.ndarray] = []
-    if preview is not None:
+    rendering = preview is not None or frames_dir is not None
+    if rendering:
         from pd_tool.views import render_image, scene_camera
 
-        preview_cam = scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
+        preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
         q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
 
     def snap(pos: np.ndarray, q: np.ndarray) -> None:
@@ -257,7 +263,7 @@ def bake(
         pos0, q0 = frame_arrays(None)
         writer.write_frame(0, pos0, q0, all_scales)
         disp.append(0.0)
-        if preview is not None:
+        if rendering:
             snap(pos0, q0)
         if progress:
             progress(1, n_frames)
@@ -274,7 +280,7 @@ def bake(
             writer.write_frame(f, pos, q, all_scales)
             timings["write"] += time.perf_counter() - t
             disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
-            if preview is not None:
+            if rendering:
                 snap(pos, q)
             if progress:
                 progress(f + 1, n_frames)
@@ -304,4 +310,9 @@ def bake(
 
         write_preview(preview_images, preview, settings.fps)
         result.report.append(f"preview {preview}")
+    if frames_dir is not None:
+        from pd_tool.fit.video import write_video_folder
+
+        write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True)
+        result.report.append(f"frames {frames_dir}/ ({len(preview_images)} PNG + camera.json)")
     return result
