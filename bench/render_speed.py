@@ -58,7 +58,9 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_case(width: int, height: int, n: int, device: str, reps: int, backward: bool) -> float:
+def time_case(width: int, height: int, n: int, device: str, reps: int, backward: bool) -> tuple[float, float]:
+    """(wall seconds, process CPU seconds) per repetition; CPU time is the fairer number on a
+    shared machine (it includes torch's worker threads)."""
     cam = make_camera(width, height)
     scene = make_scene(n, device)
     if backward:
@@ -73,10 +75,11 @@ def time_case(width: int, height: int, n: int, device: str, reps: int, backward:
     step()  # warp compile + warm-up
     sync(device)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     for _ in range(reps):
         step()
     sync(device)
-    return (time.perf_counter() - t0) / reps
+    return (time.perf_counter() - t0) / reps, (time.process_time() - c0) / reps
 
 
 def cpu_model() -> str:
@@ -108,11 +111,14 @@ def main(argv: list[str] | None = None) -> int:
         if name not in wanted:
             continue
         r = a.reps or (20 if a.device == "cuda" else (3 if n <= 50_000 else 1))
-        fwd = time_case(w, h, n, a.device, r, backward=False)
-        fb = time_case(w, h, n, a.device, r, backward=True)
-        row = {"case": name, "width": w, "height": h, "gaussians": n, "reps": r, "forward_ms": fwd * 1e3, "forward_backward_ms": fb * 1e3}
+        fwd, fwd_cpu = time_case(w, h, n, a.device, r, backward=False)
+        fb, fb_cpu = time_case(w, h, n, a.device, r, backward=True)
+        row = {"case": name, "width": w, "height": h, "gaussians": n, "reps": r,
+               "forward_ms": fwd * 1e3, "forward_backward_ms": fb * 1e3,
+               "forward_cpu_time_ms": fwd_cpu * 1e3, "forward_backward_cpu_time_ms": fb_cpu * 1e3}
         result["cases"].append(row)
-        print(f"{name:>16}: forward {fwd * 1e3:9.2f} ms   forward+backward {fb * 1e3:9.2f} ms   ({hw}, {a.device})", flush=True)
+        print(f"{name:>16}: forward {fwd * 1e3:9.2f} ms   forward+backward {fb * 1e3:9.2f} ms   "
+              f"(process CPU time {fwd_cpu * 1e3:.0f} / {fb_cpu * 1e3:.0f} ms; {hw}, {a.device})", flush=True)
     if a.device == "cuda":
         name, w, h, n = CASES[0]
         cam = make_camera(w, h)
