@@ -7,7 +7,6 @@ agree with it to float32 rounding.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
