@@ -579,5 +579,29 @@ def presets(kind: str | None) -> None:
                 click.echo(f"  {name:<12} {values}\n  {'':<12} {note}")
 
 
+@main.command("blender-addon")
+@click.option("--install-to", type=click.Path(file_okay=False, path_type=Path), metavar="DIR",
+              help="Copy the add-on to DIR/pdtool_blender (e.g. Blender's scripts/addons folder).")
+@click.option("--zip", "zip_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.zip",
+              help="Write the add-on as a zip for Blender's Install from Disk (extension, 4.2+).")
+def blender_addon(install_to: Path | None, zip_out: Path | None) -> None:
+    """Package the Blender add-on (panel in the 3D view sidebar that runs pdtool bake).
+
+    \b
+    Examples:
+      pdtool blender-addon --zip pdtool_blender.zip     # Blender: Preferences > Get Extensions > Install from Disk
+      pdtool blender-addon --install-to ~/.config/blender/5.0/scripts/addons
+    """
+    if install_to is None and zip_out is None:
+        raise click.UsageError("give --install-to DIR or --zip OUT.zip (or both)")
+    with user_errors():
+        from pd_tool.addon import install_addon, zip_addon
+
+        if install_to is not None:
+            click.echo(f"installed {install_addon(install_to)}")
+        if zip_out is not None:
+            click.echo(f"wrote {zip_addon(zip_out)}")
+
+
 if __name__ == "__main__":
     main()
