@@ -555,6 +555,46 @@ def demo(out_dir: Path, quality: str, device: str) -> None:
 
 
 @main.command()
+@click.argument("jobs_file", metavar="JOBS.toml", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--workers", type=click.IntRange(min=1), help="CPU worker processes.  [default: the CPU count]")
+@click.option("--ray", "ray_address", metavar="ADDRESS|auto|local",
+              help="Run the jobs as Ray tasks on this cluster (auto: the one `ray start` made here; "
+                   "local: a fresh single-node one). Needs `pip install 'pdtool[ray]'`.")
+@click.option("--resume", is_flag=True, help="Skip jobs whose outputs exist and whose inputs and args are unchanged.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Also write the summary here.")
+def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume: bool, json_out: Path | None) -> None:
+    """Run many bake/fit jobs from a TOML file, on local processes or a Ray cluster.
+
+    Each [[job]] has a name, a command (bake or fit), args exactly as on the command
+    line, optional after = ["other job"], and optional [job.sweep] lists that expand into
+    every combination ({key} in name/args). Relative paths are read from the jobs file's
+    folder. A failed job does not stop the others. Exit code 1 when any job failed.
+
+    \b
+    Example (4 bakes):
+      [[job]]
+      name = "poke_{preset}_{force}"
+      command = "bake"
+      args = ["--scene", "plant.ply", "--preset", "{preset}", "--force", "{force}", "out/{name}.usd"]
+      [job.sweep]
+      preset = ["flower", "jelly"]
+      force = ["0,0,1", "1,0,0"]
+    """
+    with user_errors():
+        from pd_tool.batch import load_jobs, run_batch
+
+        result = run_batch(load_jobs(jobs_file), workers=workers, ray_address=ray_address, resume=resume)
+    click.echo(result.table())
+    if json_out is not None:
+        from pd_tool.atomic import atomic_output
+
+        with atomic_output(json_out) as tmp:
+            tmp.write_text(json.dumps(result.to_json(), indent=2))
+    if not result.ok:
+        raise click.exceptions.Exit(1)
+
+
+@main.command()
 @click.argument("kind", required=False, type=click.Choice(["materials", "quality", "forces"]))
 def presets(kind: str | None) -> None:
     """List the shipped presets (materials, quality levels, forces).
