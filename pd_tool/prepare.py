@@ -273,6 +273,11 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
     longest_m = longest * mpu
     pad_m = options.padding * longest_m
     dx = (longest_m + 2 * pad_m) / (res - 2 * WALL_CELLS)
+    if pad_m < dx:
+        # The solver keeps particles half a cell off its walls; with (nearly) no padding the
+        # object's faces would sit on them. Keep at least one free cell around the object.
+        dx = longest_m / (res - 2 * WALL_CELLS - 2)
+        pad_m = dx
     dims = tuple(int(math.ceil((e * mpu + 2 * pad_m) / dx - 1e-9)) + 2 * WALL_CELLS for e in extent)
     dims = tuple(max(d, 2 * WALL_CELLS + 2) for d in dims)
     # centre the object in the box
