@@ -260,7 +260,8 @@ def job_files(job: Job) -> JobFiles:
     cwd = Path(job.cwd)
     cmd = cli.main.commands[job.command]
     try:
-        with contextlib.redirect_stderr(io.StringIO()):
+        # click checks exists=True paths against the process's folder: parse from the job's.
+        with contextlib.chdir(cwd), contextlib.redirect_stderr(io.StringIO()):
             ctx = cmd.make_context(job.command, list(job.args), resilient_parsing=True)
         params = dict(ctx.params)
     except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort):

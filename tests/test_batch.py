@@ -1,0 +1,204 @@
+"""`pdtool batch`: jobs-file expansion, then real tiny bakes of the synthetic plant on the local
+process pool (killed, then --resume) and on a single-node Ray cluster on loopback.
+
+The run tests share one module fixture: a batch is killed with SIGKILL after its first job,
+resumed, and its outputs are then compared byte for byte with a Ray run of the same jobs.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, JobsFileError, RayBackend, job_files, load_jobs,
+                           parse_jobs, run_batch)
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
+
+
+def _toml_list(items: list[str]) -> str:
+    return "[" + ", ".join(json.dumps(a) for a in items) + "]"
+
+
+# 'bad' comes first so that a one-worker run fails it before the first bake finishes.
+JOBS = f"""
+[[job]]
+name = "bad"
+command = "bake"
+args = ["--scene", "../missing.ply", "--preset", "flower", "--force", "0,0,1", "out/bad.usd"]
+
+[[job]]
+name = "after_bad"
+command = "bake"
+after = ["bad"]
+args = {_toml_list(["--scene", "../plant.ply", "--preset", "flower", "--force", "0,0,1", *TINY, "out/{name}.usd"])}
+
+[[job]]
+name = "poke_{{preset}}_{{force}}"
+command = "bake"
+args = {_toml_list(["--scene", "../plant.ply", "--preset", "{preset}", "--force", "{force}", *TINY, "out/{name}.usd"])}
+[job.sweep]
+preset = ["flower", "jelly"]
+force = ["0,0,1", "1,0,0"]
+"""
+POKES = ["poke_flower_0_0_1", "poke_flower_1_0_0", "poke_jelly_0_0_1", "poke_jelly_1_0_0"]
+
+
+def test_sweep_expands_names_args_and_after(tmp_path: Path) -> None:
+    data = {"job": [
+        {"name": "fit_{obj}", "command": "fit", "args": ["{obj}.ply", "video_{obj}/", "-o", "{name}.pdmat"],
+         "sweep": {"obj": ["udon", "donut"]}},
+        {"name": "poke", "command": "bake", "after": ["fit_{obj}"],
+         "args": ["--material", "fit_{obj}.pdmat", "--force", "{force}", "out/{obj}_{force:slug}.usd"],
+         "sweep": {"obj": ["udon", "donut"], "force": ["0,0,1", "-1,0,0"]}},
+        {"name": "report", "command": "bake", "after": ["poke"], "args": ["x.usd"]},
+    ]}
+    jobs = parse_jobs(data, cwd=tmp_path)
+    names = [j.name for j in jobs]
+    assert names == ["fit_udon", "fit_donut", "poke_udon_0_0_1", "poke_udon_-1_0_0", "poke_donut_0_0_1",
+                     "poke_donut_-1_0_0", "report"]
+    by = {j.name: j for j in jobs}
+    assert by["fit_donut"].args == ("donut.ply", "video_donut/", "-o", "fit_donut.pdmat")
+    assert by["poke_udon_-1_0_0"].args == ("--material", "fit_udon.pdmat", "--force", "-1,0,0",
+                                          "out/udon_-1_0_0.usd")
+    assert by["poke_donut_0_0_1"].after == ("fit_donut",)
+    # A sweep's base name stands for all of its jobs.
+    assert set(by["report"].after) == {n for n in names if n.startswith("poke_")}
+    assert all(j.cwd == str(tmp_path.resolve()) for j in jobs)
+
+
+@pytest.mark.parametrize("jobs, words", [
+    ([{"name": "a", "command": "bake", "after": ["b"]}], "no job name"),
+    ([{"name": "a", "command": "bake", "after": ["b"]}, {"name": "b", "command": "bake", "after": ["a"]}], "cycle"),
+    ([{"name": "a", "command": "bake"}, {"name": "a", "command": "fit"}], "two jobs"),
+    ([{"name": "a", "command": "bake", "sweep": {"x": [1, 2]}, "args": ["{y}"]}], "unknown placeholder {y}"),
+    ([{"name": "a", "command": "render"}], "command must be one of"),
+    ([{"name": "a", "command": "bake", "sweep": {"x": []}}], "non-empty list"),
+    ([{"name": "a", "command": "bake", "argz": []}], "unknown key(s) argz"),
+    ([{"name": "same", "command": "bake", "sweep": {"x": [1, 2]}}, {"name": "same_1", "command": "bake"}],
+     "two jobs"),
+])
+def test_jobs_file_errors_are_one_line(jobs, words: str) -> None:
+    with pytest.raises(JobsFileError) as e:
+        parse_jobs({"job": jobs})
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_not_toml(tmp_path: Path) -> None:
+    bad = tmp_path / "jobs.toml"
+    bad.write_text("[[job]\nname=")
+    with pytest.raises(JobsFileError, match="not valid TOML"):
+        load_jobs(bad)
+
+
+def test_job_files_use_the_cli_parser(tmp_path: Path) -> None:
+    (tmp_path / "s.ply").write_bytes(b"x")
+    (tmp_path / "v").mkdir()
+    (tmp_path / "q.toml").write_text("grid = 16\n")
+    fit, bake = parse_jobs({"job": [
+        {"name": "f", "command": "fit", "args": ["s.ply", "v", "--quality", "q.toml"]},
+        {"name": "b", "command": "bake", "args": ["--scene", "s.ply", "--preset", "flower", "--force", "0,0,1",
+                                                  "--preview", "p.mp4", "o/b.usd"]},
+    ]}, cwd=tmp_path)
+    f = job_files(fit)
+    assert f.outputs == [tmp_path.resolve() / "s.pdmat"]  # the CLI's default --out
+    assert set(f.inputs) == {tmp_path.resolve() / p for p in ("s.ply", "v", "q.toml")}
+    b = job_files(bake)
+    assert b.outputs == [tmp_path.resolve() / "o/b.usd", tmp_path.resolve() / "p.mp4"]
+    assert b.inputs == [tmp_path.resolve() / "s.ply"]  # 'flower' is a built-in preset, not a file
+
+
+# ------------------------------------------------------------------------- real runs
+
+
+@pytest.fixture(scope="module")
+def killed_then_resumed(tmp_path_factory):
+    """Start `pdtool batch --workers 1` in its own process group, SIGKILL the group as soon as
+    the first job's record appears, then run `--resume` in-process on two workers."""
+    from pd_tool.io import save_splats
+    from pd_tool.synthetic import make_plant
+
+    root = tmp_path_factory.mktemp("batch")
+    save_splats(make_plant(600, seed=0), root / "plant.ply")
+    for sub in ("local", "ray"):
+        (root / sub).mkdir()
+        (root / sub / "jobs.toml").write_text(JOBS)
+    local = root / "local"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "batch", "jobs.toml", "--workers", "1"], cwd=local,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    try:
+        while not list((local / "out").glob("*.batch.json")):
+            assert proc.poll() is None, "the batch ended before it could be killed"
+            assert time.monotonic() < deadline, "no job finished within 120 s"
+            time.sleep(0.02)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    done_at_kill = {p.name.removesuffix(".usd.batch.json") for p in (local / "out").glob("*.batch.json")}
+    mtimes = {n: (local / "out" / f"{n}.usd").stat().st_mtime_ns for n in done_at_kill}
+    result = run_batch(load_jobs(local / "jobs.toml"), workers=2, resume=True, show_progress=False,
+                       echo=lambda s: None)
+    return root, done_at_kill, mtimes, result
+
+
+def test_resume_after_kill_runs_only_the_missing_jobs(killed_then_resumed) -> None:
+    root, done_at_kill, mtimes, result = killed_then_resumed
+    status = {r.name: r.status for r in result.jobs}
+    assert done_at_kill and done_at_kill < set(POKES), done_at_kill
+    assert {n for n in POKES if status[n] == UP_TO_DATE} == done_at_kill
+    assert {n for n in POKES if status[n] == OK} == set(POKES) - done_at_kill
+    for n in done_at_kill:  # skipped, not rewritten
+        assert (root / "local" / "out" / f"{n}.usd").stat().st_mtime_ns == mtimes[n]
+    for n in POKES:
+        rec = json.loads((root / "local" / "out" / f"{n}.usd.batch.json").read_text())
+        assert rec["job"] == n and len(rec["fingerprint"]) == 64
+
+
+def test_bad_input_fails_alone(killed_then_resumed) -> None:
+    _, _, _, result = killed_then_resumed
+    by = {r.name: r for r in result.jobs}
+    assert by["bad"].status == FAILED
+    assert "missing.ply" in by["bad"].error and "\n" not in by["bad"].error
+    assert by["after_bad"].status == BLOCKED and "bad" in by["after_bad"].error
+    assert all(by[n].status in (OK, UP_TO_DATE) for n in POKES)
+    assert not result.ok
+    assert json.loads(json.dumps(result.to_json()))["counts"][FAILED] == 1
+
+
+def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> None:
+    ray = pytest.importorskip("ray")
+    root, _, _, _ = killed_then_resumed
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _node_ip_address="127.0.0.1")
+    try:
+        result = run_batch(load_jobs(root / "ray" / "jobs.toml"), backend=RayBackend(None),
+                           show_progress=False, echo=lambda s: None)
+    finally:
+        ray.shutdown()
+    status = {r.name: r.status for r in result.jobs}
+    assert status["bad"] == FAILED and status["after_bad"] == BLOCKED
+    assert all(status[n] == OK for n in POKES)
+    for n in POKES:
+        a = (root / "local" / "out" / f"{n}.usd").read_bytes()
+        b = (root / "ray" / "out" / f"{n}.usd").read_bytes()
+        assert a == b, n
+
+
+def test_cli_jobs_file_error_exits_2(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cli import main
+
+    jobs = tmp_path / "jobs.toml"
+    jobs.write_text('[[job]]\nname = "a"\ncommand = "bake"\nafter = ["nope"]\n')
+    r = CliRunner().invoke(main, ["batch", str(jobs)])
+    assert r.exit_code == 2 and "waits for 'nope', which is no job name" in r.output
