@@ -137,6 +137,8 @@ def full_matrix() -> list[dict]:
     cases += [_case(opacity="half-zero", cov="tiny", force=f) for f in (1.0, 1e6)]
     cases += [_case(nu=0.49, factor=s, E=1e7) for s in (0.1, 4.0)]
     cases += [_case(geometry=g, factor=0.02, E=1e8) for g in GEOMETRIES]
+    cases += [_case(geometry=g, nu=0.49, force=f) for g, f in itertools.product(GEOMETRIES, (10.0, 1e4))]
+    cases += [_case(cov=c, E=E) for c, E in itertools.product(("tiny", "flat-axis"), (1e2, 1e9))]
     seen, out = set(), []
     for c in cases:
         if c["name"] not in seen:
