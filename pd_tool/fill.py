@@ -11,15 +11,19 @@ Pipeline (all on a voxel grid, numpy / torch on the CPU, memory and time bounded
    near-singular and absurd covariances neither vanish between voxels nor cost O(N * grid).
 2. shell: density >= SHELL_THRESHOLD, then a morphological closing (one voxel) that seals
    pinholes.
-3. inside: a 26-direction ray vote (the fraction of directions whose ray from a voxel hits
-   the shell). Voxels with vote >= VOTE_INTERIOR, in components that do not touch the grid
-   border, are interior. The vote survives holes that a flood fill would leak through.
-4. surface: the shell band is split at its middle (two fronts grown at once, from the
-   interior and from the outside), so the filled region is the solid enclosed by the
-   surface, not the solid minus the band.
-5. auto: `closedness` is the mean vote over the interior (voxels whose vote is at least
-   VOTE_CANDIDATE): how much of the sky a point inside sees covered by the shell. Auto fills
-   when it is >= AUTO_CLOSEDNESS.
+3. inside: a 13-line sandwich vote: the fraction of the 13 lines through a voxel (axes,
+   face and body diagonals) on which the shell lies on both sides. It is 0 outside a convex
+   object, partial in concavities (a bowl, a torus hole), 1 inside a closed shell, and it
+   survives holes that a flood fill would leak through. A shell band thicker than twice a
+   typical Gaussian's 3-sigma half-width has a solid core (captures with Gaussians all
+   through the volume); the core counts as enclosed too. Interior = voxels with vote >=
+   VOTE_INTERIOR, in 6-connected components that do not touch the grid border.
+4. surface: the shell band is split at its middle (fronts grown at once from the interior
+   and from the outside), so the filled region is the solid enclosed by the surface, not
+   the solid minus the band.
+5. auto: `closedness` is the mean vote over the enclosed voxels (vote >= VOTE_CANDIDATE,
+   border-free). Auto fills when it is >= AUTO_CLOSEDNESS and the interior holds at least
+   MIN_INTERIOR_CELLS simulation cells.
 6. sources: the nearest original Gaussian of each new particle, by jump flooding on a
    coarse grid followed by a local refinement (no O(N * M) search).
 
