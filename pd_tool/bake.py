@@ -193,6 +193,16 @@ def bake(
 
     # ---- driving particles
     ratio = settings.driver_ratio if settings.driver_ratio is not None else float(quality["driver_ratio"])
+    # refuse now, before drivers and simulator, when the run cannot fit in memory
+    from pd_tool.memory import PREVIEW_PIXELS, check_memory, estimate_bake_memory
+
+    px = 0 if preview is None and frames_dir is None else (
+        camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
+    check_memory(estimate_bake_memory(
+        n_gaussians=scene.count, n_simulated=prep.count, driver_ratio=ratio, grid_dims=prep.grid_dims,
+        frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
+        what="bake", quality=str(settings.quality), driver_ratio=ratio, device=dev,
+        resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by --quality")
     drivers = build_drivers(
         torch.as_tensor(prep.positions_sim, dtype=torch.float32), torch.as_tensor(prep.volumes, dtype=torch.float32),
         torch.as_tensor(prep.masses, dtype=torch.float32), torch.as_tensor(prep.static), prep.dx,

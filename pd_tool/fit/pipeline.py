@@ -112,6 +112,15 @@ class FitProblem:
         self.scene = scene.to(self.device)
         self.prep = prepare_scene(self.scene, prep_options)
         p = self.prep
+        # refuse now, before drivers, simulator and graph, when the fit cannot fit in memory
+        from pd_tool.memory import check_memory, estimate_fit_memory
+
+        check_memory(estimate_fit_memory(
+            n_gaussians=scene.count, n_simulated=p.count, driver_ratio=settings.driver_ratio, grid_dims=p.grid_dims,
+            frames=[v.num_frames for v in videos], image_pixels=int(videos[0].frames[0].numel() // 3),
+            stage1_frames=settings.stage1_frames, device=settings.device),
+            what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio, device=settings.device,
+            resolution=f"--working-size {settings.working_long_side}")
         self.drivers = build_drivers(
             torch.as_tensor(p.positions_sim, dtype=torch.float32), torch.as_tensor(p.volumes, dtype=torch.float32),
             torch.as_tensor(p.masses, dtype=torch.float32), torch.as_tensor(p.static), p.dx,
