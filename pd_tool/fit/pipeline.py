@@ -43,6 +43,12 @@ class FitSettings:
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
+    # Per-driver log-E residual on top of the field. The field's parameters are shared by
+    # every point, so the region with the largest gradient (the stem) moves them all; a
+    # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
+    driver_residual: bool = True
+    lr_residual: float = 0.15
+    residual_smoothness: float = 1e-3  # weight of the mean squared residual difference between neighbouring drivers
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -141,6 +147,11 @@ class FitProblem:
         self.x_norm = (self.x_rest / torch.as_tensor(p.domain, dtype=torch.float32, device=self.device)).clamp(0, 1)
         self.material = MaterialField(settings.material_resolution, math.log(settings.E_min), math.log(settings.E_max),
                                       math.log(settings.init_E)).to(self.device)
+        self.log_e_residual = torch.nn.Parameter(torch.zeros(len(self.x_rest), device=self.device))
+        from pd_tool.drivers import nearest_drivers
+
+        # each driver's nearest other drivers, for the residual's smoothness term
+        self.driver_pairs = nearest_drivers(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))[:, 1:]
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         from pd_tool.sim import DiffSim, SimConfig
@@ -152,7 +163,18 @@ class FitProblem:
 
     # ------------------------------------------------------------------ pieces
     def driver_E(self) -> torch.Tensor:
-        return self.material.youngs_modulus(self.x_norm)
+        """E per driver, Pa: the field, times exp(residual) when residuals are on; kept
+        inside the field's bounds by a smooth squash (no clamp)."""
+        log_e = self.material(self.x_norm)
+        if self.s.driver_residual:
+            lo, hi = self.material.log_e_min, self.material.log_e_max
+            u = ((log_e - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
+            log_e = lo + (hi - lo) * torch.sigmoid(torch.logit(u) + self.log_e_residual)
+        return torch.exp(log_e)
+
+    def residual_penalty(self) -> torch.Tensor:
+        r = self.log_e_residual
+        return self.s.residual_smoothness * ((r[:, None] - r[self.driver_pairs]) ** 2).mean()
 
     def driver_v0(self, i: int) -> torch.Tensor:
         v = self.velocities[i](self.x_norm)
@@ -243,20 +265,26 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
             total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
             count += 1
     loss = total / max(count, 1)
-    (loss + pb.s.tv_weight * pb.material.tv()).backward()
+    reg = pb.s.tv_weight * pb.material.tv()
+    if pb.s.driver_residual:
+        reg = reg + pb.residual_penalty()
+    (loss + reg).backward()
     return float(loss)
 
 
 def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
-                     opt_v=None, sched_v=None) -> None:
+                     opt_v=None, sched_v=None, opt_r=None, sched_r=None) -> None:
     state = {
         "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "losses": losses,
         "torch_rng": torch.get_rng_state(),
     }
+    state["residual"] = pb.log_e_residual.detach().cpu().clone()
     if opt_v is not None:
         state["optimizer_v"], state["scheduler_v"] = opt_v.state_dict(), sched_v.state_dict()
+    if opt_r is not None:
+        state["optimizer_r"], state["scheduler_r"] = opt_r.state_dict(), sched_r.state_dict()
     with atomic_output(path) as tmp:
         torch.save(state, tmp)
 
@@ -302,6 +330,9 @@ def run_fit(
         pb.velocities.load_state_dict(ckpt["velocities"])
         losses = ckpt["losses"]
         torch.set_rng_state(ckpt["torch_rng"])
+        if "residual" in ckpt:
+            with torch.no_grad():
+                pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
 
     # ---- stage 1: initial velocity per video, E frozen
     t0 = time.perf_counter()
@@ -331,6 +362,16 @@ def run_fit(
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
     opt, sched = make_optimizer(pb.material, s.lr_material, max(s.material_iters, 1),
                                 warmup_steps=min(s.warmup, max(s.material_iters, 1)))
+    opt_r = sched_r = None
+    if s.driver_residual:
+        opt_r = torch.optim.Adam([pb.log_e_residual], lr=s.lr_residual)
+        from functools import partial
+
+        from pd_tool.fit.schedule import warmup_linear_decay
+
+        sched_r = torch.optim.lr_scheduler.LambdaLR(opt_r, partial(
+            warmup_linear_decay, total_steps=max(s.material_iters, 1),
+            warmup_steps=min(s.warmup, max(s.material_iters, 1)), final_factor=0.0))
     opt_v = sched_v = None
     if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
         opt_v, sched_v = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor,
@@ -342,19 +383,26 @@ def run_fit(
         if opt_v is not None and "optimizer_v" in ckpt:
             opt_v.load_state_dict(ckpt["optimizer_v"])
             sched_v.load_state_dict(ckpt["scheduler_v"])
+        if opt_r is not None and "optimizer_r" in ckpt:
+            opt_r.load_state_dict(ckpt["optimizer_r"])
+            sched_r.load_state_dict(ckpt["scheduler_r"])
         start = ckpt["iteration"]
+    skipped = 0
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
-            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v)
+            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v, opt_r, sched_r)
         loss = material_iteration(pb, None if s.refine_velocity else v0s)
-        _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip)
+        if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
+            skipped += 1
         if opt_v is not None:
             _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
+        if opt_r is not None and not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
+            skipped += 1
         losses["material"].append(loss)
         if progress:
             progress("material", it + 1, s.material_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v)
+            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v, opt_r, sched_r)
     seconds["material"] = time.perf_counter() - t0
 
     # ---- result
@@ -380,6 +428,7 @@ def run_fit(
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
             "seconds": seconds,
+            "skipped_material_steps": skipped,
         },
         "fields": {"material": pb.material.config(),
                    **{f"velocity{i}": v.config() for i, v in enumerate(pb.velocities)}},
