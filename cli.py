@@ -580,16 +580,15 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
       preset = ["flower", "jelly"]
       force = ["0,0,1", "1,0,0"]
     """
+    if workers is not None and ray_address is not None:
+        raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
     with user_errors():
-        from pd_tool.batch import load_jobs, run_batch
+        from pd_tool.batch import load_jobs, run_batch, write_summary
 
         result = run_batch(load_jobs(jobs_file), workers=workers, ray_address=ray_address, resume=resume)
+        if json_out is not None:
+            write_summary(result, json_out)
     click.echo(result.table())
-    if json_out is not None:
-        from pd_tool.atomic import atomic_output
-
-        with atomic_output(json_out) as tmp:
-            tmp.write_text(json.dumps(result.to_json(), indent=2))
     if not result.ok:
         raise click.exceptions.Exit(1)
 

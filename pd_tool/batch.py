@@ -12,7 +12,7 @@ one-line errors. The scheduler here only decides *when* and *where* a job runs:
 - backends: `LocalBackend` (spawned processes, one per CPU worker plus one per visible GPU)
   and `RayBackend` (one Ray task per job, `num_gpus=1` when the job runs on CUDA).
 
-See docs/parts/batch.md for the file format and examples.
+See docs/batch.md for the file format, the Ray set-up and measured throughput.
 """
 from __future__ import annotations
 
@@ -439,16 +439,18 @@ def count_gpus() -> int:
 class LocalBackend:
     """Spawned worker processes: `workers` for CPU jobs plus one per GPU for CUDA jobs.
 
+    threads: torch threads per CPU job (default cores // workers).
+
     A job goes to the GPU workers when it asks for `--device cuda`, or for `auto` while a GPU
     is visible; everything else to the CPU workers. Each worker keeps torch/warp (and warp's
     loaded kernels) between jobs. Torch threads per CPU job: cores // workers.
     """
 
-    def __init__(self, workers: int | None = None, gpus: int | None = None) -> None:
+    def __init__(self, workers: int | None = None, gpus: int | None = None, threads: int | None = None) -> None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         self.workers = max(1, workers or cores)
         self.gpus = count_gpus() if gpus is None else gpus
-        self.threads = max(1, cores // self.workers)
+        self.threads = threads or max(1, cores // self.workers)
         ctx = mp.get_context("spawn")  # fork after torch/warp init is unsafe; spawn is the same everywhere
         self.cpu = cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker, initargs=("",))
         self.gpu = [cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(str(i),))
@@ -456,16 +458,18 @@ class LocalBackend:
         self._rr = 0
         self.name = f"local ({self.workers} CPU worker{'s' * (self.workers != 1)}, {self.gpus} GPU)"
 
-    def submit(self, job: Job) -> cf.Future:
-        on_gpu = self.gpus > 0 and job.device in ("cuda", "auto")
-        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
-                "threads": 0 if on_gpu else self.threads}
-        if on_gpu:
-            pool = self.gpu[self._rr % self.gpus]
+    def route(self, job: Job) -> int | None:
+        """Index of the GPU worker a job goes to, or None for the CPU workers."""
+        if self.gpus > 0 and job.device in ("cuda", "auto"):
             self._rr += 1
-        else:
-            pool = self.cpu
-        return pool.submit(run_job, spec)
+            return (self._rr - 1) % self.gpus
+        return None
+
+    def submit(self, job: Job) -> cf.Future:
+        gpu = self.route(job)
+        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
+                "threads": 0 if gpu is not None else self.threads}
+        return (self.cpu if gpu is None else self.gpu[gpu]).submit(run_job, spec)
 
     def wait(self, handles: Iterable[cf.Future]) -> list[tuple[cf.Future, dict[str, Any]]]:
         done, _ = cf.wait(list(handles), return_when=cf.FIRST_COMPLETED)
@@ -480,7 +484,19 @@ class LocalBackend:
 
     def close(self, cancel: bool = False) -> None:
         for p in [self.cpu, *self.gpu]:
+            if cancel:
+                # Ctrl-C: stop running jobs now rather than wait for them (their outputs are
+                # atomic, so nothing half-written stays behind).
+                for proc in list(getattr(p, "_processes", {}).values()):
+                    proc.terminate()
             p.shutdown(wait=not cancel, cancel_futures=cancel)
+
+
+def ray_resources(job: Job, cluster_gpus: int, cpus_per_job: float = 1.0) -> dict[str, float]:
+    """Ray task resources for a job: one GPU when it asks for --device cuda, or for auto (the
+    CLI default) on a cluster that has GPUs; none otherwise."""
+    on_gpu = job.device == "cuda" or (job.device == "auto" and cluster_gpus > 0)
+    return {"num_cpus": cpus_per_job, "num_gpus": 1 if on_gpu else 0}
 
 
 class RayBackend:
@@ -515,10 +531,9 @@ class RayBackend:
                      f"{len(ray.nodes())} node{'s' * (len(ray.nodes()) != 1)})")
 
     def submit(self, job: Job):
-        on_gpu = job.device == "cuda" or (job.device == "auto" and self.cluster_gpus > 0)
         spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
                 "threads": max(1, int(self.cpus_per_job))}
-        return self._task.options(num_cpus=self.cpus_per_job, num_gpus=1 if on_gpu else 0).remote(spec)
+        return self._task.options(**ray_resources(job, self.cluster_gpus, self.cpus_per_job)).remote(spec)
 
     def wait(self, handles: Iterable[Any]) -> list[tuple[Any, dict[str, Any]]]:
         ray = self.ray
@@ -592,6 +607,14 @@ class BatchResult:
         lines.append(f"{len(self.jobs)} jobs: {c[OK]} ok, {c[FAILED]} failed, {c[BLOCKED]} blocked, "
                      f"{c[UP_TO_DATE]} up to date; {self.seconds:.1f} s on {self.backend}")
         return "\n".join(lines)
+
+
+def write_summary(result: BatchResult, path: str | Path) -> Path:
+    """Write `result.to_json()` to `path`, atomically."""
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(result.to_json(), indent=2))
+    return path
 
 
 def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str | None = None,

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, JobsFileError, RayBackend, job_files, load_jobs,
-                           parse_jobs, run_batch)
+from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, JobsFileError, LocalBackend, RayBackend, job_files,
+                           load_jobs, parse_jobs, ray_resources, run_batch)
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
@@ -115,6 +115,25 @@ def test_job_files_use_the_cli_parser(tmp_path: Path) -> None:
     assert b.inputs == [tmp_path.resolve() / "s.ply"]  # 'flower' is a built-in preset, not a file
 
 
+def test_gpu_placement() -> None:
+    jobs = parse_jobs({"job": [
+        {"name": "c", "command": "bake", "args": ["--device", "cuda", "a.usd"]},
+        {"name": "p", "command": "bake", "args": ["--device=cpu", "a.usd"]},
+        {"name": "a", "command": "bake", "args": ["a.usd"]},
+    ]})
+    c, p, a = jobs
+    assert (c.device, p.device, a.device) == ("cuda", "cpu", "auto")
+    assert ray_resources(c, 0)["num_gpus"] == 1 and ray_resources(p, 8)["num_gpus"] == 0
+    assert ray_resources(a, 0)["num_gpus"] == 0 and ray_resources(a, 2)["num_gpus"] == 1
+    # Local pool: two (pretend) GPUs get the cuda/auto jobs in turn; no process starts here.
+    backend = LocalBackend(workers=1, gpus=2)
+    try:
+        assert [backend.route(j) for j in (c, p, a, c)] == [0, None, 1, 0]
+        assert LocalBackend(workers=1, gpus=0).route(c) is None  # fails there with the CLI's message
+    finally:
+        backend.close()
+
+
 # ------------------------------------------------------------------------- real runs
 
 
@@ -145,14 +164,26 @@ def killed_then_resumed(tmp_path_factory):
         proc.wait()
     done_at_kill = {p.name.removesuffix(".usd.batch.json") for p in (local / "out").glob("*.batch.json")}
     mtimes = {n: (local / "out" / f"{n}.usd").stat().st_mtime_ns for n in done_at_kill}
-    result = run_batch(load_jobs(local / "jobs.toml"), workers=2, resume=True, show_progress=False,
-                       echo=lambda s: None)
-    return root, done_at_kill, mtimes, result
+    # The resume goes through the CLI command, with its summary table and --json file.
+    from click.testing import CliRunner
+
+    from cli import main
+
+    old = os.getcwd()
+    os.chdir(root)  # relative paths in the jobs file follow the file, not the caller's folder
+    try:
+        r = CliRunner().invoke(main, ["batch", "local/jobs.toml", "--workers", "2", "--resume",
+                                      "--json", "summary.json"])
+    finally:
+        os.chdir(old)
+    assert r.exit_code == 1, r.output  # one job failed
+    summary = json.loads((root / "summary.json").read_text())
+    return root, done_at_kill, mtimes, summary, r.output
 
 
 def test_resume_after_kill_runs_only_the_missing_jobs(killed_then_resumed) -> None:
-    root, done_at_kill, mtimes, result = killed_then_resumed
-    status = {r.name: r.status for r in result.jobs}
+    root, done_at_kill, mtimes, summary, _ = killed_then_resumed
+    status = {r["name"]: r["status"] for r in summary["jobs"]}
     assert done_at_kill and done_at_kill < set(POKES), done_at_kill
     assert {n for n in POKES if status[n] == UP_TO_DATE} == done_at_kill
     assert {n for n in POKES if status[n] == OK} == set(POKES) - done_at_kill
@@ -164,19 +195,21 @@ def test_resume_after_kill_runs_only_the_missing_jobs(killed_then_resumed) -> No
 
 
 def test_bad_input_fails_alone(killed_then_resumed) -> None:
-    _, _, _, result = killed_then_resumed
-    by = {r.name: r for r in result.jobs}
-    assert by["bad"].status == FAILED
-    assert "missing.ply" in by["bad"].error and "\n" not in by["bad"].error
-    assert by["after_bad"].status == BLOCKED and "bad" in by["after_bad"].error
-    assert all(by[n].status in (OK, UP_TO_DATE) for n in POKES)
-    assert not result.ok
-    assert json.loads(json.dumps(result.to_json()))["counts"][FAILED] == 1
+    _, _, _, summary, table = killed_then_resumed
+    by = {r["name"]: r for r in summary["jobs"]}
+    assert by["bad"]["status"] == FAILED
+    assert "missing.ply" in by["bad"]["error"] and "\n" not in by["bad"]["error"]
+    assert by["after_bad"]["status"] == BLOCKED and "bad" in by["after_bad"]["error"]
+    assert all(by[n]["status"] in (OK, UP_TO_DATE) for n in POKES)
+    assert summary["counts"][FAILED] == 1 and summary["counts"][BLOCKED] == 1
+    # The summary table names every job with its status.
+    for n, r in by.items():
+        assert any(line.startswith(n + " ") and r["status"] in line for line in table.splitlines())
 
 
 def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> None:
     import ray  # the ray extra; .ci/run installs it
-    root, _, _, _ = killed_then_resumed
+    root = killed_then_resumed[0]
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
              _node_ip_address="127.0.0.1")
     try:

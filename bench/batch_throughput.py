@@ -1,0 +1,100 @@
+"""Throughput of `pdtool batch`: a 32-job bake sweep of the synthetic plant at 1, 2, 4 workers.
+
+Each job is a tiny bake (600 Gaussians, --quality draft, 3 frames, instancer) so that the
+numbers show the batch machinery (process start, imports, kernel loading, scheduling) as much
+as the simulation. Every worker count runs in a fresh folder, through `run_batch`, the
+function `pdtool batch` calls.
+
+    python bench/batch_throughput.py --device cpu --workers 1,2,4 --json batch.json
+    python bench/batch_throughput.py --device cuda --workers 1,2,4      # GPU workers: one per GPU
+    python bench/batch_throughput.py --ray auto                          # on a running Ray cluster
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+LOAD0 = 0.0
+PRESETS = ["flower", "leafy-plant", "jelly", "rubber-cord"]
+FORCES = ["0,0,1", "0,0,-1", "1,0,0", "-1,0,0", "0,1,0", "0,-1,0", "1,1,0", "-1,-1,0"]
+
+
+def jobs_toml(device: str, gaussians_file: str, frames: int) -> str:
+    args = ["--scene", gaussians_file, "--preset", "{preset}", "--force", "{force}", "--quality", "draft",
+            "--frames", str(frames), "--format", "instancer", "--device", device, "out/{name}.usd"]
+    return ("[[job]]\nname = \"poke\"\ncommand = \"bake\"\nargs = " + json.dumps(args) + "\n"
+            "[job.sweep]\npreset = " + json.dumps(PRESETS) + "\nforce = " + json.dumps(FORCES) + "\n")
+
+
+def cpu_name() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    ap.add_argument("--workers", default="1,2,4", help="comma-separated local worker counts")
+    ap.add_argument("--ray", default=None, help="Ray address instead of the local pool (one run)")
+    ap.add_argument("--gaussians", type=int, default=600)
+    ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads per CPU job (0: pdtool's default, cores // workers)")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
+    a = ap.parse_args()
+
+    global LOAD0
+    LOAD0 = os.getloadavg()[0]
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from pd_tool.batch import LocalBackend, RayBackend, load_jobs, run_batch
+    from pd_tool.io import save_splats
+    from pd_tool.synthetic import make_plant
+
+    root = a.keep or Path(tempfile.mkdtemp(prefix="pdtool-batch-bench-"))
+    root.mkdir(parents=True, exist_ok=True)
+    save_splats(make_plant(a.gaussians, seed=0), root / "plant.ply")
+    runs = [("ray", 0)] if a.ray else [("local", int(w)) for w in a.workers.split(",")]
+    rows = []
+    for kind, w in runs:
+        d = root / (f"ray" if kind == "ray" else f"w{w}")
+        d.mkdir(exist_ok=True)
+        (d / "jobs.toml").write_text(jobs_toml(a.device, "../plant.ply", a.frames))
+        jobs = load_jobs(d / "jobs.toml")
+        backend = RayBackend(a.ray) if kind == "ray" else LocalBackend(w, threads=a.threads or None)
+        t0 = time.perf_counter()
+        res = run_batch(jobs, workers=w or None, backend=backend, show_progress=False, echo=lambda s: None)
+        wall = time.perf_counter() - t0
+        secs = sorted(r.seconds for r in res.jobs)
+        row = {"backend": res.backend, "workers": w, "jobs": len(jobs), "ok": res.counts()["ok"], "wall_s": round(wall, 2),
+               "jobs_per_min": round(60 * len(jobs) / wall, 1), "job_s_median": round(statistics.median(secs), 3),
+               "job_s_max": round(secs[-1], 2)}
+        row["load_avg_after"] = round(os.getloadavg()[0], 1)
+        rows.append(row)
+        print(f"{row['backend']:<40} {row['ok']}/{row['jobs']} ok  wall {row['wall_s']:7.1f} s  "
+              f"{row['jobs_per_min']:6.1f} jobs/min  job median {row['job_s_median']:.2f} s, "
+              f"slowest {row['job_s_max']:.1f} s (imports + kernel load), load avg {row['load_avg_after']}", flush=True)
+    info = {"cpu": cpu_name(), "cores": len(os.sched_getaffinity(0)), "device": a.device,
+            "gaussians": a.gaussians, "frames": a.frames, "threads_per_job": a.threads,
+            "load_avg_before": LOAD0, "python": platform.python_version(), "runs": rows}
+    if a.json:
+        a.json.write_text(json.dumps(info, indent=2))
+    print(json.dumps({k: v for k, v in info.items() if k != "runs"}))
+
+
+if __name__ == "__main__":
+    main()
