@@ -1,0 +1,77 @@
+"""Resuming a fit from a checkpoint in the middle of a stage (issue 10, item 3).
+
+test_reliability_kill.py resumes a SIGKILLed `pdtool fit` from the checkpoint written when
+stage 2 starts. Here, with a checkpoint after every iteration, the fit is interrupted in
+the middle of stage 1 and in the middle of stage 2 (an exception from the progress
+callback stands in for the kill: the checkpoint on disk is all that survives either way)
+and resumed in a new FitProblem; the optimiser moments, schedules, residuals and RNG state
+come from the checkpoint, so the material must equal an uninterrupted run's bit for bit.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+
+class Interrupt(Exception):
+    pass
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    from pd_tool.fit.video import load_reference_video
+    from pd_tool.io import load_splats, save_splats
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.reference import plant_reference_video
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.views import scene_camera
+
+    d = tmp_path_factory.mktemp("resume")
+    save_splats(make_plant(600, seed=1), d / "plant.ply")
+    scene = load_splats(d / "plant.ply")
+    plant_reference_video(d / "video", scene, scene_camera(scene, width=24, height=24),
+                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
+                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    return d, scene, [load_reference_video(d / "video", working_size=24)]
+
+
+def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False):
+    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.synthetic import POT_TOP
+
+    d, scene, refs = inputs
+
+    def progress(stage: str, it: int, total: int, loss: float) -> None:
+        if (stage, it) == stop_at:
+            raise Interrupt
+
+    settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
+                           checkpoint_every=1)
+    return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
+                   settings=settings, progress=progress, resume=resume)
+
+
+@pytest.mark.parametrize("stop_at", [("velocity", 2), ("material", 2)])
+def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, stop_at) -> None:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the promise is for a fixed thread count
+    try:
+        full = _fit(inputs, tmp_path / "full.pdmat")
+        out = tmp_path / "cut.pdmat"
+        with pytest.raises(Interrupt):
+            _fit(inputs, out, stop_at=stop_at)
+        ckpt = torch.load(out.with_name(out.name + ".ckpt"), weights_only=False)
+        # the checkpoint of the iteration before the interruption, in the same stage
+        assert (ckpt["stage"], ckpt["iteration"]) == (stop_at[0], stop_at[1] - 1)
+        assert not out.exists()
+        resumed = _fit(inputs, out, resume=True)
+    finally:
+        torch.set_num_threads(threads)
+    assert not out.with_name(out.name + ".ckpt").exists()
+    assert resumed.losses == full.losses
+    assert resumed.driver_E.tobytes() == full.driver_E.tobytes(), np.abs(resumed.driver_E / full.driver_E - 1).max()
+    assert resumed.driver_v0.tobytes() == full.driver_v0.tobytes()
