@@ -206,7 +206,11 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline) -> 
         grid = (k, h, i0, shape, sig, radius)
         break
     if grid is None:
-        return _empty(like, 0.0, "not filled: the object is too large for the fill grid", 0.0)
+        msg = (f"the object spans more than {MAX_VOXELS:,} fill voxels even at 64x the "
+               f"{lattice:g} m lattice; remove far floaters (foreground selection) or use a coarser cell")
+        if mode == "on":
+            raise FillError(msg)
+        return _empty(like, 0.0, f"not filled: {msg}", 0.0)
     k, h, i0, shape, sig, radius = grid
     corner = origin + i0 * h  # metres, low corner of voxel (0, 0, 0)
 

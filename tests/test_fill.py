@@ -158,6 +158,17 @@ def test_time_budget_auto_gives_up_on_raises():
         fill_interior(p, q, s, o, cell=CELL, mode="on", time_budget_s=0.0)
 
 
+def test_far_floater_declines_or_raises():
+    rng = np.random.default_rng(4)
+    p = rng.random((50, 3))
+    p[0] = 1e6  # one Gaussian a thousand kilometres away; no quantile box below 1000
+    q, s, o = np.tile([1.0, 0, 0, 0], (50, 1)), np.full((50, 3), 0.01), np.ones(50)
+    r = fill_interior(p, q, s, o, cell=0.01, mode="auto")
+    assert not r.decision and "floaters" in r.reason
+    with pytest.raises(FillError, match="floaters"):
+        fill_interior(p, q, s, o, cell=0.01, mode="on")
+
+
 def test_off_and_bad_arguments():
     p, q, s, o = sphere_shell(n=500)
     r = fill_interior(p, q, s, o, cell=CELL, mode="off")
