@@ -246,7 +246,7 @@ class BakeJob:
             return "ERROR", "the scene that started the bake is gone; nothing imported"
         objs = import_bake(scene, self.out, self.fps)
         settings.progress, settings.last_error, settings.last_usd = 1.0, "", str(self.out)
-        settings.status = f"imported {self.out.name}: frames {scene.frame_start}-{scene.frame_end}"
+        settings.status = f"imported frames {scene.frame_start}-{scene.frame_end} from {self.out.name}"
         return "INFO", f"pdtool: {settings.status} ({len(objs)} objects)"
 
 
@@ -293,7 +293,7 @@ def _timer():
     print(f"pdtool: {msg}")
     if level == "ERROR":
         wm = bpy.context.window_manager
-        if wm is not None and wm.windows:
+        if wm is not None and wm.windows and not bpy.app.background:  # no UI to pop up in (crashes)
             wm.popup_menu(lambda menu, _c: menu.layout.label(text=msg), title="pdtool bake failed", icon="ERROR")
     _redraw()
     return None
