@@ -105,28 +105,36 @@ def _topk_block(
     total = count.sum(1)
     out_d = torch.full((c, k), math.inf, dtype=q.dtype, device=dev)
     out_i = torch.zeros((c, k), dtype=torch.long, device=dev)
-    t_max = int(total.max()) if c > 0 else 0
-    if t_max > 0:
+    if c > 0 and int(total.max()) > 0:
         ends = torch.cumsum(count, 1)  # [c, 27] inclusive offsets
         begins = ends - count
-        step = max(1, chunk // (4 * t_max))  # 4: three coordinates plus the distance
-        for s in range(0, c, step):
-            e = min(c, s + step)
-            tm = int(total[s:e].max())
+        # Queries by candidate count, so that each sub-chunk pads little; sub-chunks hold
+        # at most `chunk` (query, candidate) pairs (x4: three coordinates and a distance).
+        perm = torch.argsort(total, stable=True)
+        totals = total[perm].cpu().tolist()
+        s = 0
+        while s < c:
+            e = min(c, s + max(1, chunk // (4 * max(1, totals[s]))))
+            while e - s > 1 and (e - s) * 4 * totals[e - 1] > chunk:
+                e = s + max(1, chunk // (4 * totals[e - 1]))
+            tm = totals[e - 1]
             if tm == 0:
+                s = e
                 continue
+            rows = perm[s:e]
             t = torch.arange(tm, device=dev).expand(e - s, tm).contiguous()
-            cell = torch.searchsorted(ends[s:e], t, right=True).clamp_max(26)
-            sorted_pos = torch.gather(start[s:e], 1, cell) + t - torch.gather(begins[s:e], 1, cell)
-            valid = t < total[s:e, None]
+            cell = torch.searchsorted(ends[rows], t, right=True).clamp_max(26)
+            sorted_pos = torch.gather(start[rows], 1, cell) + t - torch.gather(begins[rows], 1, cell)
+            valid = t < total[rows, None]
             sorted_pos = torch.where(valid, sorted_pos, torch.zeros_like(sorted_pos))
             idx = grid.order[sorted_pos]  # [b, tm] reference indices
-            d2 = ((grid.refs[idx] - q[s:e, None, :]) ** 2).sum(-1)
+            d2 = ((grid.refs[idx] - q[rows, None, :]) ** 2).sum(-1)
             d2 = torch.where(valid, d2, torch.full_like(d2, math.inf))
             kk = min(k, tm)
             best_d, best_j = torch.topk(d2, kk, dim=1, largest=False, sorted=True)
-            out_d[s:e, :kk] = best_d
-            out_i[s:e, :kk] = torch.gather(idx, 1, best_j)
+            out_d[rows, :kk] = best_d
+            out_i[rows, :kk] = torch.gather(idx, 1, best_j)
+            s = e
     safe = grid.safe_radius(q, ijk)
     exact = out_d[:, -1] <= safe * safe
     return out_d, out_i, exact
