@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -117,7 +116,7 @@ def record_panel(panel_cls, context) -> dict:
 
 def blender_session(splat: Path, zip_path: Path, out_dir: Path, render_png: Path) -> dict:
     import bpy
-    from mathutils import Vector
+    from mathutils import Matrix, Vector
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="user_default", enable_on_install=True)
@@ -158,17 +157,18 @@ def blender_session(splat: Path, zip_path: Path, out_dir: Path, render_png: Path
         o.modifiers.new("wire", "WIREFRAME").thickness = 0.006
     mat_helper = bpy.data.materials.new("helper")
     mat_helper.diffuse_color = (0.95, 0.55, 0.1, 1.0)
-    mat_helper.use_nodes = True
+    if bpy.app.version < (5, 0, 0):
+        mat_helper.use_nodes = True
     mat_helper.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.95, 0.45, 0.05, 1.0)
     arrow, sphere = s.force_empty, s.region_empty
     # wire proxies for the empties, drawn where the empties are
     bpy.ops.mesh.primitive_cylinder_add(radius=0.008, depth=arrow.empty_display_size * 0.85)
     shaft = bpy.context.object
-    shaft.matrix_world = arrow.matrix_world @ __import__("mathutils").Matrix.Translation(
+    shaft.matrix_world = arrow.matrix_world @ Matrix.Translation(
         (0, 0, arrow.empty_display_size * 0.425))
     bpy.ops.mesh.primitive_cone_add(radius1=0.03, depth=arrow.empty_display_size * 0.15)
     head = bpy.context.object
-    head.matrix_world = arrow.matrix_world @ __import__("mathutils").Matrix.Translation(
+    head.matrix_world = arrow.matrix_world @ Matrix.Translation(
         (0, 0, arrow.empty_display_size * 0.925))
     bpy.ops.mesh.primitive_uv_sphere_add(radius=sphere.empty_display_size, location=sphere.location,
                                          segments=24, ring_count=12)
@@ -178,7 +178,8 @@ def blender_session(splat: Path, zip_path: Path, out_dir: Path, render_png: Path
         o.data.materials.append(mat_helper)
     # the baked points as small spheres coloured by displayColor (a geometry-nodes material)
     mat_pts = bpy.data.materials.new("splat colours")
-    mat_pts.use_nodes = True
+    if bpy.app.version < (5, 0, 0):
+        mat_pts.use_nodes = True
     attr = mat_pts.node_tree.nodes.new("ShaderNodeAttribute")
     attr.attribute_name = "displayColor"
     mat_pts.node_tree.links.new(attr.outputs["Color"], mat_pts.node_tree.nodes["Principled BSDF"].inputs["Base Color"])

@@ -326,7 +326,8 @@ def _points_material() -> bpy.types.Material:
     mat = bpy.data.materials.get("pdtool preview")
     if mat is None:
         mat = bpy.data.materials.new("pdtool preview")
-        mat.use_nodes = True
+        if bpy.app.version < (5, 0, 0):  # 5.0+ always has nodes (use_nodes is deprecated)
+            mat.use_nodes = True
         nodes = mat.node_tree.nodes
         attr = nodes.new("ShaderNodeAttribute")
         attr.attribute_name = "Col"
