@@ -79,7 +79,7 @@ def main() -> None:
         "loss_first": (res.losses["velocity"] or res.losses["material"])[0],
         "loss_last": (res.losses["material"] or res.losses["velocity"])[-1],
         "recovered_E": rec, "truth_E": {k: REGION_TRUTH_E[k] for k in rec},
-        "losses": res.losses, "driver_E_range": [float(res.driver_E.min()), float(res.driver_E.max())],
+        "losses": res.losses, "skipped_material_steps": res.skipped_steps, "driver_E_range": [float(res.driver_E.min()), float(res.driver_E.max())],
     }
     print(json.dumps(out, indent=2))
     if args.json:

@@ -95,6 +95,7 @@ class FitResult:
     prep: PreparedScene
     drivers: Any
     report: list[str] = field(default_factory=list)
+    skipped_steps: int = 0  # material-stage optimiser steps skipped for a non-finite gradient
 
 
 ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
@@ -443,4 +444,4 @@ def run_fit(
         ckpt_path.unlink()
     return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
                      gaussian_E=driver_E[labels], losses=losses,
-                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report))
+                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped)

@@ -11,6 +11,7 @@ import math
 import torch
 
 POLAR_ITERS = 30  # fixed Newton iterations: converged to float64 for the test inputs
+MIN_NODE_MASS = 1e-15  # kg, as kernels.MIN_NODE_MASS: lighter nodes count as empty
 
 
 def polar_rotation_ref(F: torch.Tensor) -> torch.Tensor:
@@ -78,9 +79,9 @@ def grid_update_ref(gm, gmv, fixed, dx, dt, gravity, damping, pad, ground_z=None
     """Grid velocity [nodes + (3,)] m/s with walls, ground and Dirichlet nodes."""
     nodes = gm.shape
     g = torch.tensor(gravity, dtype=gmv.dtype, device=gmv.device)
-    safe_m = torch.where(gm > 0, gm, torch.ones_like(gm))
+    safe_m = torch.where(gm > MIN_NODE_MASS, gm, torch.ones_like(gm))
     vel = (gmv / safe_m[..., None] + dt * g) * math.exp(-damping * dt)
-    vel = torch.where((gm > 0)[..., None], vel, torch.zeros_like(vel))
+    vel = torch.where((gm > MIN_NODE_MASS)[..., None], vel, torch.zeros_like(vel))
     idx = torch.stack(torch.meshgrid(*[torch.arange(n, device=gm.device) for n in nodes], indexing="ij"), -1)
     comps = []
     for d in range(3):

@@ -32,6 +32,7 @@ N_STATS = 5
 # --------------------------------------------------------------------------------------
 POLAR_MAX_ITERS = 16  # scaled Newton iterations (near rest it stops after 1-3)
 POLAR_TOL = 1e-6  # Frobenius change that ends the Newton iteration (float32)
+MIN_NODE_MASS = wp.constant(1.0e-15)  # kg; lighter grid nodes are treated as empty (see node_velocity)
 
 
 @wp.func
@@ -265,9 +266,13 @@ def node_velocity(
     use_ground: int,
     ground_z: float,
 ) -> wp.vec3:
-    """Velocity of one node (m/s) from its mass and momentum, with every boundary condition."""
+    """Velocity of one node (m/s) from its mass and momentum, with every boundary condition.
+
+    Nodes lighter than MIN_NODE_MASS count as empty: a particle at the edge of a node's
+    B-spline support gives it a mass of order 1e-18 kg, and the adjoint of mv / m,
+    -mv / m^2, overflows float32 there (seen as NaN gradients on CUDA)."""
     vel = wp.vec3(0.0)
-    if m > 0.0:
+    if m > MIN_NODE_MASS:
         vel = (mv / m + dt * gravity) * damping_factor
         if i < pad and vel[0] < 0.0:
             vel = wp.vec3(0.0, vel[1], vel[2])
