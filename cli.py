@@ -167,6 +167,10 @@ def prepare_options_decorator(f):
         click.option("--up", type=UP_CHOICE, default=None, help="Scene up axis.  [default: +z]"),
         click.option("--meters-per-unit", type=click.FloatRange(min=0, min_open=True), default=None,
                      help="Real size of one scene unit, metres. Default: the object's longest side is 1 m."),
+        click.option("--fill", type=click.Choice(["auto", "on", "off"]), default=None,
+                     help="Fill the inside of closed shells with simulated particles (a scan is a shell; a solid "
+                          "object would move like a balloon). auto decides from how closed the shell is and "
+                          "reports it.  [default: auto]"),
     ]
     for o in reversed(opts):
         f = o(f)
@@ -183,7 +187,7 @@ def build_prepare_options(base=None, **kw):
             box = Box.parse(kw[key], "--" + key.replace("_", "-"))
             setattr(opts, key, (*box.lo, *box.hi))
     mapping = {"min_opacity": "min_opacity", "static_below": "static_below", "up": "up_axis",
-               "meters_per_unit": "meters_per_unit"}
+               "meters_per_unit": "meters_per_unit", "fill": "fill"}
     for cli_name, field_name in mapping.items():
         if kw.get(cli_name) is not None:
             setattr(opts, field_name, kw[cli_name])

@@ -38,10 +38,11 @@ class GaussianAnimator:
         self._q_sim = matrix_to_quat(R.double()).float()  # scene axes -> sim axes
         self._q_scene = matrix_to_quat(R.double().T).float()  # sim axes -> scene axes
         q_fg = scene.quats.to(dev)[self.fg]
-        self.rest_points = torch.as_tensor(prep.positions_sim, dtype=torch.float32, device=dev)
+        f = prep.count  # filled interior particles (after the Gaussians) are simulated, never drawn
+        self.rest_points = torch.as_tensor(prep.positions_sim[:f], dtype=torch.float32, device=dev)
         self.rest_quats = quat_multiply(self._q_sim.expand_as(q_fg), q_fg)
         self.drivers_rest = drivers.positions.to(dev, torch.float32)
-        self.neighbors = drivers.neighbors.to(dev)
+        self.neighbors = drivers.neighbors[:f].to(dev)
         self.scene_positions = scene.positions.to(dev)
         self.scene_quats = scene.quats.to(dev)
         from pd_tool.drivers import DriverInterpolator

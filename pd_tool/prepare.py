@@ -127,6 +127,7 @@ class PrepareOptions:
     padding: float = 0.25  # free space around the object, as a fraction of its longest extent
     grid_res: int = 32  # cells along the longest axis of the simulation box
     density_kg_m3: float = 1000.0
+    fill: str = "auto"  # interior filling of closed shells: auto | on | off (pd_tool/fill.py)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -158,6 +159,17 @@ class PreparedScene:
     dx: float
     grid_dims: tuple[int, int, int]
     report: list[str] = field(default_factory=list)
+    fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
+
+    # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
+    # interior particles added by filling (simulated, never rendered).
+    @property
+    def n_filled(self) -> int:
+        return 0 if self.fill_source is None else int(len(self.fill_source))
+
+    @property
+    def n_particles(self) -> int:
+        return int(len(self.positions_sim))
 
     @property
     def domain(self) -> tuple[float, float, float]:
@@ -303,6 +315,21 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     static = select_static(pos_scene, options)
     transform, dx, dims = fit_transform(pos_scene, options)
     pos_sim = transform.to_sim(pos_scene)
+    fill_source = None
+    if options.fill not in ("auto", "on", "off"):
+        raise PreparationError(f"--fill {options.fill!r} must be auto, on or off")
+    if options.fill != "off":
+        from pd_tool.fill import fill_interior
+
+        fg_t = torch.as_tensor(fg, device=scene.device)
+        res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
+                            scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
+                            scene.opacities[fg_t].detach().cpu().numpy(), cell=dx, mode=options.fill)
+        report.append(f"fill ({options.fill}): {res.reason}")
+        if res.decision and len(res.points):
+            fill_source = np.asarray(res.source, np.int64)
+            pos_sim = np.concatenate([pos_sim, np.asarray(res.points, np.float64)])
+            static = np.concatenate([static, static[fill_source]])
     volumes = particle_volumes(pos_sim, dx)
     report.append(
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
@@ -311,6 +338,6 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     return PreparedScene(
         scene=scene, options=options, foreground=fg, static=static, transform=transform,
         positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,
-        dx=dx, grid_dims=dims, report=report,
+        dx=dx, grid_dims=dims, report=report, fill_source=fill_source,
     )
 

@@ -114,7 +114,7 @@ def plant_reference_video(
     names = scene.label_names or REGIONS  # a plant read back from .ply keeps labels, not names
     table = np.array([region_E[name] for name in names], np.float64)
     gaussian_E = table[labels]
-    member = drivers.labels.cpu().numpy()
+    member = drivers.labels.cpu().numpy()[: prep.count]  # Gaussians only; filled particles follow
     q = len(drivers.positions)
     votes = np.zeros((q, len(table)))
     np.add.at(votes, (member, labels), 1.0)

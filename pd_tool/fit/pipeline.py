@@ -412,8 +412,8 @@ def run_fit(
             v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
-    labels = pb.drivers.labels.cpu().numpy()
     p = pb.prep
+    labels = pb.drivers.labels.cpu().numpy()[: p.count]  # the Gaussians' drivers (filled particles follow)
     meta: dict[str, Any] = {
         "scene_sha256": scene_fingerprint(scene_path),
         "scene_path": str(Path(scene_path).resolve()),
