@@ -38,7 +38,7 @@ def inputs(tmp_path_factory):
     return d, scene, [load_reference_video(d / "video", working_size=24)]
 
 
-def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False):
+def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0):
     from pd_tool.fit.pipeline import FitSettings, run_fit
     from pd_tool.prepare import PrepareOptions
     from pd_tool.synthetic import POT_TOP
@@ -50,7 +50,7 @@ def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool
             raise Interrupt
 
     settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
-                           checkpoint_every=1)
+                           checkpoint_every=1, seed=seed)
     return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=settings, progress=progress, resume=resume)
 
@@ -75,3 +75,14 @@ def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, stop_at) -> N
     assert resumed.losses == full.losses
     assert resumed.driver_E.tobytes() == full.driver_E.tobytes(), np.abs(resumed.driver_E / full.driver_E - 1).max()
     assert resumed.driver_v0.tobytes() == full.driver_v0.tobytes()
+
+
+def test_resume_refuses_a_checkpoint_of_another_fit(inputs, tmp_path: Path) -> None:
+    from pd_tool.errors import PdToolError
+
+    out = tmp_path / "cut.pdmat"
+    with pytest.raises(Interrupt):
+        _fit(inputs, out, stop_at=("velocity", 2))
+    with pytest.raises(PdToolError, match=r"cut.pdmat.ckpt: the checkpoint belongs to another fit \(settings differs\)"):
+        _fit(inputs, out, resume=True, seed=1)
+    assert out.with_name(out.name + ".ckpt").exists() and not out.exists()  # left for the user to decide

@@ -282,6 +282,7 @@ def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched
         "torch_rng": torch.get_rng_state(),
     }
     state["residual"] = pb.log_e_residual.detach().cpu().clone()
+    state["problem"] = getattr(pb, "resume_key", None)
     if opt_v is not None:
         state["optimizer_v"], state["scheduler_v"] = opt_v.state_dict(), sched_v.state_dict()
     if opt_r is not None:
@@ -300,6 +301,30 @@ def _load_checkpoint(path: Path) -> dict | None:
     if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
         raise PdToolError(f"{path}: checkpoint from another pdtool version; delete it and fit without --resume")
     return state
+
+
+def _resume_key(pb: FitProblem, scene_path: str | Path) -> dict:
+    """What a checkpoint must share with the fit that resumes it: the scene file, the
+    preparation's result, the videos and the settings (the device may change)."""
+    from pd_tool.material_file import scene_fingerprint
+
+    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(pb.s).items() if k != "device"}
+    return {"scene_sha256": scene_fingerprint(scene_path), "drivers": int(len(pb.x_rest)),
+            "frames": [int(v.num_frames) for v in pb.videos],
+            "image": [list(v.frames.shape[1:3]) for v in pb.videos], "settings": settings}
+
+
+def _check_resume_key(path: Path, ckpt: dict, key: dict) -> None:
+    # a checkpoint of another fit (other scene, options, videos, or a preparation that came
+    # out differently) would load into tensors of the wrong shape, or silently mix two fits
+    old = ckpt.get("problem")
+    if old is None:
+        return
+    for name in key:
+        if old.get(name) != key[name]:
+            what = name if name != "drivers" else f"driver count {old.get(name)} != {key[name]}"
+            raise PdToolError(f"{path}: the checkpoint belongs to another fit ({what} differs); "
+                              f"delete it, or fit without --resume")
 
 
 def run_fit(
@@ -325,8 +350,10 @@ def run_fit(
     pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
     seconds: dict[str, float] = {}
+    pb.resume_key = _resume_key(pb, scene_path)
     ckpt = _load_checkpoint(ckpt_path) if resume else None
     if ckpt is not None:
+        _check_resume_key(ckpt_path, ckpt, pb.resume_key)
         pb.material.load_state_dict(ckpt["material"])
         pb.velocities.load_state_dict(ckpt["velocities"])
         losses = ckpt["losses"]
