@@ -293,18 +293,30 @@ def job_files(job: Job) -> JobFiles:
     return JobFiles(inputs=ins, outputs=outs, parsed=bool(outs))
 
 
+_DIGESTS: dict[tuple[str, int, int], bytes] = {}
+
+
+def file_digest(p: Path) -> bytes:
+    """sha256 of one file's bytes, cached by (path, size, mtime): a sweep of 100 bakes of one
+    large scene reads it once, and a file rewritten in between is read again."""
+    st = p.stat()
+    key = (str(p), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        _DIGESTS[key] = h.digest()
+    return _DIGESTS[key]
+
+
 def _hash_path(h: "hashlib._Hash", p: Path) -> None:
     if p.is_dir():
         for f in sorted(q for q in p.rglob("*") if q.is_file()):
             _hash_path(h, f)
         return
     h.update(str(p).encode() + b"\0")
-    if not p.exists():
-        h.update(b"<missing>")
-        return
-    with open(p, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
+    h.update(file_digest(p) if p.is_file() else b"<missing>")
 
 
 def fingerprint(job: Job, files: JobFiles) -> str:
@@ -439,18 +451,21 @@ def count_gpus() -> int:
 class LocalBackend:
     """Spawned worker processes: `workers` for CPU jobs plus one per GPU for CUDA jobs.
 
-    threads: torch threads per CPU job (default cores // workers).
+    threads: torch threads per CPU job (default 1).
 
     A job goes to the GPU workers when it asks for `--device cuda`, or for `auto` while a GPU
     is visible; everything else to the CPU workers. Each worker keeps torch/warp (and warp's
-    loaded kernels) between jobs. Torch threads per CPU job: cores // workers.
+    loaded kernels) between jobs. One torch thread per CPU job.
     """
 
     def __init__(self, workers: int | None = None, gpus: int | None = None, threads: int | None = None) -> None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         self.workers = max(1, workers or cores)
         self.gpus = count_gpus() if gpus is None else gpus
-        self.threads = threads or max(1, cores // self.workers)
+        # One torch thread per job by default: a sweep is parallel across jobs, and OpenMP
+        # threads of several jobs fighting for the same cores made tiny bakes ~7x slower
+        # (docs/batch.md).
+        self.threads = threads or 1
         ctx = mp.get_context("spawn")  # fork after torch/warp init is unsafe; spawn is the same everywhere
         self.cpu = cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker, initargs=("",))
         self.gpu = [cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(str(i),))
@@ -468,7 +483,7 @@ class LocalBackend:
     def submit(self, job: Job) -> cf.Future:
         gpu = self.route(job)
         spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
-                "threads": 0 if gpu is not None else self.threads}
+                "threads": self.threads}
         return (self.cpu if gpu is None else self.gpu[gpu]).submit(run_job, spec)
 
     def wait(self, handles: Iterable[cf.Future]) -> list[tuple[cf.Future, dict[str, Any]]]:
@@ -482,7 +497,7 @@ class LocalBackend:
                                 "seconds": 0.0, "log": []}))
         return out
 
-    def close(self, cancel: bool = False) -> None:
+    def close(self, cancel: bool = False, handles: Iterable[Any] = ()) -> None:
         for p in [self.cpu, *self.gpu]:
             if cancel:
                 # Ctrl-C: stop running jobs now rather than wait for them (their outputs are
@@ -547,7 +562,11 @@ class RayBackend:
                                   "seconds": 0.0, "log": []}))
         return out
 
-    def close(self, cancel: bool = False) -> None:
+    def close(self, cancel: bool = False, handles: Iterable[Any] = ()) -> None:
+        if cancel:
+            for ref in handles:
+                with contextlib.suppress(Exception):
+                    self.ray.cancel(ref, force=True)
         if self._owns:
             self.ray.shutdown()
 
@@ -568,6 +587,7 @@ class JobResult:
     error: str | None = None
     fingerprint: str | None = None
     log: list[str] = field(default_factory=list)
+    worker: str | None = None  # "host:pid" of the process that ran it
 
 
 @dataclass
@@ -680,12 +700,13 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
                 job, files, fp = in_flight.pop(handle)
                 r = JobResult(job.name, job.command, OK if res["ok"] else FAILED, seconds=res["seconds"],
                               outputs=[str(p) for p in files.outputs], error=res["error"], fingerprint=fp,
-                              log=res.get("log", []))
+                              log=res.get("log", []),
+                              worker=f"{res['host']}:{res['pid']}" if "pid" in res else None)
                 if r.status == OK and fp is not None:
                     write_record(job, files, fp, r.seconds)
                 finish(r)
-    except BaseException:
-        backend.close(cancel=True)
+    except BaseException:  # Ctrl-C, or a bug here: stop the running jobs, then re-raise
+        backend.close(cancel=True, handles=list(in_flight))
         if bar is not None:
             bar.close()
         raise

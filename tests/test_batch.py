@@ -27,7 +27,10 @@ def _toml_list(items: list[str]) -> str:
     return "[" + ", ".join(json.dumps(a) for a in items) + "]"
 
 
-# 'bad' comes first so that a one-worker run fails it before the first bake finishes.
+# 'bad' comes first so that a one-worker run fails it before the first bake finishes. Then a
+# reference bake whose rendered frames a tiny fit reads, and two bakes of the fitted material
+# (the studio chain: fit waits for its video, bakes wait for the fit), and a 2x2 preset/force
+# sweep of bakes.
 JOBS = f"""
 [[job]]
 name = "bad"
@@ -41,6 +44,28 @@ after = ["bad"]
 args = {_toml_list(["--scene", "../plant.ply", "--preset", "flower", "--force", "0,0,1", *TINY, "out/{name}.usd"])}
 
 [[job]]
+name = "reference"
+command = "bake"
+args = {_toml_list(["--scene", "../plant.ply", "--preset", "flower", "--force", "0,0,1", *TINY,
+                    "--frames-out", "ref", "out/{name}.usd"])}
+
+[[job]]
+name = "fit"
+command = "fit"
+after = ["reference"]
+args = ["../plant.ply", "ref", "--quality", "draft", "--velocity-iters", "1", "--material-iters", "1",
+        "--working-size", "32", "--no-preview", "--device", "cpu", "-o", "fits/plant.pdmat"]
+
+[[job]]
+name = "fitted"
+command = "bake"
+after = ["fit"]
+args = {_toml_list(["--scene", "../plant.ply", "--material", "fits/plant.pdmat", "--force", "{force}", *TINY,
+                    "out/{name}.usd"])}
+[job.sweep]
+force = ["0,0,1", "-1,0,0"]
+
+[[job]]
 name = "poke_{{preset}}_{{force}}"
 command = "bake"
 args = {_toml_list(["--scene", "../plant.ply", "--preset", "{preset}", "--force", "{force}", *TINY, "out/{name}.usd"])}
@@ -49,6 +74,8 @@ preset = ["flower", "jelly"]
 force = ["0,0,1", "1,0,0"]
 """
 POKES = ["poke_flower_0_0_1", "poke_flower_1_0_0", "poke_jelly_0_0_1", "poke_jelly_1_0_0"]
+BAKES = ["reference", "fitted_0_0_1", "fitted_-1_0_0", *POKES]  # every job that writes a .usd
+RUNNABLE = [*BAKES, "fit"]
 
 
 def test_sweep_expands_names_args_and_after(tmp_path: Path) -> None:
@@ -155,15 +182,16 @@ def killed_then_resumed(tmp_path_factory):
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 120
     try:
-        while not list((local / "out").glob("*.batch.json")):
+        while not list(local.rglob("*.batch.json")):
             assert proc.poll() is None, "the batch ended before it could be killed"
             assert time.monotonic() < deadline, "no job finished within 120 s"
             time.sleep(0.02)
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    done_at_kill = {p.name.removesuffix(".usd.batch.json") for p in (local / "out").glob("*.batch.json")}
-    mtimes = {n: (local / "out" / f"{n}.usd").stat().st_mtime_ns for n in done_at_kill}
+    records = {json.loads(p.read_text())["job"]: json.loads(p.read_text()) for p in local.rglob("*.batch.json")}
+    done_at_kill = set(records)
+    mtimes = {n: Path(r["outputs"][0]).stat().st_mtime_ns for n, r in records.items()}
     # The resume goes through the CLI command, with its summary table and --json file.
     from click.testing import CliRunner
 
@@ -184,14 +212,18 @@ def killed_then_resumed(tmp_path_factory):
 def test_resume_after_kill_runs_only_the_missing_jobs(killed_then_resumed) -> None:
     root, done_at_kill, mtimes, summary, _ = killed_then_resumed
     status = {r["name"]: r["status"] for r in summary["jobs"]}
-    assert done_at_kill and done_at_kill < set(POKES), done_at_kill
-    assert {n for n in POKES if status[n] == UP_TO_DATE} == done_at_kill
-    assert {n for n in POKES if status[n] == OK} == set(POKES) - done_at_kill
+    assert done_at_kill and done_at_kill < set(RUNNABLE), done_at_kill
+    assert {n for n in RUNNABLE if status[n] == UP_TO_DATE} == done_at_kill
+    assert {n for n in RUNNABLE if status[n] == OK} == set(RUNNABLE) - done_at_kill
+    by = {r["name"]: r for r in summary["jobs"]}
     for n in done_at_kill:  # skipped, not rewritten
-        assert (root / "local" / "out" / f"{n}.usd").stat().st_mtime_ns == mtimes[n]
-    for n in POKES:
-        rec = json.loads((root / "local" / "out" / f"{n}.usd.batch.json").read_text())
-        assert rec["job"] == n and len(rec["fingerprint"]) == 64
+        assert Path(by[n]["outputs"][0]).stat().st_mtime_ns == mtimes[n]
+    for n in RUNNABLE:
+        out = Path(by[n]["outputs"][0])
+        rec = json.loads(out.with_name(out.name + ".batch.json").read_text())
+        assert rec["job"] == n and rec["fingerprint"] == by[n]["fingerprint"] and len(rec["fingerprint"]) == 64
+    # The fit read the reference bake's frames: its fingerprint covers them.
+    assert any("/ref" in p for p in json.loads((root / "local" / "fits" / "plant.pdmat.batch.json").read_text())["inputs"])
 
 
 def test_bad_input_fails_alone(killed_then_resumed) -> None:
@@ -200,7 +232,7 @@ def test_bad_input_fails_alone(killed_then_resumed) -> None:
     assert by["bad"]["status"] == FAILED
     assert "missing.ply" in by["bad"]["error"] and "\n" not in by["bad"]["error"]
     assert by["after_bad"]["status"] == BLOCKED and "bad" in by["after_bad"]["error"]
-    assert all(by[n]["status"] in (OK, UP_TO_DATE) for n in POKES)
+    assert all(by[n]["status"] in (OK, UP_TO_DATE) for n in RUNNABLE)
     assert summary["counts"][FAILED] == 1 and summary["counts"][BLOCKED] == 1
     # The summary table names every job with its status.
     for n, r in by.items():
@@ -219,8 +251,8 @@ def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> 
         ray.shutdown()
     status = {r.name: r.status for r in result.jobs}
     assert status["bad"] == FAILED and status["after_bad"] == BLOCKED
-    assert all(status[n] == OK for n in POKES)
-    for n in POKES:
+    assert all(status[n] == OK for n in RUNNABLE)
+    for n in BAKES:
         a = (root / "local" / "out" / f"{n}.usd").read_bytes()
         b = (root / "ray" / "out" / f"{n}.usd").read_bytes()
         assert a == b, n
