@@ -98,12 +98,14 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
     opts = PrepareOptions(static_below=POT_TOP, grid_res=int(q["grid_res"]))
     prep = prepare_scene(scene, opts)
     if kind == "bake":
-        est = estimate_bake_memory(n_gaussians=scene.count, n_simulated=prep.count, driver_ratio=float(q["driver_ratio"]),
+        est = estimate_bake_memory(n_gaussians=scene.count, n_simulated=len(prep.positions_sim),
+                                   driver_ratio=float(q["driver_ratio"]),
                                    grid_dims=prep.grid_dims, frames=BAKE_FRAMES,
                                    preview_pixels=PREVIEW_PIXELS if preview else 0,
                                    sh_coeffs=int(scene.sh.shape[1]), device=device)
     else:
-        est = estimate_fit_memory(n_gaussians=scene.count, n_simulated=prep.count, driver_ratio=float(q["driver_ratio"]),
+        est = estimate_fit_memory(n_gaussians=scene.count, n_simulated=len(prep.positions_sim),
+                                  driver_ratio=float(q["driver_ratio"]),
                                   grid_dims=prep.grid_dims, frames=[refs[0].num_frames],
                                   image_pixels=int(refs[0].frames[0].numel() // 3), device=device)
     return {"kind": kind, "n": n, "quality": quality, "device": device, "baseline": base, "peak": peak,

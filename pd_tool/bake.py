@@ -199,7 +199,7 @@ def bake(
     px = 0 if preview is None and frames_dir is None else (
         camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
     check_memory(estimate_bake_memory(
-        n_gaussians=scene.count, n_simulated=prep.count, driver_ratio=ratio, grid_dims=prep.grid_dims,
+        n_gaussians=scene.count, n_simulated=len(prep.positions_sim), driver_ratio=ratio, grid_dims=prep.grid_dims,
         frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
         what="bake", quality=str(settings.quality), driver_ratio=ratio, device=dev,
         resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by --quality")

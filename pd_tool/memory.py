@@ -82,7 +82,8 @@ def estimate_bake_memory(
 
     Args:
         n_gaussians: Gaussians in the scene (all are animated and written).
-        n_simulated: Gaussians in the foreground (the drivers are chosen among them).
+        n_simulated: simulated points: foreground Gaussians plus interior fill particles
+            (the drivers are chosen among them).
         driver_ratio: drivers per simulated Gaussian.
         grid_dims: simulation grid cells (nx, ny, nz); nodes are cells + 1 per axis.
         frames: frames in the animation.

@@ -123,7 +123,8 @@ class FitProblem:
         from pd_tool.memory import check_memory, estimate_fit_memory
 
         check_memory(estimate_fit_memory(
-            n_gaussians=scene.count, n_simulated=p.count, driver_ratio=settings.driver_ratio, grid_dims=p.grid_dims,
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=settings.driver_ratio,
+            grid_dims=p.grid_dims,
             frames=[v.num_frames for v in videos], image_pixels=int(videos[0].frames[0].numel() // 3),
             stage1_frames=settings.stage1_frames, device=settings.device),
             what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio, device=settings.device,
