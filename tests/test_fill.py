@@ -218,7 +218,7 @@ def test_real_captures_follow_auto(shared_data, name):
         lo, hi = pos.min(0) - cell, pos.max(0) + cell
         assert ((pts >= lo) & (pts <= hi)).all()
         assert int(r.source.max()) < scene.count and int(r.source.min()) >= 0
-    # What auto decides for these two (see docs/parts/fill.md): udon is an open pile of
+    # What auto decides for these two (see docs/fill.md): udon is an open pile of
     # noodles, the donut a closed ring.
     assert r.decision == (name == "donut_fused.ply"), r.reason
 

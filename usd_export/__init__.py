@@ -38,7 +38,7 @@ because the crate layer is saved incrementally every `flush_bytes` of samples
 value clips. Prims: /Root/Instancer (PointInstancer, unit-sphere prototype in
 /Root/Instancer/Prototypes), /Root/SplatColors (Points with displayColor: the
 only colour Blender imports), /Root/Splats (ParticleField3DGaussianSplat).
-See docs/parts/usd.md.
+See docs/usd.md.
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ Memory stays bounded without value clips: time samples go straight into a
 crate (.usdc) layer, and the layer is saved whenever `flush_bytes` of new
 samples have piled up. A crate save appends the new arrays to the file and
 afterwards reads them back lazily from the memory-mapped file, so samples
-already saved no longer occupy the heap (measured in docs/parts/usd.md:
+already saved no longer occupy the heap (measured in docs/usd.md:
 peak RSS flat in the number of frames). The result is a single file.
 
 Atomic output: everything is written to a hidden temporary file next to the

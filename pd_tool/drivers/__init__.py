@@ -22,7 +22,7 @@ Public API (torch, CPU or CUDA; shapes in the docstrings of each function):
   counts [Q]). Default "nodes": K-Means over the free Gaussians (ratio/count/rule count
   those), plus one static driver per grid node pinned by static Gaussians, so the drivers
   clamp the same nodes as all Gaussians would; "majority": one K-Means, static by majority.
-  Recommended ratio (docs/parts/drivers.md): 1/4 (RMS error < 1% of the object's size on
+  Recommended ratio (docs/drivers.md): 1/4 (RMS error < 1% of the object's size on
   the plant for every poke tried); 1/10 for drafts.
 - nearest_drivers(points [N,3], drivers [Q,3], k=8) -> [N,k] long: exact, grid-based.
 - DriverInterpolator(..., backend="auto"): a fused warp kernel for rigid float32 calls

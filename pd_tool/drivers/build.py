@@ -117,7 +117,7 @@ def build_drivers(
             simulator pins), so the drivers pin exactly the nodes that every Gaussian would.
             "majority": one K-Means over all Gaussians; a driver is static where most of its
             members are (the paper's recipe; it moves the clamped boundary, see
-            docs/parts/drivers.md).
+            docs/drivers.md).
         kmeans_options: passed to kmeans (iters, tol, chunk, init).
     Returns:
         DriverSet; with "nodes" the moving drivers come first, then the static ones.
