@@ -19,7 +19,7 @@ def selection_scene(prep: PreparedScene) -> GaussianScene:
     scene = prep.scene
     rgb = scene.colors.detach().cpu().numpy().astype(np.float64)
     role = np.zeros(scene.count, np.int8)  # 0 left out, 1 static, 2 moving
-    role[prep.foreground] = np.where(prep.static, 1, 2)
+    role[prep.foreground] = np.where(prep.static[: prep.count], 1, 2)  # filled particles are never drawn
     rgb[role == 0] = LEFT_OUT_RGB
     rgb[role == 1] = STATIC_RGB
     sh = torch.zeros((scene.count, 1, 3), dtype=scene.sh.dtype, device=scene.device)

@@ -96,3 +96,19 @@ def test_synthetic_plant_is_deterministic() -> None:
     assert torch.equal(a.positions, b.positions) and torch.equal(a.sh, b.sh)
     assert not torch.equal(a.positions, c.positions)
     assert set(np.unique(a.labels)) == set(range(len(REGIONS)))
+
+
+def test_fill_adds_simulated_particles_after_the_gaussians() -> None:
+    from pd_tool.selection import selection_scene
+
+    plant = make_plant(1500, seed=0)
+    hollow = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="off"))
+    filled = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on"))
+    assert hollow.n_filled == 0 and hollow.n_particles == hollow.count
+    assert filled.n_filled > 0 and filled.n_particles == filled.count + filled.n_filled
+    for arr in (filled.static, filled.volumes, filled.masses):
+        assert len(arr) == filled.n_particles
+    # filled particles inherit the static flag of their source Gaussian
+    np.testing.assert_array_equal(filled.static[filled.count:], filled.static[:filled.count][filled.fill_source])
+    assert any(line.startswith("fill (on)") for line in filled.report)
+    assert selection_scene(filled).count == plant.count
