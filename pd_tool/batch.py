@@ -371,6 +371,10 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
     import click
 
     t0 = time.perf_counter()
+    if not os.path.isdir(spec["cwd"]):  # a Ray node without the shared storage
+        return {"ok": False, "seconds": 0.0, "log": [], "host": platform.node(), "pid": os.getpid(),
+                "error": f"folder {spec['cwd']} does not exist on {platform.node()}; put the jobs file and "
+                         "its inputs on storage every node mounts at the same path"}
     os.chdir(spec["cwd"])
     threads = int(spec.get("threads") or 0)
     if threads > 0:
@@ -392,6 +396,9 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
             error = " ".join(e.format_message().split())
         except click.exceptions.Abort:
             error = "aborted"
+        except SystemExit as e:  # a library calling sys.exit must not end the worker
+            if e.code not in (0, None):
+                error = f"exited with code {e.code}"
         except PdToolError as e:
             error = " ".join(str(e).split())
         except Exception as e:  # a bug, not a user error: still one line, and the others go on

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, JobsFileError, LocalBackend, RayBackend, job_files,
-                           load_jobs, parse_jobs, ray_resources, run_batch)
+                           load_jobs, parse_jobs, ray_resources, run_batch, run_job)
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
@@ -140,6 +140,14 @@ def test_job_files_use_the_cli_parser(tmp_path: Path) -> None:
     b = job_files(bake)
     assert b.outputs == [tmp_path.resolve() / "o/b.usd", tmp_path.resolve() / "p.mp4"]
     assert b.inputs == [tmp_path.resolve() / "s.ply"]  # 'flower' is a built-in preset, not a file
+
+
+def test_run_job_reports_one_line_errors(tmp_path: Path) -> None:
+    # What a worker runs, in this process: the click command's own usage error, one line.
+    r = run_job({"command": "bake", "args": ["--force", "0,0,1", "x.txt"], "cwd": str(tmp_path), "threads": 0})
+    assert not r["ok"] and r["error"].startswith("usage: ") and "must end in .usd" in r["error"]
+    r = run_job({"command": "bake", "args": ["x.usd"], "cwd": str(tmp_path / "gone"), "threads": 0})
+    assert not r["ok"] and "does not exist on" in r["error"] and "same path" in r["error"]
 
 
 def test_gpu_placement() -> None:
