@@ -171,6 +171,7 @@ def bake(
     from pd_tool.drivers import build_drivers
     from pd_tool.rotations import matrix_to_quat, quat_multiply
     from pd_tool.sim import MPMSolver, SimConfig
+    from pd_tool.sim.guard import check_force
     from usd_export import UsdBakeWriter
 
     t_start = time.perf_counter()
@@ -224,6 +225,10 @@ def bake(
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
     mask = force_mask(prep, d_rest, d_static, force)
     accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+    free_E = E[~d_static] if (~d_static).any() else E
+    check_force(float(np.linalg.norm(accel_sim)), min(force.duration, max(settings.seconds - force.start, 0.0)),
+                float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx, opts.density_kg_m3,
+                float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale))
     solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
     force_end = force.start + force.duration
 

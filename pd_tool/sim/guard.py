@@ -32,3 +32,36 @@ def check_stats(stats: np.ndarray, frame: int, time_s: float, substeps: int) -> 
         raise SimulationUnstable(
             f"{where}: {edge} particles reached the edge of the simulation grid; lower the "
             f"force, or enlarge the padding around the object (domain) or boundary_pad")
+
+
+# A force that needs this many times the stress the stiffest material can give (strain far
+# beyond 1: the object tears or turns inside out) and that would also carry a free particle
+# out of the simulation box cannot end stable. Simulating it anyway costs the most: its
+# speed sets the CFL substep count (tens of thousands per frame) before the per-frame
+# guard can see the NaN.
+HOPELESS_STRAIN = 10.0
+
+
+def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, density: float,
+                E_max: float, box_m: float, scale: float) -> None:
+    """Raise SimulationUnstable before simulating when a force cannot end stable.
+
+    Args:
+        accel_m_s2: |acceleration| the force applies, m/s^2.
+        duration_s: how long it pushes, s (already clipped to the animation).
+        pushed_extent_m: size of the pushed region (longest side), m.
+        density: kg/m^3.  E_max: stiffest free particle's Young's modulus, Pa.
+        box_m: longest side of the simulation box, m.
+        scale: metres per scene unit, to quote the limit in the user's units.
+    """
+    if accel_m_s2 <= 0 or duration_s <= 0:
+        return
+    travel = 0.5 * accel_m_s2 * duration_s ** 2  # a free particle's displacement, m
+    strain = density * accel_m_s2 * max(pushed_extent_m, 1e-9) / E_max  # stress needed / E
+    if travel > box_m and strain > HOPELESS_STRAIN:
+        # the larger of the two accelerations at which either test would pass
+        ok = max(2.0 * box_m / duration_s ** 2, HOPELESS_STRAIN * E_max / (density * max(pushed_extent_m, 1e-9)))
+        raise SimulationUnstable(
+            f"the force cannot end stable: {accel_m_s2 / scale:.3g} scene units/s^2 for {duration_s:g} s would "
+            f"carry the object {travel:.3g} m (the simulation box is {box_m:.3g} m) and needs {strain:.3g}x the "
+            f"stress E = {E_max:.3g} Pa can give; lower --force below about {ok / scale:.3g} or raise E")
