@@ -75,3 +75,22 @@ def test_guard_and_rejection_paths_are_exercised():
     assert too_large["outcome"] == "guard", too_large
     invisible = s.run_case(s._case(opacity="all-zero"), frames=4)
     assert invisible["outcome"] == "rejected" and "min-opacity" in invisible["message"], invisible
+
+
+def test_check_force_stops_only_hopeless_forces():
+    """The preflight fires only when a force both flings a free particle out of the box and
+    needs > HOPELESS_STRAIN x the stress E can give; its message names the limit."""
+    from pd_tool.errors import SimulationUnstable
+    from pd_tool.sim.guard import HOPELESS_STRAIN, check_force
+
+    # the stress matrix's absurd poke: 1.8e6 m/s^2 for 0.1 s on a 0.3 m region of 1e5 Pa
+    with pytest.raises(SimulationUnstable, match="lower --force below about"):
+        check_force(1.8e6, 0.1, 0.3, 1000.0, 1e5, 2.4, 1.6)
+    check_force(1.8e6, 0.1, 0.3, 1000.0, 1e9, 2.4, 1.6)  # stiff enough to hold it: simulate
+    check_force(30.0, 0.1, 0.3, 1000.0, 1e2, 2.4, 1.6)  # soft, but stays in the box: simulate
+    check_force(0.0, 0.1, 0.3, 1000.0, 1e2, 2.4, 1.6)
+    # right at the boundary of the stress test: strain just over / under the threshold
+    a = HOPELESS_STRAIN * 1e5 / (1000.0 * 0.3)
+    check_force(a * 0.99, 10.0, 0.3, 1000.0, 1e5, 2.4, 1.0)
+    with pytest.raises(SimulationUnstable):
+        check_force(a * 1.01, 10.0, 0.3, 1000.0, 1e5, 2.4, 1.0)
