@@ -271,7 +271,7 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
     if pb.s.driver_residual:
         reg = reg + pb.residual_penalty()
     (loss + reg).backward()
-    return float(loss)
+    return float(loss.detach())  # float() of a tensor that requires grad warns on stderr
 
 
 def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
