@@ -67,8 +67,15 @@ class MaterialFile:
         for fname, params in self.fields.items():
             for pname, arr in params.items():
                 arrays[f"field.{fname}.{pname}"] = np.asarray(arr, np.float32)
+        # np.savez stamps each member with the current time; a fixed stamp makes the same
+        # fit give the same bytes (determinism, fingerprints in batch --resume)
         buf = io.BytesIO()
-        np.savez(buf, **arrays)
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+            for name in sorted(arrays):
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                member = io.BytesIO()
+                np.lib.format.write_array(member, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+                zf.writestr(info, member.getvalue())
         with atomic_output(path) as tmp:
             tmp.write_bytes(buf.getvalue())
         return path

@@ -456,7 +456,6 @@ def run_fit(
             "loss_velocity_last": losses["velocity"][-1] if losses["velocity"] else None,
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
-            "seconds": seconds,
             "skipped_material_steps": skipped,
         },
         "fields": {"material": pb.material.config(),
