@@ -675,6 +675,7 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
     if backend is None:
         backend = RayBackend(ray_address) if ray_address else LocalBackend(workers)
     in_flight: dict[Any, tuple[Job, JobFiles, str | None]] = {}
+    writers: dict[Path, str] = {}  # output path -> the job that writes it
     waiting = list(jobs)
     try:
         while waiting or in_flight:
@@ -689,6 +690,13 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
                     finish(JobResult(job.name, job.command, BLOCKED, error=f"waits for {', '.join(bad)}, which did not finish"))
                     continue
                 files = job_files(job)  # inputs made by earlier jobs exist now
+                clash = [(p, writers[p]) for p in files.outputs if p in writers]
+                if clash:  # two jobs renaming onto one file: the last one would silently win
+                    p, other = clash[0]
+                    finish(JobResult(job.name, job.command, FAILED, error=f"writes {p}, which job {other} also "
+                                     "writes; give each job its own output (e.g. out/{name}.usd)"))
+                    continue
+                writers.update({p: job.name for p in files.outputs})
                 for p in files.outputs:  # templated outputs often go to new folders
                     p.parent.mkdir(parents=True, exist_ok=True)
                 fp = fingerprint(job, files) if files.parsed else None

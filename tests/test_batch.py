@@ -150,6 +150,37 @@ def test_run_job_reports_one_line_errors(tmp_path: Path) -> None:
     assert not r["ok"] and "does not exist on" in r["error"] and "same path" in r["error"]
 
 
+class InProcess:
+    """A backend that runs each job right here, in order (the same run_job a worker runs)."""
+
+    name = "in-process"
+
+    def __init__(self) -> None:
+        self.done: list[tuple[int, dict]] = []
+
+    def submit(self, job):
+        self.done.append((len(self.done), run_job({"command": job.command, "args": list(job.args),
+                                                   "cwd": job.cwd, "threads": 0})))
+        return self.done[-1][0]
+
+    def wait(self, handles):
+        return [(h, r) for h, r in self.done if h in set(handles)]
+
+    def close(self, cancel=False, handles=()):
+        pass
+
+
+def test_two_jobs_one_output_is_refused(tmp_path: Path) -> None:
+    args = ["--preset", "flower", "--force", "0,0,1", "out/x.usd"]  # no --scene: the CLI's own error
+    jobs = parse_jobs({"job": [{"name": "a", "command": "bake", "args": args},
+                               {"name": "b", "command": "bake", "args": args}]}, cwd=tmp_path)
+    res = run_batch(jobs, backend=InProcess(), show_progress=False, echo=lambda s: None)
+    a, b = res.jobs
+    assert a.status == FAILED and "no scene" in a.error
+    assert b.status == FAILED and "which job a also writes" in b.error
+    assert not (tmp_path / "out" / "x.usd").exists()
+
+
 def test_gpu_placement() -> None:
     jobs = parse_jobs({"job": [
         {"name": "c", "command": "bake", "args": ["--device", "cuda", "a.usd"]},
