@@ -291,6 +291,8 @@ def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> 
     status = {r.name: r.status for r in result.jobs}
     assert status["bad"] == FAILED and status["after_bad"] == BLOCKED
     assert all(status[n] == OK for n in RUNNABLE)
+    # The fitted material too (material files are byte-identical for the same fit).
+    assert (root / "local" / "fits" / "plant.pdmat").read_bytes() == (root / "ray" / "fits" / "plant.pdmat").read_bytes()
     for n in BAKES:
         a = (root / "local" / "out" / f"{n}.usd").read_bytes()
         b = (root / "ray" / "out" / f"{n}.usd").read_bytes()
