@@ -1,6 +1,6 @@
 """Run time against error for the bake (and optionally the fit), with the Pareto front.
 
-    python bench/pareto.py --device cpu --json pareto.json --png docs/pareto.png
+    python bench/pareto.py --device cpu --clock cpu --json pareto.json --png docs/pareto.png
     python bench/pareto.py --device cuda --grids 16,24,32,48,64,96 --reference-grid 128 --json pareto_gpu.json
 
 Bake: one scene (the synthetic plant, `--gaussians`), one force (a poke of the flower
@@ -98,7 +98,8 @@ def run_case(scene, case: BakeCase, args, folder: Path) -> tuple[BakeCase, np.nd
     best = float("inf")
     for _ in range(args.reps):
         c0 = time.process_time()
-        pos, res = bake_plant(scene, case, seconds=args.seconds, fps=args.fps, device=args.device, folder=folder)
+        pos, res = bake_plant(scene, case, seconds=args.seconds, fps=args.fps, device=args.device, folder=folder,
+                              accel=args.accel)
         cpu = time.process_time() - c0
         wall = res.timings["setup"] + res.timings["simulate"] + res.timings["interpolate"]
         t = cpu if args.clock == "cpu" else wall
@@ -120,7 +121,8 @@ def score(case: BakeCase, pos: np.ndarray, ref: np.ndarray, size: float) -> None
 def reference_positions(scene, args, folder: Path) -> tuple[dict, np.ndarray]:
     """The reference run, from --reference-cache when it holds one with the same settings
     (another process may be computing it: wait for it), else computed (and cached)."""
-    key = {"gaussians": args.gaussians, "seconds": args.seconds, "fps": args.fps, "grid": args.reference_grid,
+    key = {"gaussians": args.gaussians, "seconds": args.seconds, "fps": args.fps, "accel": args.accel,
+           "grid": args.reference_grid,
            "cfl": args.reference_cfl, "ratio": args.reference_ratio}
     cache = args.reference_cache
     if cache is not None:
@@ -215,15 +217,16 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--gaussians", type=int, default=3000)
     ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--accel", type=float, default=2.0, help="poke strength, scene units/s^2 along x")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--grids", default="16,24,32,48,64")
     ap.add_argument("--cfls", default="0.3,0.5,0.7")
     ap.add_argument("--ratios", default="0.05,0.25,0.5")
     ap.add_argument("--default-cfl", type=float, default=0.5)
     ap.add_argument("--default-ratio", type=float, default=0.1)
-    ap.add_argument("--reference-grid", type=int, default=96)
+    ap.add_argument("--reference-grid", type=int, default=128)
     ap.add_argument("--reference-cfl", type=float, default=0.3)
-    ap.add_argument("--reference-ratio", type=float, default=0.5)
+    ap.add_argument("--reference-ratio", type=float, default=1.0)
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--clock", default="wall", choices=["wall", "cpu"],
                     help="time = the bake's wall seconds (setup+simulate+interpolate), or this process's CPU "
@@ -302,7 +305,7 @@ def main() -> None:
         "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "cpu": _cpu_name(), "torch_threads": args.threads, "precision": "float32 (no mixed-precision path)",
         "gaussians": args.gaussians, "seconds": args.seconds, "fps": args.fps, "object_size": size,
-        "force": "poke preset x (20, 0, 0), material flower",
+        "force": f"poke preset x ({args.accel}, 0, 0), material flower",
         "reference": ref_info, "clock": args.clock,
         "reference_peak_motion_of_size": _peak_motion(ref) / size,
         "cases": [vars(r) for r in rows], "front": front, "presets": presets,
