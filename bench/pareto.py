@@ -235,6 +235,7 @@ def main() -> None:
     ap.add_argument("--reference-only", action="store_true", help="compute the reference into --reference-cache")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     ap.add_argument("--fit", action="store_true", help="also the fit sweep")
+    ap.add_argument("--fit-only", action="store_true", help="only the fit sweep")
     ap.add_argument("--fit-iters", default="5/5,10/8,20/15,40/30", help="velocity/material iterations, comma list")
     ap.add_argument("--fit-quality", default="draft")
     ap.add_argument("--fit-gaussians", type=int, default=1500)
@@ -252,6 +253,13 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     init_warp_quietly()
+    if args.fit_only:
+        out = {"device": args.device, "cpu": _cpu_name(), "gpu": torch.cuda.get_device_name() if args.device == "cuda"
+               else None, "fit_quality": args.fit_quality, "fit_gaussians": args.fit_gaussians,
+               "fit_size": args.fit_size, "fit_frames": args.fit_frames, "fit": fit_sweep(args)}
+        if args.json:
+            args.json.write_text(json.dumps(out, indent=2))
+        return
     scene = make_plant(args.gaussians, seed=0, device=args.device)
     size = float(np.ptp(scene.positions.cpu().numpy(), axis=0).max())
     grids = [int(g) for g in args.grids.split(",")]
