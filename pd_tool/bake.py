@@ -23,7 +23,7 @@ from pd_tool.scene import GaussianScene
 
 # The object is at rest again when its kinetic energy has stayed below REST_FRACTION of
 # the peak (after the force ended) for REST_FRAMES frames in a row.
-REST_FRACTION = 1e-5
+REST_FRACTION = 1e-4
 REST_FRAMES = 10
 DEFAULT_DURATION_S = 0.25  # force duration when neither --duration nor an interaction says
 
