@@ -201,11 +201,9 @@ def _tqdm(total: int, desc: str, unit: str):
 
 
 def _fmt_size(n: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return str(n)
+    from pd_tool.info import format_bytes
+
+    return format_bytes(n)
 
 
 @main.command()
@@ -272,7 +270,7 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
 @click.option("--box", "force_box", metavar="X0,Y0,Z0,X1,Y1,Z1", help="Push the free particles in this box instead.")
 @click.option("--start", type=click.FloatRange(min=0), default=None, help="When the force starts, s.  [default: 0]")
 @click.option("--duration", type=click.FloatRange(min=0), default=None,
-              help=f"How long the force lasts, s.  [default: 0.25]")
+              help="How long the force lasts, s.  [default: 0.25]")
 @click.option("--seconds", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Animation length, s.  [default: 2]")
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Animation length in frames instead of --seconds.")

@@ -7,7 +7,6 @@ simulation, no new samples), see REST_*.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -655,7 +655,6 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
     A failed job never stops the others; the jobs that wait for it end as 'blocked'.
     """
     t0 = time.perf_counter()
-    by_name = {j.name: j for j in jobs}
     results: dict[str, JobResult] = {}
     bar = None
     if show_progress:

@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -353,20 +352,10 @@ def select_view(cameras: list[Camera], view: int | str | None = None) -> Camera:
 
 def save_camera_json(path: str | os.PathLike, camera: Camera) -> None:
     """Write ``camera`` as a pdtool camera.json (version 1) atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(camera.to_dict(), f, indent=2)
-            f.write("\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    from pd_tool.atomic import atomic_output
+
+    with atomic_output(Path(path)) as tmp:
+        tmp.write_text(json.dumps(camera.to_dict(), indent=2) + "\n", encoding="utf-8")
 
 
 def look_at(eye: Iterable[float], target: Iterable[float], up: Iterable[float]) -> np.ndarray:

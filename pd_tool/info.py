@@ -48,7 +48,8 @@ def scene_summary(scene: GaussianScene) -> dict[str, Any]:
     return out
 
 
-def _fmt_bytes(n: float) -> str:
+def format_bytes(n: float) -> str:
+    """1536 -> '1.5 KiB'."""
     for unit in ("B", "KiB", "MiB", "GiB"):
         if n < 1024 or unit == "GiB":
             return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
@@ -71,8 +72,8 @@ def format_summary(s: dict[str, Any]) -> str:
         f"opacity       min {s['opacity']['min']:.3g}  median {s['opacity']['median']:.3g}  "
         f"max {s['opacity']['max']:.3g}  ({100 * s['transparent_fraction']:.1f}% invisible)",
         f"scale (max)   min {s['scale']['min']:.3g}  median {s['scale']['median']:.3g}  max {s['scale']['max']:.3g}",
-        f"memory        {_fmt_bytes(s['memory_bytes'])} in pdtool"
-        + (f", {_fmt_bytes(s['file_bytes'])} on disk" if "file_bytes" in s else ""),
+        f"memory        {format_bytes(s['memory_bytes'])} in pdtool"
+        + (f", {format_bytes(s['file_bytes'])} on disk" if "file_bytes" in s else ""),
     ]
     if s["extra_properties"]:
         lines.append(f"extra props   {', '.join(s['extra_properties'])} (kept on write)")

@@ -8,10 +8,8 @@ write leaves no half-written preview.
 from __future__ import annotations
 
 import os
-import tempfile
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -25,24 +23,11 @@ class PreviewError(PdToolError):
     """A preview path has an unsupported extension, or frames are unusable."""
 
 
-def _file_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def _atomic(path: Path):
+    """Write beside `path`, then rename into place (pd_tool.atomic)."""
+    from pd_tool.atomic import atomic_output
 
-
-@contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        os.chmod(tmp, _file_mode())  # mkstemp makes 0600; give the usual umask mode
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    return atomic_output(path)
 
 
 def _as_frame(frame: np.ndarray, index: int, shape: tuple[int, ...] | None) -> np.ndarray:
