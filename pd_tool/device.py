@@ -45,6 +45,7 @@ def cuda_available() -> bool:
 def resolve_device(name: str | None = "auto") -> str:
     """'cpu' or 'cuda' for a user's choice ('auto', 'cpu', 'cuda' or None = auto)."""
     name = (name or "auto").lower()
+    init_warp_quietly()  # also for --device cpu: no banner before pdtool's own output
     if name not in DEVICES:
         raise PdToolError(f"--device {name!r} is not one of {', '.join(DEVICES)}")
     if name == "auto":
