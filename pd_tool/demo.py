@@ -15,8 +15,10 @@ import numpy as np
 
 from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS
 
-# Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px).
-DEMO_SIZES = {"draft": (2000, 10, 128), "default": (3000, 14, 160)}
+# Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), and
+# fit iterations (velocity, material). The default demo must finish within 10 minutes on a
+# 2-core CPU, so it runs fewer iterations than `pdtool fit --quality default` (60, 40).
+DEMO_SIZES = {"draft": (2000, 10, 128, 20, 15), "default": (3000, 12, 144, 30, 20)}
 
 
 @dataclass
@@ -48,7 +50,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
 
     if quality not in DEMO_SIZES:
         raise ValueError(f"demo quality must be one of {', '.join(DEMO_SIZES)}")
-    n_gauss, n_frames, size = DEMO_SIZES[quality]
+    n_gauss, n_frames, size, velocity_iters, material_iters = DEMO_SIZES[quality]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
@@ -73,7 +75,8 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     # 3. fit, exactly as `pdtool fit plant.ply video/ --static-below 0.2`
     t0 = time.perf_counter()
     refs = [load_reference_video(video, working_size=size, device=device)]
-    settings = FitSettings(quality=quality, device=device, working_long_side=size)
+    settings = FitSettings(quality=quality, device=device, working_long_side=size, velocity_iters=velocity_iters,
+                           material_iters=material_iters)
     mat_path = out / "plant.pdmat"
     result = run_fit(scene, paths["scene"], refs, mat_path, prepare_options=PrepareOptions(static_below=POT_TOP),
                      settings=settings, progress=fit_progress)
