@@ -279,7 +279,7 @@ def test_bad_input_fails_alone(killed_then_resumed) -> None:
 
 
 def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> None:
-    import ray  # the ray extra; .ci/run installs it
+    ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]'); .ci/run installs it")
     root = killed_then_resumed[0]
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
              _node_ip_address="127.0.0.1")
