@@ -154,6 +154,24 @@ def _sort_pairs(rects, tiles_touched, depths, s: RasterSettings, device):
     return tile_ranges, sorted_ids
 
 
+def _raster_inputs(tile_ranges, sorted_ids, means2d, conics, colors, opacities, depths, s: RasterSettings) -> list:
+    """The arguments that the raster kernel and its backward share, in kernel order."""
+    return [
+        _wp(tile_ranges, wp.vec2i),
+        _wp(sorted_ids, wp.int32),
+        _wp(means2d, wp.vec2),
+        _wp(conics, wp.vec3),
+        _wp(colors, wp.vec3),
+        _wp(opacities, wp.float32),
+        _wp(log_cutoffs(opacities), wp.float32),
+        _wp(depths, wp.float32),
+        wp.vec3(*[float(c) for c in s.background]),
+        s.width,
+        s.height,
+        s.tiles_x,
+    ]
+
+
 class RasterizeGaussians(torch.autograd.Function):
     """Differentiable rasterisation; call through ``pd_tool.render.render``.
 
@@ -197,20 +215,7 @@ class RasterizeGaussians(torch.autograd.Function):
                     device=device,
                 )
             tile_ranges, sorted_ids = _sort_pairs(rects, tiles_touched, depths, s, device)
-            raster_in = [
-                _wp(tile_ranges, wp.vec2i),
-                _wp(sorted_ids, wp.int32),
-                _wp(means2d, wp.vec2),
-                _wp(conics, wp.vec3),
-                _wp(colors, wp.vec3),
-                _wp(opacities, wp.float32),
-                _wp(log_cutoffs(opacities), wp.float32),
-                _wp(depths, wp.float32),
-                wp.vec3(*[float(c) for c in s.background]),
-                s.width,
-                s.height,
-                s.tiles_x,
-            ]
+            raster_in = _raster_inputs(tile_ranges, sorted_ids, means2d, conics, colors, opacities, depths, s)
             wp.launch(
                 K.rasterize_forward,
                 dim=s.tiles_x * s.tiles_y * K.BLOCK_DIM,
@@ -269,18 +274,7 @@ class RasterizeGaussians(torch.autograd.Function):
                 K.rasterize_backward,
                 dim=s.tiles_x * s.tiles_y * K.BLOCK_DIM,
                 inputs=[
-                    _wp(tile_ranges, wp.vec2i),
-                    _wp(sorted_ids, wp.int32),
-                    _wp(means2d, wp.vec2),
-                    _wp(conics, wp.vec3),
-                    _wp(colors, wp.vec3),
-                    _wp(opacities, wp.float32),
-                    _wp(log_cutoffs(opacities), wp.float32),
-                    _wp(depths, wp.float32),
-                    wp.vec3(*[float(c) for c in s.background]),
-                    s.width,
-                    s.height,
-                    s.tiles_x,
+                    *_raster_inputs(tile_ranges, sorted_ids, means2d, conics, colors, opacities, depths, s),
                     _wp(out_T, wp.float32),
                     _wp(n_contrib, wp.int32),
                     _wp(v_rgb, wp.vec3),
