@@ -9,9 +9,7 @@ sequence of mutation choices and is replayed deterministically (derandomize=True
 """
 from __future__ import annotations
 
-import importlib.util
 import random
-import sys
 import tempfile
 from pathlib import Path
 
@@ -19,17 +17,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-_BENCH = Path(__file__).resolve().parents[1] / "bench" / "fuzz.py"
+from _bench import load_bench
 
 
 def _load_fuzz():
-    if "pdtool_bench_fuzz" in sys.modules:
-        return sys.modules["pdtool_bench_fuzz"]
-    spec = importlib.util.spec_from_file_location("pdtool_bench_fuzz", _BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["pdtool_bench_fuzz"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("fuzz")
 
 
 fuzz = _load_fuzz()

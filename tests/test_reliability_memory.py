@@ -8,22 +8,17 @@ the driver ratio and the resolution.
 """
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
+from _bench import load_bench
 from click.testing import CliRunner
 
-REPO = Path(__file__).resolve().parents[1]
 TOLERANCE = 0.30  # |estimate / measured - 1|
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("memory_estimate", REPO / "bench" / "memory_estimate.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("memory_estimate")
 
 
 @pytest.mark.slow

@@ -6,23 +6,14 @@ cases, per-case timeout) is `python bench/stress.py`; its outcomes are in the do
 """
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import pytest
 
-_BENCH = Path(__file__).resolve().parents[1] / "bench" / "stress.py"
+from _bench import load_bench
 
 
 def _stress():
-    if "pdtool_bench_stress" in sys.modules:
-        return sys.modules["pdtool_bench_stress"]
-    spec = importlib.util.spec_from_file_location("pdtool_bench_stress", _BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["pdtool_bench_stress"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("stress")
 
 
 _CASES = _stress().quick_matrix()
