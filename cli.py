@@ -43,6 +43,11 @@ DEVICE_OPTION = click.option(
 )
 
 
+def parse_view(view: str | None) -> str | int | None:
+    """--view: a camera index when it is a number, else an image/camera name."""
+    return int(view) if view is not None and view.isdigit() else view
+
+
 def parse_vector(text: str | None, param: str, n: int = 3) -> tuple[float, ...] | None:
     """'1,2,3' -> (1.0, 2.0, 3.0), with a usage error naming the option otherwise."""
     if text is None:
@@ -143,7 +148,7 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
 
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
-        view_id: str | int | None = int(view) if view is not None and view.isdigit() else view
+        view_id = parse_view(view)
         cam = scene_camera(splats, camera, view_id, width=width, height=height, up_axis=up)
         save_png(out, render_image(splats, cam, background=bg))
         click.echo(f"wrote {out} ({cam.width}x{cam.height}, camera '{cam.name}')")
@@ -377,7 +382,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         if camera is not None:
             from pd_tool.views import scene_camera
 
-            cam = scene_camera(splats, camera, int(view) if view is not None and view.isdigit() else view)
+            cam = scene_camera(splats, camera, parse_view(view))
         bar = _tqdm(settings.frames, "bake", "frame")
         try:
             result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
@@ -455,7 +460,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 
         load_preset("quality", quality)
         dev = resolve_device(device)
-        view_id: str | int | None = int(view) if view is not None and view.isdigit() else view
+        view_id = parse_view(view)
         refs = [load_reference_video(v, camera_path=camera, view=view_id, fps=fps, working_size=working_size,
                                      device=dev) for v in videos]
         splats = load_splats(scene, device=dev)

@@ -167,7 +167,6 @@ def bake(
     reads); camera: the pd_tool.cameras.Camera for both (default: an automatic view).
     """
     from pd_tool.animate import GaussianAnimator
-    from pd_tool.drivers import build_drivers
     from pd_tool.rotations import matrix_to_quat, quat_multiply
     from pd_tool.sim import MPMSolver, SimConfig
     from pd_tool.sim.guard import check_force
@@ -203,11 +202,7 @@ def bake(
         frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
         what="bake", quality=str(settings.quality), driver_ratio=ratio, device=dev,
         resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by --quality")
-    drivers = build_drivers(
-        torch.as_tensor(prep.positions_sim, dtype=torch.float32), torch.as_tensor(prep.volumes, dtype=torch.float32),
-        torch.as_tensor(prep.masses, dtype=torch.float32), torch.as_tensor(prep.static), prep.dx,
-        ratio=ratio, seed=settings.seed,
-    )
+    drivers = prep.build_drivers(ratio=ratio, seed=settings.seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
     if material_file is not None:

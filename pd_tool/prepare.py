@@ -179,6 +179,16 @@ class PreparedScene:
     def count(self) -> int:
         return int(len(self.foreground))
 
+    def build_drivers(self, *, ratio: float | None, seed: int = 0):
+        """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle."""
+        from pd_tool.drivers import build_drivers
+
+        return build_drivers(
+            torch.as_tensor(self.positions_sim, dtype=torch.float32), torch.as_tensor(self.volumes, dtype=torch.float32),
+            torch.as_tensor(self.masses, dtype=torch.float32), torch.as_tensor(self.static), self.dx,
+            ratio=ratio, seed=seed,
+        )
+
     @property
     def object_size_m(self) -> float:
         """Longest extent of the simulated Gaussians in metres."""

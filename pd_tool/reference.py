@@ -97,17 +97,12 @@ def plant_reference_video(
     Each driver takes the E of the majority region of its Gaussians. Returns the folder,
     the truth and the preparation.
     """
-    from pd_tool.drivers import build_drivers
     from pd_tool.fit.video import write_video_folder
 
     if scene.labels is None:
         raise ValueError("plant_reference_video needs a scene with region labels")
     prep = prepare_scene(scene, prepare_options)
-    drivers = build_drivers(
-        torch.as_tensor(prep.positions_sim, dtype=torch.float32), torch.as_tensor(prep.volumes, dtype=torch.float32),
-        torch.as_tensor(prep.masses, dtype=torch.float32), torch.as_tensor(prep.static), prep.dx,
-        ratio=driver_ratio, seed=seed,
-    )
+    drivers = prep.build_drivers(ratio=driver_ratio, seed=seed)
     labels = scene.labels[prep.foreground]
     from pd_tool.synthetic import REGIONS
 

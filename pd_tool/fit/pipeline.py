@@ -106,7 +106,6 @@ class FitProblem:
 
     def __init__(self, scene: GaussianScene, videos: list, prep_options: PrepareOptions, settings: FitSettings) -> None:
         from pd_tool.animate import GaussianAnimator
-        from pd_tool.drivers import build_drivers
         from pd_tool.fit.fields import MaterialField, VelocityField
 
         self.s = settings
@@ -129,11 +128,7 @@ class FitProblem:
             stage1_frames=settings.stage1_frames, device=settings.device),
             what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio, device=settings.device,
             resolution=f"--working-size {settings.working_long_side}")
-        self.drivers = build_drivers(
-            torch.as_tensor(p.positions_sim, dtype=torch.float32), torch.as_tensor(p.volumes, dtype=torch.float32),
-            torch.as_tensor(p.masses, dtype=torch.float32), torch.as_tensor(p.static), p.dx,
-            ratio=settings.driver_ratio, seed=settings.seed,
-        )
+        self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed)
         self.animator = GaussianAnimator(self.scene, p, self.drivers, device=self.device)
         self.videos = videos
         fps = {round(v.fps, 6) for v in videos}
