@@ -6,9 +6,12 @@ average) given in random order, in a unit box with a res^3 grid. Variants:
 - baseline: the obvious implementation: particles in input (random) order, one atomic add
   per node per particle, one launch per kernel per substep, no graph.
 - sort_only / fuse_only / graph_only (--ablation): the baseline with one optimisation.
-- fast: MPMSolver as bake uses it: particles stored in grid-cell order once, G2P fused with
-  the next substep's P2G and the grid clear fused into the grid update (two launches per
-  substep), CUDA graph of a frame's substeps on GPU, guard read once per frame.
+- fast_scatter: particles stored in grid-cell order once, G2P fused with the next
+  substep's P2G (atomic scatter) and the grid clear fused into the grid update (two launches
+  per substep), CUDA graph of a frame's substeps on GPU, guard read once per frame.
+- fast: MPMSolver as bake uses it: on CUDA, fast_scatter with the atomic-free gather P2G
+  (particles binned per cell, nodes gather; pd_tool/sim/gather.py); on the CPU the same as
+  fast_scatter.
 - fwd+bwd: the differentiable path's cost per frame: the checkpointed forward plus the
   backward (recompute and taped replay of segments), on warp arrays.
 
@@ -58,6 +61,7 @@ VARIANTS = {  # MPMSolver options of each forward variant
     "sort_only": dict(optimized=False, sort_particles=True),
     "fuse_only": dict(optimized=False, fuse_kernels=True),
     "graph_only": dict(optimized=False, cuda_graph=True),
+    "fast_scatter": dict(optimized=True, gather_p2g=False),
     "fast": dict(optimized=True),
 }
 
@@ -140,9 +144,10 @@ def main(argv=None) -> int:
     for item in args.sizes.split(","):
         n, res = (int(v) for v in item.split(":"))
         row = {"particles": n, "grid": res, "substeps_per_frame": substeps, "frames": frames}
-        variants = ["baseline", "sort_only", "fuse_only"] + (["graph_only"] if cuda else []) + ["fast"]
+        variants = (["baseline", "sort_only", "fuse_only"] + (["graph_only"] if cuda else [])
+                    + ["fast_scatter", "fast"])
         if not args.ablation:
-            variants = ["baseline", "fast"]
+            variants = ["baseline"] + (["fast_scatter"] if cuda else []) + ["fast"]
         for v in variants:
             row[f"{v}_fwd"] = time_forward(n, res, substeps, frames, args.device, v)
         if not args.no_backward:

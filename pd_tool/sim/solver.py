@@ -17,6 +17,7 @@ import warp as wp
 from pd_tool.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
+from pd_tool.sim.gather import CellBins, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 
 wp.config.quiet = True
@@ -342,11 +343,16 @@ class MPMSolver:
             Results are always returned in input order.
         sort_particles, fuse_kernels, cuda_graph: override one part of `optimized` (for
             benchmarking each optimisation on its own).
+        gather_p2g: P2G by binning particles per cell and summing each cell's share of a
+            node before one atomic (gather.py). Default: on CUDA when `optimized` (the
+            atomics bound the substep there); off on the CPU, where warp runs threads
+            serially and an atomic add costs no more than a plain one.
     """
 
     def __init__(self, x0, volume, mass, E, static, config: SimConfig | None = None,
                  device: str = "cpu", optimized: bool = True, *, sort_particles: bool | None = None,
-                 fuse_kernels: bool | None = None, cuda_graph: bool | None = None) -> None:
+                 fuse_kernels: bool | None = None, cuda_graph: bool | None = None,
+                 gather_p2g: bool | None = None) -> None:
         cfg = config or SimConfig()
         cfg.validate()
         x0 = np.ascontiguousarray(np.asarray(x0, np.float32))
@@ -372,6 +378,7 @@ class MPMSolver:
         pick = lambda flag: bool(optimized) if flag is None else bool(flag)  # noqa: E731
         self._use_graphs = pick(cuda_graph)
         self._fuse = pick(fuse_kernels)
+        self._gather = (bool(optimized) and self.device.is_cuda) if gather_p2g is None else bool(gather_p2g)
         # Particles are stored sorted by grid cell of the rest shape: neighbouring threads then
         # touch neighbouring nodes (cache-friendly atomics) and read contiguous particle data.
         # An elastic body keeps this order coherent while it moves, so it is done once.
@@ -396,6 +403,7 @@ class MPMSolver:
         self._stats = wp.zeros(K.N_STATS, dtype=float, device=d)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
+        self._bins = CellBins.alloc(self.geo.nodes, self.n, d) if self._gather else None
 
     # ---------------------------------------------------------------- inputs
     def set_velocity(self, v) -> None:
@@ -440,7 +448,9 @@ class MPMSolver:
 
     def _run_substeps(self, n: int, dt: float) -> None:
         ctx = self._context()
-        if self._fuse:
+        if self._gather:
+            run_substeps_binned(ctx, n, dt, self.state, self.grid, self._bins)
+        elif self._fuse:
             run_substeps_fused(ctx, n, dt, self.state, self.grid)
         else:
             for s in range(n):
