@@ -1,24 +1,36 @@
-"""Filled against hollow: the same solid ball under the same poke.
+"""Filled against hollow: a thick horizontal rod (a branch) clamped at one end, same poke.
 
-A ball of radius R scanned as a shell of flat Gaussians, gravity off, held in one of two
-ways (--scene):
-  clamped: its bottom cap (below centre - 0.7 R) is static; the ball itself is the spring.
-  stem:    it sits on an elastic stem (a solid rod of lattice particles, clamped at its
-           foot, the same in both runs), like a fruit or a flower head; the stem is the
-           spring and the ball mostly the mass.
-Two simulations with the same Young's modulus, density and
-poke (a constant sideways acceleration on every particle within POKE_RADIUS of the top for
-POKE_S seconds, the paper's interaction):
-  hollow: the shell Gaussians only;
+A solid cylinder of radius R and free length L (a cantilever along +x, clamped at x0 by its
+first CLAMP_CELLS cells) is scanned as a closed shell of flat Gaussians: the side and two
+end caps, about 3 Gaussians per surface cell. Two MPM simulations with the same Young's
+modulus, Poisson's ratio, density and poke:
+  hollow: the shell Gaussians only (what simulating a scan as it is gives);
   filled: the shell plus `fill_interior` particles (mode "auto", so it also shows the
           decision).
-Particle volumes follow the preparation step (cell volume / particles in that cell, over all
-particles), masses = density * volume. Reported: total mass, peak sideways displacement of
-the top shell particles, and the frequency of their free oscillation after the poke
-(whole periods between zero crossings about the rest position).
+Particle volumes follow the preparation step (cell volume / particles in that cell, over
+all particles), masses = density * volume; every particle with x < x0 is static. Gravity is
+off, so the straight rest shape is the equilibrium and the free vibration crosses it. The
+poke: a downward (-z) acceleration POKE_ACCEL on every free particle for POKE_S seconds
+(a short gust; the paper's interaction with the whole rod as the pushed region).
 
-    python bench/fill_motion.py --device cpu --json fill_motion.json          # ~1-2 min CPU
-    python bench/fill_motion.py --device cuda --grid 64 --json fill_motion.json
+Measured: mass, linear density of the rod's middle, peak tip displacement and the frequency
+of the free vibration after the poke (tip = shell particles in the last cell, what a viewer
+sees; whole periods between zero crossings about the rest position, as bench/physics.py).
+
+Beam theory for each run, from its own measured linear density (so the shell thickness the
+MPM gives a one-cell shell enters, not a guess): Euler-Bernoulli with Rayleigh's tip-mass
+correction, f = 1/(2 pi) sqrt(3 E I / (L^3 (0.2427 m_rod + m_tip))), m_rod = lambda L and
+m_tip the rest of the free mass (the end cap);
+  filled: solid rod of the effective radius sqrt(lambda / (rho pi)), I = pi R^4 / 4;
+  hollow: tube of mid radius R and wall t = lambda / (rho 2 pi R), I = pi (Ro^4 - Ri^4) / 4.
+Thin tube against solid rod of the same radius: I/A = R^2/2 against R^2/4, so the hollow rod
+rings sqrt(2) faster; the filled one is R/(2t) times heavier and, under the same
+acceleration, deflects 2x further statically (sqrt(2)x for a short poke).
+Peak tip displacement, one mode: 2 d_s |sin(w POKE_S / 2)|, d_s = a (lambda L^4/(8 E I) +
+m_tip L^3 / (3 E I)) the static deflection under the poke's acceleration a.
+
+    python bench/fill_motion.py --device cpu --json fill_motion.json         # ~2 min CPU
+    python bench/fill_motion.py --device cuda --radius-cells 8 --json fill_motion.json
 """
 from __future__ import annotations
 
@@ -37,49 +49,55 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pd_tool.fill import fill_interior  # noqa: E402
 from pd_tool.sim import MPMSolver, SimConfig  # noqa: E402
 
-DOMAIN = 1.0  # m, cube side
-RADIUS = 0.25  # m, ball radius
-E_PA = 2.0e4  # Young's modulus, Pa (soft, so that the motion is slow and large)
-NU = 0.3
+DX = 0.01  # m, grid spacing (a 4-cell radius is a 4 cm thick branch)
+E_PA = 1.0e6  # Young's modulus, Pa
+NU = 0.3  # Poisson's ratio
 RHO = 1000.0  # kg/m^3
-CLAMP_BELOW = -0.7  # static: particles below centre + CLAMP_BELOW * R
-POKE_ACCEL = 20.0  # m/s^2 along +x
-POKE_RADIUS = 0.12  # m, around the top of the ball
-POKE_S = 0.1  # s
-FPS = 60.0  # output frames per second (samples of the motion)
-STEM_RADIUS = 0.05  # m (stem scene)
-STEM_FOOT = 0.13  # m, bottom of the stem
-STEM_CLAMP = 0.05  # m of the stem's foot that are static
+PAD = 3  # SimConfig.boundary_pad, cells
+MARGIN_CELLS = 2  # free cells between the object and the wall padding
+ROOM_CELLS = 1  # extra transverse cells for the tip's swing
+CLAMP_CELLS = 3  # length of the rod inside the clamp (static), cells
+POKE_ACCEL = 3.0  # m/s^2 along -z on every free particle
+POKE_S = 0.05  # s
+FPS = 120.0  # samples of the motion per second
+SCAN_PER_CELL = 3.0  # Gaussians per surface cell of the scan
+BETA1 = 1.8751040687  # first root of 1 + cos(b) cosh(b) = 0
+RAYLEIGH_MASS = 0.2427  # effective share of a cantilever's own mass at its tip (3 / BETA1^4)
 
 
 def quat_z_to(n: np.ndarray) -> np.ndarray:
-    """[N, 4] wxyz rotations taking +z to the unit normals n."""
+    """[N, 4] wxyz rotations taking +z to the unit normals n [N, 3]."""
     v = np.cross(np.array([0.0, 0.0, 1.0]), n)
     q = np.concatenate([1.0 + n[:, 2:3], v], 1)
     q[(1.0 + n[:, 2]) < 1e-9] = [0.0, 1.0, 0.0, 0.0]
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def shell_scan(centre: np.ndarray, dx: float):
-    """Flat Gaussians on the sphere, about 3 per surface cell (like a scan's shell)."""
-    n = int(3 * 4 * math.pi * RADIUS**2 / dx**2)
-    i = np.arange(n) + 0.5
-    phi, th = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
-    d = np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
-    spacing = RADIUS * math.sqrt(4 * math.pi / n)
-    scales = np.stack([np.full(n, 0.7 * spacing)] * 2 + [np.full(n, 1e-4)], 1)
-    return centre + RADIUS * d, quat_z_to(d), scales, np.full(n, 0.8)
+def rod_scan(x_start: float, x_end: float, cy: float, cz: float, radius: float, dx: float):
+    """Flat Gaussians on a closed cylinder along x (side and both caps), ~3 per surface cell.
 
-
-def stem_lattice(centre: np.ndarray, dx: float) -> tuple[np.ndarray, float]:
-    """A vertical rod below the ball (particles, 2^3 per cell) and the height of its clamp."""
-    h = dx / 2
-    r, z0, z1 = STEM_RADIUS, STEM_FOOT, centre[2] - RADIUS + 0.5 * STEM_RADIUS
-    ax = np.arange(-r + h / 2, r, h)
-    zs = np.arange(z0 + h / 2, z1, h)
-    g = np.stack(np.meshgrid(ax, ax, zs, indexing="ij"), -1).reshape(-1, 3)
-    g = g[np.hypot(g[:, 0], g[:, 1]) <= r]
-    return g + np.array([centre[0], centre[1], 0.0]), z0 + STEM_CLAMP
+    Returns positions [N, 3] m, quats [N, 4] wxyz, scales [N, 3] m, opacities [N].
+    """
+    s = dx / math.sqrt(SCAN_PER_CELL)  # spacing between Gaussians, m
+    n_th = max(8, int(round(2 * math.pi * radius / s)))
+    n_x = int(round((x_end - x_start) / s)) + 1
+    xs = np.linspace(x_start, x_end, n_x)
+    th = (np.arange(n_th)[None, :] + 0.5 * (np.arange(n_x)[:, None] % 2)) * 2 * math.pi / n_th
+    xg = np.broadcast_to(xs[:, None], th.shape)
+    side_n = np.stack([np.zeros(th.size), np.cos(th).ravel(), np.sin(th).ravel()], 1)
+    side_p = np.stack([xg.ravel(), cy + radius * side_n[:, 1], cz + radius * side_n[:, 2]], 1)
+    n_cap = max(8, int(round(SCAN_PER_CELL * math.pi * radius**2 / dx**2)))
+    i = np.arange(n_cap) + 0.5
+    r, a = radius * np.sqrt(i / n_cap), math.pi * (3 - math.sqrt(5)) * i  # sunflower disc
+    disc = np.stack([cy + r * np.cos(a), cz + r * np.sin(a)], 1)
+    caps_p, caps_n = [], []
+    for xc, nx in ((x_start, -1.0), (x_end, 1.0)):
+        caps_p.append(np.concatenate([np.full((n_cap, 1), xc), disc], 1))
+        caps_n.append(np.tile([nx, 0.0, 0.0], (n_cap, 1)))
+    p = np.concatenate([side_p] + caps_p)
+    n = np.concatenate([side_n] + caps_n)
+    scales = np.stack([np.full(len(p), 0.7 * s)] * 2 + [np.full(len(p), 1e-4)], 1)
+    return p, quat_z_to(n), scales, np.full(len(p), 0.8)
 
 
 def particle_volumes(x: np.ndarray, dx: float) -> np.ndarray:
@@ -90,7 +108,8 @@ def particle_volumes(x: np.ndarray, dx: float) -> np.ndarray:
 
 
 def frequency(t: np.ndarray, d: np.ndarray) -> float:
-    """Whole periods between the first and the last zero crossing of the same direction."""
+    """Whole periods between the first zero crossing and the last one in the same direction
+    -> Hz (bench/physics.py's rule; linear interpolation between samples)."""
     s = np.sign(d)
     idx = np.nonzero((s[:-1] != 0) & (s[1:] != s[:-1]))[0]
     if len(idx) == 0:
@@ -101,86 +120,134 @@ def frequency(t: np.ndarray, d: np.ndarray) -> float:
     return float("nan") if len(same) < 2 else (len(same) - 1) / (same[-1] - same[0])
 
 
-def simulate(x, n_shell, n_extra, centre, clamp_z, grid, seconds, device, ball_e_factor=1.0) -> dict:
-    dx = DOMAIN / grid
-    vol = particle_volumes(x, dx)
+def beam_theory(kind: str, lam: float, m_tip: float, radius: float, L: float) -> dict:
+    """Euler-Bernoulli cantilever (Rayleigh tip-mass correction) for a run's measured
+    linear density lam (kg/m) and tip mass m_tip (kg); radius = the scan's R, m."""
+    area = lam / RHO
+    if kind == "filled":  # solid rod with the cross-section the particles occupy
+        r_eff = math.sqrt(area / math.pi)
+        inertia, geo = math.pi * r_eff**4 / 4, {"effective_radius_m": r_eff}
+    else:  # tube of mid radius R; the wall the MPM gives the one-cell shell
+        t = area / (2 * math.pi * radius)
+        ro, ri = radius + t / 2, max(radius - t / 2, 0.0)
+        inertia, geo = math.pi * (ro**4 - ri**4) / 4, {"wall_thickness_m": t}
+    k = 3 * E_PA * inertia / L**3  # tip stiffness, N/m
+    omega = math.sqrt(k / (RAYLEIGH_MASS * lam * L + m_tip))
+    static = POKE_ACCEL * (lam * L**4 / (8 * E_PA * inertia) + m_tip / k)
+    return {**geo, "I_over_A_m2": inertia / area, "frequency_hz": omega / (2 * math.pi),
+            "static_deflection_m": static,
+            "peak_displacement_m": 2 * static * abs(math.sin(omega * POKE_S / 2)),
+            "gravity_sag_m": 9.81 / POKE_ACCEL * static}
+
+
+def setup(radius_cells: int, slender: float):
+    """Geometry in metres: domain, clamp plane x0, tip x_end, rod axis (cy, cz), R, L."""
+    dx = DX
+    radius = radius_cells * dx
+    L = round(slender * radius_cells) * dx
+    off = (PAD + MARGIN_CELLS) * dx
+    x_start = off
+    x0 = x_start + CLAMP_CELLS * dx
+    x_end = x0 + L
+    side = 2 * off + 2 * radius + 2 * ROOM_CELLS * dx
+    domain = (x_end + off + dx, side, side)
+    return domain, x_start, x0, x_end, side / 2, radius, L
+
+
+def simulate(x: np.ndarray, n_shell: int, x0: float, x_end: float, domain, seconds: float,
+             cfl: float, device: str) -> dict:
+    """One run; returns masses, the tip trace and the measured peak and frequency."""
+    vol = particle_volumes(x, DX)
     mass = RHO * vol
-    static = x[:, 2] < clamp_z
-    top = centre + np.array([0.0, 0.0, RADIUS])
-    poke = np.linalg.norm(x - top, axis=1) < POKE_RADIUS
-    watch = poke.copy()
-    watch[n_shell:] = False  # what a viewer sees: the shell near the top
-    cfg = SimConfig(grid_res=grid, domain=(DOMAIN,) * 3, nu=NU, gravity=(0.0, 0.0, 0.0))
-    E = np.full(len(x), E_PA * ball_e_factor)  # the ball: shell and filled particles
-    E[n_shell:n_shell + n_extra] = E_PA  # the stem (if any) keeps E_PA
-    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device)
-    sim.add_force(poke, (POKE_ACCEL, 0.0, 0.0), 0.0, POKE_S)
-    sim.step_frame(1.0 / FPS)  # compiles the kernels; part of the run, so keep it
-    t_sim = time.perf_counter()
-    ts, ds, substeps = [1.0 / FPS], [float(sim.displacements()[watch, 0].mean())], []
-    for f in range(1, int(round(seconds * FPS))):
-        substeps.append(sim.step_frame(1.0 / FPS))
-        ts.append((f + 1) / FPS)
-        ds.append(float(sim.displacements()[watch, 0].mean()))
-    t_sim = time.perf_counter() - t_sim
-    t, d = np.array(ts), np.array(ds)
-    after = t >= POKE_S + 1.0 / FPS
+    static = x[:, 0] < x0
+    free = ~static
+    tip = free & (x[:, 0] > x_end - DX)
+    tip[n_shell:] = False  # what a viewer sees: the shell at the tip
+    L = x_end - x0
+    mid = free & (np.abs(x[:, 0] - (x0 + L / 2)) < 0.3 * L)  # away from clamp and cap
+    lam = float(mass[mid].sum() / (0.6 * L))
+    cfg = SimConfig(grid_res=int(round(max(domain) / DX)), domain=domain, nu=NU,
+                    gravity=(0.0, 0.0, 0.0), cfl_safety=cfl, boundary_pad=PAD)
+    sim = MPMSolver(x, vol, mass, np.full(len(x), E_PA), static, cfg, device=device)
+    sim.add_force(free, (0.0, 0.0, -POKE_ACCEL), 0.0, POKE_S)
+    n_frames = int(round(seconds * FPS))
+    t, d = np.zeros(n_frames + 1), np.zeros(n_frames + 1)
+    substeps = 0
+    t0 = time.perf_counter()
+    for f in range(n_frames):
+        substeps += sim.step_frame(1.0 / FPS)
+        t[f + 1] = sim.time
+        d[f + 1] = sim.displacements()[tip, 2].mean()
+    wall = time.perf_counter() - t0
+    after = t >= POKE_S
     return {
-        "particles": int(len(x)), "moving_mass_kg": float(mass[~static].sum()),
-        "mass_kg": float(mass.sum()), "peak_displacement_m": float(np.abs(d).max()),
-        "time_to_peak_s": float(t[np.argmax(np.abs(d))]),
-        "frequency_hz": frequency(t[after], d[after]), "substeps_per_frame": int(max(substeps)),
-        "sim_seconds": t_sim, "trace_t": t.tolist(), "trace_dx": d.tolist(),
+        "particles": int(len(x)), "mass_kg": float(mass.sum()),
+        "free_mass_kg": float(mass[free].sum()), "linear_density_kg_m": lam,
+        "tip_mass_kg": max(float(mass[free].sum()) - lam * L, 0.0),
+        "peak_displacement_m": float(np.abs(d).max()), "time_to_peak_s": float(t[np.argmax(np.abs(d))]),
+        "frequency_hz": frequency(t[after], d[after]), "substeps": int(substeps),
+        "sim_seconds": wall, "trace_t": t.tolist(), "trace_dz": d.tolist(),
     }
+
+
+def run(radius_cells: int = 4, slender: float = 10.0, seconds: float = 1.0, cfl: float = 0.5,
+        device: str = "cpu", log=print) -> dict:
+    """Scan, fill and simulate both rods; returns the measurements with beam theory."""
+    domain, x_start, x0, x_end, c, radius, L = setup(radius_cells, slender)
+    p, q, s, o = rod_scan(x_start, x_end, c, c, radius, DX)
+    t0 = time.perf_counter()
+    fill = fill_interior(p, q, s, o, cell=DX, mode="auto", grid_origin=(0.0, 0.0, 0.0))
+    t_fill = time.perf_counter() - t0
+    log(f"fill ({t_fill:.2f} s): {fill.reason}")
+    out = {"radius_m": radius, "free_length_m": L, "domain_m": list(domain),
+           "fill": {"decision": fill.decision, "closedness": fill.closedness,
+                    "interior_volume_m3": fill.interior_volume, "points": int(len(fill.points)),
+                    "reason": fill.reason, "seconds": t_fill},
+           "runs": {}}
+    for name, x in (("hollow", p), ("filled", np.concatenate([p, np.asarray(fill.points)]))):
+        r = simulate(x.astype(np.float32), len(p), x0, x_end, domain, seconds, cfl, device)
+        r["theory"] = beam_theory(name, r["linear_density_kg_m"], r["tip_mass_kg"], radius, L)
+        out["runs"][name] = r
+        th = r["theory"]
+        log(f"{name:7s} particles {r['particles']:6,d}  mass {r['mass_kg']:.3f} kg  "
+            f"f {r['frequency_hz']:.3f} Hz (theory {th['frequency_hz']:.3f})  "
+            f"peak {1000 * r['peak_displacement_m']:.2f} mm (theory "
+            f"{1000 * th['peak_displacement_m']:.2f})  [{r['substeps']} substeps, "
+            f"{r['sim_seconds']:.1f} s]")
+    h, f = out["runs"]["hollow"], out["runs"]["filled"]
+    out["ratios_filled_over_hollow"] = {
+        "mass": f["mass_kg"] / h["mass_kg"],
+        "frequency": f["frequency_hz"] / h["frequency_hz"],
+        "frequency_theory": f["theory"]["frequency_hz"] / h["theory"]["frequency_hz"],
+        "peak": f["peak_displacement_m"] / h["peak_displacement_m"],
+        "peak_theory": f["theory"]["peak_displacement_m"] / h["theory"]["peak_displacement_m"]}
+    log("filled / hollow: " + ", ".join(f"{k} {v:.3f}" for k, v in out["ratios_filled_over_hollow"].items()))
+    return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--grid", type=int, default=32, help="cells per axis of the 1 m box")
-    ap.add_argument("--seconds", type=float, default=3.0, help="simulated time, s")
-    ap.add_argument("--scene", choices=["clamped", "stem", "both"], default="both")
-    ap.add_argument("--ball-e-factor", type=float, default=1.0,
-                    help="the ball's Young's modulus over the stem's (stem scene)")
+    ap.add_argument("--radius-cells", type=int, default=4, help="rod radius in grid cells")
+    ap.add_argument("--slender", type=float, default=10.0, help="free length / radius")
+    ap.add_argument("--seconds", type=float, default=1.0, help="simulated time, s")
+    ap.add_argument("--cfl", type=float, default=0.5, help="SimConfig.cfl_safety")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (the fill)")
     ap.add_argument("--json", type=Path, help="write the results here")
     a = ap.parse_args(argv)
+    import torch
     import warp as wp
 
+    torch.set_num_threads(a.threads)
     wp.config.quiet = True
     wp.init()
-    dx = DOMAIN / a.grid
-    out = {"command": "python bench/fill_motion.py " + " ".join(argv or sys.argv[1:]),
-           "device": a.device, "grid": a.grid,
-           "platform": platform.processor() or platform.machine(), "E_pa": E_PA, "rho": RHO,
-           "ball_volume_m3": 4 / 3 * math.pi * RADIUS**3, "scenes": {},
-           "ball_e_factor": a.ball_e_factor}
-    for scene in (["clamped", "stem"] if a.scene == "both" else [a.scene]):
-        if scene == "clamped":
-            centre = np.full(3, DOMAIN / 2)
-            extra, clamp_z = np.zeros((0, 3)), centre[2] + CLAMP_BELOW * RADIUS
-        else:
-            centre = np.array([DOMAIN / 2, DOMAIN / 2, 0.6])
-            extra, clamp_z = stem_lattice(centre, dx)
-        p, q, s, o = shell_scan(centre, dx)
-        t0 = time.perf_counter()
-        fill = fill_interior(p, q, s, o, cell=dx, mode="auto")
-        t_fill = time.perf_counter() - t0
-        print(f"[{scene}] fill ({t_fill:.2f} s): {fill.reason}")
-        runs = {}
-        for name, x in (("hollow", np.concatenate([p, extra])),
-                        ("filled", np.concatenate([p, extra, fill.points]))):
-            r = simulate(x.astype(np.float32), len(p), len(extra), centre, clamp_z, a.grid,
-                         a.seconds, a.device, a.ball_e_factor if scene == "stem" else 1.0)
-            runs[name] = r
-            print(f"[{scene}] {name:7s} particles {r['particles']:7,d}  mass {r['mass_kg']:7.2f} kg"
-                  f"  peak {1000 * r['peak_displacement_m']:6.1f} mm at {r['time_to_peak_s']:.3f} s"
-                  f"  f {r['frequency_hz']:5.2f} Hz  ({r['substeps_per_frame']} substeps/frame, "
-                  f"{r['sim_seconds']:.1f} s)")
-        out["scenes"][scene] = {
-            "fill": {"decision": fill.decision, "closedness": fill.closedness,
-                     "interior_volume_m3": fill.interior_volume, "points": int(len(fill.points)),
-                     "reason": fill.reason, "seconds": t_fill},
-            "runs": runs}
+    t0 = time.perf_counter()
+    out = run(a.radius_cells, a.slender, a.seconds, a.cfl, a.device)
+    out.update({"command": "python bench/fill_motion.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                "device": a.device, "platform": platform.processor() or platform.machine(),
+                "E_pa": E_PA, "nu": NU, "rho": RHO, "dx_m": DX, "poke_accel": POKE_ACCEL,
+                "poke_s": POKE_S, "gravity": 0.0, "cfl_safety": a.cfl,
+                "wall_s": time.perf_counter() - t0})
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
     return 0

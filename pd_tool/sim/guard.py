@@ -65,3 +65,11 @@ def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, de
             f"the force cannot end stable: {accel_m_s2 / scale:.3g} scene units/s^2 for {duration_s:g} s would "
             f"carry the object {travel:.3g} m (the simulation box is {box_m:.3g} m) and needs {strain:.3g}x the "
             f"stress E = {E_max:.3g} Pa can give; lower --force below about {ok / scale:.3g} or raise E")
+
+
+def fold_stat_lanes(stats: np.ndarray) -> np.ndarray:
+    """Host side of frame_stats: put the lanes' max speed and total kinetic energy into
+    kernels.STAT_VMAX and STAT_KINETIC of `stats` (a numpy copy of the device array)."""
+    stats[K.STAT_VMAX] = stats[K.N_STATS::2].max()
+    stats[K.STAT_KINETIC] = stats[K.N_STATS + 1::2].sum()
+    return stats

@@ -18,7 +18,7 @@ from pd_tool.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
 from pd_tool.sim.gather import CellBins, run_substeps_binned
-from pd_tool.sim.guard import check_stats
+from pd_tool.sim.guard import check_stats, fold_stat_lanes
 
 wp.config.quiet = True
 
@@ -400,7 +400,7 @@ class MPMSolver:
         self._order = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=d)
         self._x = wp.zeros(self.n, dtype=wp.vec3, device=d)
         self._t_frame = wp.zeros(1, dtype=float, device=d)
-        self._stats = wp.zeros(K.N_STATS, dtype=float, device=d)
+        self._stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=d)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
         self._bins = CellBins.alloc(self.geo.nodes, self.n, d) if self._gather else None
@@ -486,7 +486,7 @@ class MPMSolver:
         else:
             self._run_substeps(n, dt)
         wp.launch(K.frame_stats, dim=self.n, device=d, inputs=[self.state.v, self.mat.mass, self._stats])
-        stats = self._stats.numpy().copy()  # on CPU numpy() is a view: copy before zeroing
+        stats = fold_stat_lanes(self._stats.numpy().copy())  # on CPU a view: copy before zeroing
         self._stats.zero_()
         self.time += frame_dt
         self.frame += 1
@@ -526,7 +526,7 @@ class MPMSolver:
         Free after step_frame (the guard's reduction computed it); otherwise one device sync.
         """
         if self._kinetic is None:
-            stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
+            stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=self.device)
             wp.launch(K.frame_stats, dim=self.n, device=self.device, inputs=[self.state.v, self.mat.mass, stats])
-            self._kinetic = float(stats.numpy()[K.STAT_KINETIC])
+            self._kinetic = float(fold_stat_lanes(stats.numpy().copy())[K.STAT_KINETIC])
         return self._kinetic
