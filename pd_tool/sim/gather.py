@@ -1,5 +1,5 @@
-"""P2G with few float atomics for the fast path: particles binned by cell, nine threads per
-occupied cell, one per row of three stencil nodes.
+"""P2G with few float atomics for the fast path: particles binned by cell, one thread per
+(occupied cell, stencil node).
 
 The scatter P2G (kernels.p2g_scatter) does 27 x 4 float atomics per particle. On a GPU
 those atomics, not arithmetic, bound the substep (bench/sim_profile.py: 105 of the 136 us
@@ -7,14 +7,14 @@ of a 100k-particle substep on an H200). Here:
 
 1. `g2p_bin` (per particle): G2P of this substep, then the particle's P2G payload for the
    next one (B-spline offset fx, mass, momentum, MLS affine matrix: the stress is
-   evaluated once per particle) and a slot in the list of its stencil cell. The particle
-   that takes slot 0 leads the cell.
-2. `p2g_cells` (9 threads per cell leader, each owning a row of 3 stencil nodes): sum
-   the contributions of the cell's particles to those nodes, then one atomic per node and
-   component. Atomics drop by the particles per cell (about 8), and the threads of a cell
-   read the same payload (L1 broadcasts) and write different nodes.
-3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid and the
-   cell counters for the next substep.
+   evaluated once per particle) and a slot in the list of its stencil cell. The first
+   particle of a cell appends the cell to the list of occupied cells.
+2. `p2g_cells` (per occupied cell and stencil offset, 27 threads a cell): sum the
+   contributions of the cell's particles to that one node, then 4 atomics. Atomics drop by
+   the particles per cell (about 8), and the 27 threads of a cell read the same payload
+   (L1 broadcasts) and write 27 different nodes.
+3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid, the cell
+   counters and the occupied-cell count for the next substep.
 
 Cell lists have a fixed capacity (`CELL_CAPACITY`); a particle that finds its cell full
 scatters with atomics as before, so the result is exact at any compression.
@@ -52,21 +52,21 @@ def bin_particle(
     nodes: wp.vec3i,
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
-    leader: wp.array(dtype=int),
+    occupied: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
-    """Write particle p's P2G payload and put it in its cell's list (or scatter on overflow).
-
-    The particle that takes slot 0 leads its cell: leader[p] = cell, else -1."""
+    """Write particle p's P2G payload and put it in its cell's list (or scatter on overflow)."""
     inv_dx = 1.0 / dx
     b = K.stencil_base(x, inv_dx, nodes)
     cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
     slot = wp.atomic_add(counts, cell, 1)
-    leader[p] = wp.where(slot == 0, cell, -1)
+    if slot == 0:
+        occupied[wp.atomic_add(n_occupied, 0, 1)] = cell
     if slot < CELL_CAPACITY_W:
         lm = K.lame(E, nu)
         tau = K.kirchhoff_stress(F, lm[0], lm[1])
@@ -102,7 +102,8 @@ def p2g_bin(
     force_window: wp.array(dtype=wp.vec2),
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
-    leader: wp.array(dtype=int),
+    occupied: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
@@ -113,7 +114,7 @@ def p2g_bin(
     p = wp.tid()
     a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, counts, slots, leader, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
+                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
 
 
 @wp.kernel(enable_backward=False)
@@ -143,7 +144,8 @@ def g2p_bin(
     force_window: wp.array(dtype=wp.vec2),
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
-    leader: wp.array(dtype=int),
+    occupied: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
@@ -157,7 +159,7 @@ def g2p_bin(
                  u, v, C, F, stats)
     a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, counts, slots, leader, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
+                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
 
 
 @wp.func
@@ -177,7 +179,8 @@ def bspline_at(fx: float, a: int) -> float:
 def p2g_cells(
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
-    leader: wp.array(dtype=int),
+    occupied: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
@@ -186,59 +189,36 @@ def p2g_cells(
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
-    """Thread (particle, stencil offsets a, b): if the particle leads its cell, the cell's
-    particles' shares of the three nodes (a, b, 0..2), then 3 x 4 atomics.
+    """Thread (occupied cell, offset): one node's share of one cell's particles, 4 atomics.
 
-    Nine threads a cell: each payload read serves three nodes, and the cell's threads read
-    the same payload (L1 broadcasts). Threads of particles that do not lead a cell return
-    at once (a compact list of occupied cells would need one counter that every cell
-    increments, and those same-address atomics serialise).
+    Launched for the largest possible number of occupied cells; threads past the real
+    count (known only on the device) return at once.
     """
     t = wp.tid()
-    p = t // 9
-    cell = leader[p]
-    if cell < 0:
+    slot = t // 27
+    if slot >= n_occupied[0]:
         return
-    o = t - 9 * p
-    a = o // 3
-    b = o - 3 * a
+    o = t - 27 * slot
+    a = o // 9
+    b = (o // 3) % 3
+    c = o % 3
+    cell = occupied[slot]
     ck = cell % nodes[2]
     cj = (cell // nodes[2]) % nodes[1]
     ci = cell // (nodes[1] * nodes[2])
-    m0 = float(0.0)
-    m1 = float(0.0)
-    m2 = float(0.0)
-    mv0 = wp.vec3(0.0)
-    mv1 = wp.vec3(0.0)
-    mv2 = wp.vec3(0.0)
+    off = wp.vec3(float(a), float(b), float(c))
+    m = float(0.0)
+    mv = wp.vec3(0.0)
     cnt = wp.min(counts[cell], CELL_CAPACITY_W)
     for s in range(cnt):
         q = slots[cell * CELL_CAPACITY_W + s]
         fx = pay_fx[q]
+        w = bspline_at(fx[0], a) * bspline_at(fx[1], b) * bspline_at(fx[2], c)
         pm = pay_mv[q]
-        A = pay_A[q]
-        wab = bspline_at(fx[0], a) * bspline_at(fx[1], b)
-        wz = K.bspline_w(fx[2])
-        mom = wp.vec3(pm[0], pm[1], pm[2])
-        # (off - fx) dx with off = (a, b, c): A times it is linear in c
-        d0 = wp.vec3(float(a) - fx[0], float(b) - fx[1], -fx[2]) * dx
-        q0 = mom + A * d0
-        dq = wp.vec3(A[0, 2], A[1, 2], A[2, 2]) * dx
-        w0 = wab * wz[0]
-        w1 = wab * wz[1]
-        w2 = wab * wz[2]
-        m0 += w0 * pm[3]
-        m1 += w1 * pm[3]
-        m2 += w2 * pm[3]
-        mv0 += w0 * q0
-        mv1 += w1 * (q0 + dq)
-        mv2 += w2 * (q0 + 2.0 * dq)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck, m0)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck + 1, m1)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck + 2, m2)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck, mv0)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck + 1, mv1)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck + 2, mv2)
+        m += w * pm[3]
+        mv += w * (wp.vec3(pm[0], pm[1], pm[2]) + pay_A[q] * ((off - fx) * dx))
+    wp.atomic_add(grid_m, ci + a, cj + b, ck + c, m)
+    wp.atomic_add(grid_mv, ci + a, cj + b, ck + c, mv)
 
 
 @wp.kernel(enable_backward=False)
@@ -256,6 +236,7 @@ def grid_update_clear_bins(
     ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
     counts: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
 ):
     """kernels.grid_update_and_clear that also empties the cell lists for the next binning."""
     i, j, k = wp.tid()
@@ -264,15 +245,18 @@ def grid_update_clear_bins(
     grid_m[i, j, k] = 0.0
     grid_mv[i, j, k] = wp.vec3(0.0)
     counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+    if i == 0 and j == 0 and k == 0:
+        n_occupied[0] = 0
 
 
 @dataclass
 class CellBins:
-    """Per-cell particle lists, each cell's leading particle and the per-particle P2G payload."""
+    """Per-cell particle lists, the occupied-cell list and the per-particle P2G payload."""
 
     counts: wp.array
     slots: wp.array
-    leader: wp.array
+    occupied: wp.array
+    n_occupied: wp.array
     pay_fx: wp.array
     pay_mv: wp.array
     pay_A: wp.array
@@ -282,12 +266,12 @@ class CellBins:
         n_cells = nodes[0] * nodes[1] * nodes[2]
         z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
         return cls(counts=z(n_cells), slots=z(n_cells * CELL_CAPACITY),
-                   leader=z(n_particles),
+                   occupied=z(min(n_cells, max(1, n_particles))), n_occupied=z(1),
                    pay_fx=z(n_particles, wp.vec3), pay_mv=z(n_particles, wp.vec4),
                    pay_A=z(n_particles, wp.mat33))
 
     def arrays(self) -> list[wp.array]:
-        return [self.counts, self.slots, self.leader, self.pay_fx, self.pay_mv, self.pay_A]
+        return [self.counts, self.slots, self.occupied, self.n_occupied, self.pay_fx, self.pay_mv, self.pay_A]
 
 
 def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
@@ -303,6 +287,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
     g.m.zero_()
     g.mv.zero_()
     bins.counts.zero_()
+    bins.n_occupied.zero_()
     wp.launch(p2g_bin, dim=count, device=dev, inputs=[
         ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, float(cfg.nu), float(geo.dx),
         float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel, fa.window, *bins.arrays(),
@@ -310,9 +295,9 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
     cell_args = [*bins.arrays(), float(geo.dx), nodes, g.m, g.mv]
     grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts]
+                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts, bins.n_occupied]
     for s in range(n):
-        wp.launch(p2g_cells, dim=9 * count, device=dev, inputs=cell_args)
+        wp.launch(p2g_cells, dim=27 * bins.occupied.shape[0], device=dev, inputs=cell_args)
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
         if s < n - 1:
             wp.launch(g2p_bin, dim=count, device=dev, inputs=[
