@@ -73,6 +73,7 @@ def main() -> None:
       pdtool demo                               # whole pipeline on a built-in plant
       pdtool info scene.ply                     # what is in a splat file
       pdtool render scene.ply -o view.png       # first frame for a video model
+      pdtool generate scene.ply --model svd/ -o video/   # or the whole video, with a local model
       pdtool fit scene.ply video/               # stiffness from a reference video
       pdtool bake --force 0,0,1 out.usd         # force-driven animation to USD
 
@@ -156,6 +157,100 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
             write_camera.mkdir(parents=True, exist_ok=True)
             save_camera_json(write_camera / "camera.json", dataclasses.replace(cam, fps=fps))
             click.echo(f"wrote {write_camera / 'camera.json'}")
+
+
+@main.command()
+@click.argument("scene", type=SCENE_PATH)
+@click.option("--model", type=click.Path(path_type=Path), required=True,
+              help="Local diffusers folder of an image-to-video model (model_index.json inside), e.g. a "
+                   "download of stabilityai/stable-video-diffusion-img2vid. Read from disk only, never downloaded.")
+@click.option("-o", "--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output folder: a video folder for pdtool fit, or with --count K the folders video_0/ ... "
+                   "video_{K-1}/ and contact_sheet.png.")
+@click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="cameras.json (INRIA 3DGS), transforms.json (NeRF) or camera.json (pdtool). "
+                   "Default: an automatic 3/4 view that frames the object.")
+@click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
+@click.option("--width", type=click.IntRange(8, 8192), default=1024, show_default=True,
+              help="Frame width, px; a multiple of the model's (64 for SVD). A camera of another aspect is "
+                   "widened, not stretched.")
+@click.option("--height", type=click.IntRange(8, 8192), default=576, show_default=True, help="Frame height, px.")
+@click.option("--frames", type=click.IntRange(3, 1024), default=14, show_default=True,
+              help="Frames per video, frame 0 included.")
+@click.option("--motion-bucket", type=click.IntRange(0, 255), default=8, show_default=True,
+              help="The model's motion conditioning; low values keep the camera still (the paper used 5-8).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first video; video k uses SEED+k.")
+@click.option("--count", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Candidate videos to choose from (video_0/ ... and a contact sheet).")
+@click.option("--steps", type=click.IntRange(1, 1000), default=25, show_default=True, help="Denoising steps.")
+@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True,
+              help="Frame rate written to camera.json (the time between frames that fit assumes).")
+@click.option("--max-camera-motion", type=click.FloatRange(min=0), default=1.0, show_default=True, metavar="PCT",
+              help="Bound on the camera motion against the rendered view, % of the frame's long side.")
+@click.option("--reject-moving-camera", is_flag=True,
+              help="Leave out videos over --max-camera-motion (default: write them and warn).")
+@click.option("--static-below", type=float, metavar="H",
+              help="Gaussians below height H along --up stay still (a pot, a table): the camera motion is "
+                   "measured where they are. Default: on the whole frame.")
+@click.option("--static-box", metavar="X0,Y0,Z0,X1,Y1,Z1", help="Gaussians in this box stay still. Scene units.")
+@click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
+              help="Scene up axis, for the automatic camera and --static-below.")
+@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@DEVICE_OPTION
+def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str | None, width: int, height: int,
+             frames: int, motion_bucket: int, seed: int, count: int, steps: int, fps: float,
+             max_camera_motion: float, reject_moving_camera: bool, static_below: float | None,
+             static_box: str | None, up: str, background: str, overwrite: bool, device: str) -> None:
+    """Make the reference video with a local image-to-video model (Stable Video Diffusion).
+
+    Renders the view as `pdtool render` does, animates it with the model, measures how far
+    the camera moved in each video (fit assumes a still camera), and writes the frames
+    with their camera.json, ready for `pdtool fit`. Needs `pip install "pdtool[video]"`
+    and the model on disk. Also writes generate.json (seeds, settings, camera motion).
+
+    \b
+    Example (the paper's settings, four candidates):
+      pdtool generate plant.ply --camera cameras.json --view 0 --model models/svd \\
+          --frames 14 --motion-bucket 8 --count 4 -o video/
+      pdtool fit plant.ply video/video_2/
+    """
+    bg = parse_vector(background, "--background")
+    with user_errors():
+        from pd_tool.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
+                                      generation_camera, inspect_model, require_video_extra)
+
+        # cheap checks first: no rendering or loading before the extra, folder and size are right
+        require_video_extra()
+        info = inspect_model(model)
+        check_size(info, width, height)
+        check_output(out, overwrite)
+        from pd_tool.device import resolve_device
+        from pd_tool.io import load_splats
+
+        dev = resolve_device(device)
+        splats = load_splats(scene, device=dev)
+        cam = generation_camera(splats, camera, parse_view(view), width, height, up)
+        static = None
+        if static_below is not None or static_box is not None:
+            from pd_tool.prepare import select_static
+
+            opts = build_prepare_options(None, static_below=static_below, static_box=static_box, up=up)
+            static = select_static(splats.positions.detach().cpu().numpy(), opts)
+        settings = GenerateSettings(frames=frames, motion_bucket=motion_bucket, seed=seed, count=count, steps=steps,
+                                    fps=fps, max_camera_motion=max_camera_motion,
+                                    reject_moving_camera=reject_moving_camera)
+        result = generate_reference_videos(splats, cam, out, info, settings, device=dev, background=bg,
+                                           static=static, overwrite=overwrite, say=click.echo)
+    for c in result.candidates:
+        where = "not written" if c.folder is None else out if c.folder == "." else out / c.folder
+        click.echo(f"video {c.index}  seed {c.seed}  camera motion {c.motion.max_px:.1f} px "
+                   f"({c.motion.max_percent:.2f}%)  {where}")
+    for w in result.warnings:
+        click.echo(f"warning: {w}", err=True)
+    written = [c for c in result.candidates if c.folder is not None]
+    click.echo(f"wrote {out}: {len(written)} video(s) of {frames} frames at {cam.width}x{cam.height}, "
+               f"camera '{cam.name}'" + (f"; contact sheet {result.contact_sheet}" if result.contact_sheet else ""))
 
 
 def prepare_options_decorator(f):
