@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pd_tool.sim import DiffSim, MPMSolver, SimConfig  # noqa: E402
 from pd_tool.sim.autograd import backward_frame  # noqa: E402
-from pd_tool.sim.solver import ParticleState, run_substeps_fused  # noqa: E402
+from pd_tool.sim.solver import ParticleState  # noqa: E402
 
 DEFAULT_SIZES = "20000:32,100000:64,300000:128"
 E_PA = 1.0e5
@@ -100,7 +100,7 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
         order, fixed = dsim._order_fixed(xw)
         sctx = dsim._context(xw, Ew, order, fixed, forces, 0.0)
         st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=device), wp.clone(vw), wp.clone(Cw), wp.clone(Fw))
-        run_substeps_fused(sctx, substeps, frame_dt / substeps, st, dsim._grid_cache())
+        dsim.run_untaped(sctx, substeps, frame_dt / substeps, st)
         sctx.stats.numpy()  # the guard's one sync per frame
         backward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, ones, zv, zm, zm)
 

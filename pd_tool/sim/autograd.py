@@ -16,6 +16,7 @@ import torch
 import warp as wp
 
 from pd_tool.sim import kernels as K
+from pd_tool.sim.gather import CellBins, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -136,6 +137,18 @@ class DiffSim:
             g = self._grid = GridArrays.alloc(self.geo, self.device)
         return g
 
+    def run_untaped(self, sctx: SubstepContext, n: int, dt: float, st: ParticleState) -> None:
+        """n substeps in place without a tape: the forward and the backward's recompute.
+
+        On CUDA with the binned P2G of the fast path (gather.py), elsewhere the fused scatter."""
+        if wp.get_device(self.device).is_cuda:
+            bins = getattr(self, "_bins", None)
+            if bins is None:
+                bins = self._bins = CellBins.alloc(self.geo.nodes, self.n, self.device)
+            run_substeps_binned(sctx, n, dt, st, self._grid_cache(), bins)
+        else:
+            run_substeps_fused(sctx, n, dt, st, self._grid_cache())
+
     def _context(self, base: wp.array, E: wp.array, order: wp.array, fixed: wp.array,
                  forces: ForceArrays, t0: float) -> SubstepContext:
         t_frame = wp.array([t0], dtype=float, device=self.device)
@@ -174,7 +187,7 @@ class _FrameFunction(torch.autograd.Function):
             order, fixed = sim._order_fixed(base)
             sctx = sim._context(base, wp.from_torch(E.detach().contiguous()), order, fixed, forces, t0)
             st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), _vec3(v_out), _mat33(C_out), _mat33(F_out))
-            run_substeps_fused(sctx, substeps, dt, st, sim._grid_cache())
+            sim.run_untaped(sctx, substeps, dt, st)
             wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, _vec3(x_out)])
             stats = sctx.stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
@@ -225,7 +238,7 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
         if k0 == starts[-1]:
             break  # the last segment is replayed under the tape anyway
         sctx.t_frame.fill_(t0 + k0 * dt)  # the fused run counts time from its first substep
-        run_substeps_fused(sctx, seg, dt, st, sim._grid_cache())
+        sim.run_untaped(sctx, seg, dt, st)
     sctx.t_frame.fill_(t0)
     del st
     # 2. replay the segments in reverse under a tape, one array set per substep (a pool
