@@ -120,24 +120,43 @@ def frequency(t: np.ndarray, d: np.ndarray) -> float:
     return float("nan") if len(same) < 2 else (len(same) - 1) / (same[-1] - same[0])
 
 
-def beam_theory(kind: str, lam: float, m_tip: float, radius: float, L: float) -> dict:
-    """Euler-Bernoulli cantilever (Rayleigh tip-mass correction) for a run's measured
-    linear density lam (kg/m) and tip mass m_tip (kg); radius = the scan's R, m."""
-    area = lam / RHO
-    if kind == "filled":  # solid rod with the cross-section the particles occupy
-        r_eff = math.sqrt(area / math.pi)
-        inertia, geo = math.pi * r_eff**4 / 4, {"effective_radius_m": r_eff}
-    else:  # tube of mid radius R; the wall the MPM gives the one-cell shell
-        t = area / (2 * math.pi * radius)
-        ro, ri = radius + t / 2, max(radius - t / 2, 0.0)
-        inertia, geo = math.pi * (ro**4 - ri**4) / 4, {"wall_thickness_m": t}
+def section(x: np.ndarray, vol: np.ndarray, x0: float, L: float) -> dict:
+    """What the MPM integrates: cross-section area A (m^2) and second moment I about the
+    horizontal axis (m^4) from the particles' volumes and heights in the middle 60% of the
+    free rod (away from clamp and cap), the linear density lam = rho A (kg/m) and the tip
+    mass m_tip = free mass - lam L (kg; the end cap, the last cell's overhang)."""
+    mid = np.abs(x[:, 0] - (x0 + L / 2)) < 0.3 * L
+    v, z = vol[mid], x[mid, 2].astype(np.float64)
+    area = float(v.sum()) / (0.6 * L)
+    zc = float((v * z).sum() / v.sum())
+    inertia = float((v * (z - zc) ** 2).sum()) / (0.6 * L)
+    m_free = RHO * float(vol[x[:, 0] >= x0].sum())
+    return {"A_m2": area, "I_m4": inertia, "lam_kg_m": RHO * area,
+            "tip_mass_kg": max(m_free - RHO * area * L, 0.0)}
+
+
+def cantilever(inertia: float, lam: float, m_tip: float, L: float) -> dict:
+    """Euler-Bernoulli cantilever with Rayleigh's tip-mass correction: first frequency (Hz),
+    static tip deflection under the poke's acceleration and under gravity (m), and the peak
+    tip displacement of the one-mode response to the poke (m)."""
     k = 3 * E_PA * inertia / L**3  # tip stiffness, N/m
     omega = math.sqrt(k / (RAYLEIGH_MASS * lam * L + m_tip))
-    static = POKE_ACCEL * (lam * L**4 / (8 * E_PA * inertia) + m_tip / k)
-    return {**geo, "I_over_A_m2": inertia / area, "frequency_hz": omega / (2 * math.pi),
-            "static_deflection_m": static,
-            "peak_displacement_m": 2 * static * abs(math.sin(omega * POKE_S / 2)),
-            "gravity_sag_m": 9.81 / POKE_ACCEL * static}
+    per_accel = lam * L**4 / (8 * E_PA * inertia) + m_tip / k  # m per m/s^2
+    return {"frequency_hz": omega / (2 * math.pi), "static_deflection_m": POKE_ACCEL * per_accel,
+            "peak_displacement_m": 2 * POKE_ACCEL * per_accel * abs(math.sin(omega * POKE_S / 2)),
+            "gravity_sag_m": 9.81 * per_accel}
+
+
+def nominal(kind: str, radius: float, L: float, wall: float) -> dict:
+    """Textbook reference: a solid rod of the scan's radius R against a tube of mid radius R
+    and wall `wall` (m) with its tip cap (a disc of the same wall), density RHO."""
+    if kind == "filled":
+        area, inertia, m_tip = math.pi * radius**2, math.pi * radius**4 / 4, 0.0
+    else:
+        ro, ri = radius + wall / 2, max(radius - wall / 2, 0.0)
+        area, inertia = math.pi * (ro**2 - ri**2), math.pi * (ro**4 - ri**4) / 4
+        m_tip = RHO * math.pi * radius**2 * wall
+    return {"A_m2": area, "I_m4": inertia, **cantilever(inertia, RHO * area, m_tip, L)}
 
 
 def setup(radius_cells: int, slender: float):
@@ -154,18 +173,25 @@ def setup(radius_cells: int, slender: float):
     return domain, x_start, x0, x_end, side / 2, radius, L
 
 
+def clamp_block(x_start: float, x0: float, c: float, radius: float) -> np.ndarray:
+    """Static particles (2^3 per cell) filling the rod's cross-section, shell band included,
+    for x in [x_start, x0): a vice that holds the whole root, the same for both runs."""
+    h = DX / 2
+    ax = [np.arange(x_start + h / 2, x0, h)] + [np.arange(c - radius - DX, c + radius + DX, h) + h / 2] * 2
+    g = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    return g[np.hypot(g[:, 1] - c, g[:, 2] - c) < radius + 0.75 * DX]
+
+
 def simulate(x: np.ndarray, n_shell: int, x0: float, x_end: float, domain, seconds: float,
              cfl: float, device: str) -> dict:
-    """One run; returns masses, the tip trace and the measured peak and frequency."""
+    """One run; x [N, 3] m holds the shell first (n_shell particles). Particles with x < x0
+    are static. Returns masses, section properties, the tip trace, its peak and frequency."""
     vol = particle_volumes(x, DX)
     mass = RHO * vol
     static = x[:, 0] < x0
     free = ~static
     tip = free & (x[:, 0] > x_end - DX)
     tip[n_shell:] = False  # what a viewer sees: the shell at the tip
-    L = x_end - x0
-    mid = free & (np.abs(x[:, 0] - (x0 + L / 2)) < 0.3 * L)  # away from clamp and cap
-    lam = float(mass[mid].sum() / (0.6 * L))
     cfg = SimConfig(grid_res=int(round(max(domain) / DX)), domain=domain, nu=NU,
                     gravity=(0.0, 0.0, 0.0), cfl_safety=cfl, boundary_pad=PAD)
     sim = MPMSolver(x, vol, mass, np.full(len(x), E_PA), static, cfg, device=device)
@@ -181,9 +207,8 @@ def simulate(x: np.ndarray, n_shell: int, x0: float, x_end: float, domain, secon
     wall = time.perf_counter() - t0
     after = t >= POKE_S
     return {
-        "particles": int(len(x)), "mass_kg": float(mass.sum()),
-        "free_mass_kg": float(mass[free].sum()), "linear_density_kg_m": lam,
-        "tip_mass_kg": max(float(mass[free].sum()) - lam * L, 0.0),
+        "particles": int(len(x)), "free_particles": int(free.sum()),
+        "free_mass_kg": float(mass[free].sum()), "section": section(x, vol, x0, x_end - x0),
         "peak_displacement_m": float(np.abs(d).max()), "time_to_peak_s": float(t[np.argmax(np.abs(d))]),
         "frequency_hz": frequency(t[after], d[after]), "substeps": int(substeps),
         "sim_seconds": wall, "trace_t": t.tolist(), "trace_dz": d.tolist(),
@@ -191,7 +216,7 @@ def simulate(x: np.ndarray, n_shell: int, x0: float, x_end: float, domain, secon
 
 
 def run(radius_cells: int = 4, slender: float = 10.0, seconds: float = 1.0, cfl: float = 0.5,
-        device: str = "cpu", log=print) -> dict:
+        clamp: str = "block", device: str = "cpu", log=print) -> dict:
     """Scan, fill and simulate both rods; returns the measurements with beam theory."""
     domain, x_start, x0, x_end, c, radius, L = setup(radius_cells, slender)
     p, q, s, o = rod_scan(x_start, x_end, c, c, radius, DX)
@@ -199,28 +224,43 @@ def run(radius_cells: int = 4, slender: float = 10.0, seconds: float = 1.0, cfl:
     fill = fill_interior(p, q, s, o, cell=DX, mode="auto", grid_origin=(0.0, 0.0, 0.0))
     t_fill = time.perf_counter() - t0
     log(f"fill ({t_fill:.2f} s): {fill.reason}")
-    out = {"radius_m": radius, "free_length_m": L, "domain_m": list(domain),
+    pts = np.asarray(fill.points)
+    if clamp == "block":  # the root is held by the vice, not by the scan's shell ring
+        shell, pts = p[p[:, 0] >= x0], pts[pts[:, 0] >= x0]
+        held = clamp_block(x_start, x0, c, radius)
+    else:  # "shell": whatever of the scan lies in the clamp is static (bake's rule)
+        shell, held = p, np.zeros((0, 3))
+    out = {"radius_m": radius, "free_length_m": L, "domain_m": list(domain), "clamp": clamp,
            "fill": {"decision": fill.decision, "closedness": fill.closedness,
                     "interior_volume_m3": fill.interior_volume, "points": int(len(fill.points)),
                     "reason": fill.reason, "seconds": t_fill},
            "runs": {}}
-    for name, x in (("hollow", p), ("filled", np.concatenate([p, np.asarray(fill.points)]))):
-        r = simulate(x.astype(np.float32), len(p), x0, x_end, domain, seconds, cfl, device)
-        r["theory"] = beam_theory(name, r["linear_density_kg_m"], r["tip_mass_kg"], radius, L)
+    for name, x in (("hollow", np.concatenate([shell, held])),
+                    ("filled", np.concatenate([shell, pts, held]))):
+        r = simulate(x.astype(np.float32), len(shell), x0, x_end, domain, seconds, cfl, device)
+        sec = r["section"]
+        r["theory"] = cantilever(sec["I_m4"], sec["lam_kg_m"], sec["tip_mass_kg"], L)
         out["runs"][name] = r
         th = r["theory"]
-        log(f"{name:7s} particles {r['particles']:6,d}  mass {r['mass_kg']:.3f} kg  "
+        log(f"{name:7s} particles {r['particles']:6,d}  free mass {r['free_mass_kg']:.3f} kg  "
+            f"I/A {sec['I_m4'] / sec['A_m2'] / radius**2:.3f} R^2  "
             f"f {r['frequency_hz']:.3f} Hz (theory {th['frequency_hz']:.3f})  "
             f"peak {1000 * r['peak_displacement_m']:.2f} mm (theory "
             f"{1000 * th['peak_displacement_m']:.2f})  [{r['substeps']} substeps, "
             f"{r['sim_seconds']:.1f} s]")
     h, f = out["runs"]["hollow"], out["runs"]["filled"]
+    wall = h["section"]["A_m2"] / (2 * math.pi * radius)  # the one-cell shell's wall, m
+    out["shell_wall_m"] = wall
+    out["nominal"] = {k: nominal(k, radius, L, wall) for k in ("hollow", "filled")}
     out["ratios_filled_over_hollow"] = {
-        "mass": f["mass_kg"] / h["mass_kg"],
+        "free_mass": f["free_mass_kg"] / h["free_mass_kg"],
         "frequency": f["frequency_hz"] / h["frequency_hz"],
         "frequency_theory": f["theory"]["frequency_hz"] / h["theory"]["frequency_hz"],
+        "frequency_nominal": out["nominal"]["filled"]["frequency_hz"] / out["nominal"]["hollow"]["frequency_hz"],
         "peak": f["peak_displacement_m"] / h["peak_displacement_m"],
         "peak_theory": f["theory"]["peak_displacement_m"] / h["theory"]["peak_displacement_m"]}
+    log(f"shell wall {1000 * wall:.2f} mm = {wall / DX:.2f} cells; nominal f: solid rod "
+        f"{out['nominal']['filled']['frequency_hz']:.3f} Hz, tube {out['nominal']['hollow']['frequency_hz']:.3f} Hz")
     log("filled / hollow: " + ", ".join(f"{k} {v:.3f}" for k, v in out["ratios_filled_over_hollow"].items()))
     return out
 
@@ -232,6 +272,9 @@ def main(argv=None) -> int:
     ap.add_argument("--slender", type=float, default=10.0, help="free length / radius")
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated time, s")
     ap.add_argument("--cfl", type=float, default=0.5, help="SimConfig.cfl_safety")
+    ap.add_argument("--clamp", choices=["block", "shell"], default="block",
+                    help="block: a static solid vice at the root (both runs); shell: only "
+                         "the scan's own particles in the clamp are static")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the fill)")
     ap.add_argument("--json", type=Path, help="write the results here")
     a = ap.parse_args(argv)
@@ -242,7 +285,7 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     t0 = time.perf_counter()
-    out = run(a.radius_cells, a.slender, a.seconds, a.cfl, a.device)
+    out = run(a.radius_cells, a.slender, a.seconds, a.cfl, a.clamp, a.device)
     out.update({"command": "python bench/fill_motion.py " + " ".join(sys.argv[1:] if argv is None else argv),
                 "device": a.device, "platform": platform.processor() or platform.machine(),
                 "E_pa": E_PA, "nu": NU, "rho": RHO, "dx_m": DX, "poke_accel": POKE_ACCEL,
