@@ -21,8 +21,10 @@ anchors it.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -34,6 +36,7 @@ CAUCHY_SCALE = 0.05  # grey-level residual (0-1) where the robust loss starts to
 BLUR_SIGMA = 1.0  # px at the alignment size; widens the refinement's basin of convergence
 REFINE_ITERS = 20  # L-BFGS iterations per starting guess
 HYPOTHESES = 3  # correlation peaks tried per frame (plus "no motion")
+MARGIN = 0.1  # fraction of each side left out of the alignment loss (room for the motion)
 TAPER = 0.2  # fraction of each side under the cosine taper of the correlation window
 
 
@@ -169,40 +172,65 @@ def align_similarity(reference: Tensor, image: Tensor, shift: tuple[float, float
                      weight: Tensor | None = None, iters: int = REFINE_ITERS) -> tuple[Tensor, float, float]:
     """Refine the similarity that maps `reference` onto `image` (grey [H, W], 0-1).
 
-    Minimises a Cauchy loss of image(A(y)) - reference(y) over the reference pixels y whose
-    A(y) falls inside the image, weighted by `weight` [H, W] (1 = use, 0 = ignore; None =
-    all), from the starting shift (dx, dy) px. Returns q = (dx, dy, zoom, roll) (see
+    Minimises a Cauchy loss of image(A(y)) - reference(y) over the reference pixels y away
+    from the border (MARGIN), weighted by `weight` [H, W] (1 = use, 0 = ignore; None = all),
+    from the starting shift (dx, dy) px. Returns q = (dx, dy, zoom, roll) (see
     `_similarity_grid`; zoom and roll in px at the corner radius), the largest corner
     displacement, px, and the final loss (lower = more of the image explained).
     """
     h, w = reference.shape
     ref = _blur(reference.double(), BLUR_SIGMA)
     img = _blur(image.double(), BLUR_SIGMA)[None, None]
-    wgt = torch.ones_like(ref) if weight is None else weight.double()
-    ones = torch.ones_like(img)
-    q = torch.tensor([shift[0], shift[1], 0.0, 0.0], dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.LBFGS([q], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
+    # A fixed set of reference pixels: the central part, which stays inside the image for
+    # motions up to MARGIN of its size (beyond, samples repeat the border). A mask of "pixels
+    # still inside" would shrink as the motion grows and reward moving everything out.
+    m = torch.ones_like(ref) if weight is None else weight.double().clone()
+    my, mx = round(MARGIN * h), round(MARGIN * w)
+    m[:my] = 0.0
+    m[h - my:] = 0.0
+    m[:, :mx] = 0.0
+    m[:, w - mx:] = 0.0
+    # q = bound * tanh(p / bound): each of shift, zoom and roll stays within half the corner
+    # radius, so frames that match nothing (noise, a cut) cannot send the fit off to infinity
+    bound = 0.5 * math.hypot((w - 1) / 2.0, (h - 1) / 2.0)
+    q0 = torch.tensor([shift[0], shift[1], 0.0, 0.0], dtype=torch.float64).clamp(-0.95 * bound, 0.95 * bound)
+    p = (bound * torch.atanh(q0 / bound)).requires_grad_(True)
+    opt = torch.optim.LBFGS([p], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
+
+    def params(p: Tensor) -> Tensor:
+        return bound * torch.tanh(p / bound)
 
     def loss_of(q: Tensor) -> Tensor:
         grid, _ = _similarity_grid(q, h, w)
         warped = F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
-        inside = F.grid_sample(ones, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0]
-        m = wgt * (inside > 0.999)  # pixels that left the image say nothing about the motion
         rho = torch.log1p(((warped - ref) / CAUCHY_SCALE) ** 2)
-        return (m * rho).sum() / m.sum().clamp_min(1.0)
+        return (m * rho).sum() / m.sum().clamp_min(1e-9)
 
     def closure() -> Tensor:
         opt.zero_grad()
-        loss = loss_of(q)
+        loss = loss_of(params(p))
         loss.backward()
         return loss
 
     opt.step(closure)
     with torch.no_grad():
+        q = params(p)
         loss = float(loss_of(q))
-    q = q.detach()
     _, disp = _similarity_grid(q, h, w)
     return q, float(disp.max()), loss
+
+
+@contextlib.contextmanager
+def _one_thread() -> Iterator[None]:
+    # The alignment is thousands of small ops on images of ~256 px. Several OpenMP threads
+    # gain nothing there and, on a busy machine, spin at every op's barrier: one test ran
+    # 2.5 s on one thread and 200 s on two threads of a loaded 2-core box.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def estimate_camera_motion(reference, frames, weight=None, long_side: int = ALIGN_LONG_SIDE) -> CameraMotion:
@@ -218,6 +246,11 @@ def estimate_camera_motion(reference, frames, weight=None, long_side: int = ALIG
         CameraMotion with per-frame shift, zoom, roll and corner displacement in px of
         the frames' own size.
     """
+    with _one_thread():
+        return _estimate(reference, frames, weight, long_side)
+
+
+def _estimate(reference, frames, weight, long_side: int) -> CameraMotion:
     ref = to_gray(reference)
     vid = to_gray(frames)
     if vid.ndim != 3 or ref.shape != vid.shape[1:]:

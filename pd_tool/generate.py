@@ -259,8 +259,13 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
     import diffusers
     import transformers
 
-    diffusers.utils.logging.set_verbosity_error()  # load-time notices are not the user's concern
-    transformers.utils.logging.set_verbosity_error()
+    # load-time notices and per-file progress bars are not the user's concern (and an error
+    # after them must still be the only line on stderr)
+    logs = (diffusers.utils.logging, transformers.utils.logging)
+    bars_were_on = [log.is_progress_bar_enabled() for log in logs]
+    for log in logs:
+        log.set_verbosity_error()
+        log.disable_progress_bar()
     dtype = torch.float16 if str(device).startswith("cuda") else torch.float32
     try:
         cls = getattr(diffusers, info.class_name)
@@ -271,6 +276,10 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         raise GenerateError(f"{info.path}: cannot load the model ({type(e).__name__}: {first[:300]}); "
                             f"{MODEL_HINT}") from None
+    finally:
+        for log, on in zip(logs, bars_were_on):
+            if on:
+                log.enable_progress_bar()
     pipe = pipe.to(device)
     return pipe
 
