@@ -73,7 +73,7 @@ def main() -> None:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import load_preset
+    from pd_tool.presets import fit_simulation, load_preset
     from pd_tool.reference import plant_reference_video
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
@@ -91,9 +91,9 @@ def main() -> None:
         h = args.size * 9 // 16 if args.size >= 512 else args.size
         cam = scene_camera(scene, width=args.size, height=h)
         video, _, _ = plant_reference_video(
-            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=int(q["grid_res"])),
-            region_E=REGION_TRUTH_E, driver_ratio=float(q["driver_ratio"]), n_frames=args.frames,
-            cfl_safety=float(q["cfl_safety"]), device=args.device)
+            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=fit_simulation(q)[0]),
+            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames,
+            cfl_safety=fit_simulation(q)[1], device=args.device)
         refs = [load_reference_video(video, working_size=args.size, device=args.device)]
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
@@ -119,7 +119,7 @@ def main() -> None:
                          "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
     s = settings.resolved()
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
-               cfl_safety=float(q["cfl_safety"]))
+               cfl_safety=fit_simulation(q)[1])
     x_true = simulate_positions(scene, prep, drivers, truth_E, **sim)
     x_fit = simulate_positions(scene, prep, drivers, res.driver_E, **sim)
     x_base = simulate_positions(scene, prep, drivers, np.full(len(truth_E), s.init_E), **sim)

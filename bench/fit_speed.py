@@ -36,7 +36,7 @@ def main() -> None:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import load_preset
+    from pd_tool.presets import fit_simulation, load_preset
     from pd_tool.reference import plant_reference_video
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
@@ -52,9 +52,9 @@ def main() -> None:
         cam = scene_camera(scene, width=args.width, height=args.height)
         t0 = time.perf_counter()
         video, truth, _ = plant_reference_video(
-            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=int(q["grid_res"])),
-            region_E=REGION_TRUTH_E, driver_ratio=float(q["driver_ratio"]), n_frames=args.frames,
-            cfl_safety=float(q["cfl_safety"]), device=args.device)
+            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=fit_simulation(q)[0]),
+            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames,
+            cfl_safety=fit_simulation(q)[1], device=args.device)
         t_video = time.perf_counter() - t0
         refs = [load_reference_video(video, working_size=max(args.width, args.height), device=args.device)]
         s = FitSettings(quality=args.quality, device=args.device, velocity_iters=args.velocity_iters,

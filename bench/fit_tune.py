@@ -34,7 +34,7 @@ def main() -> None:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import load_preset
+    from pd_tool.presets import fit_simulation, load_preset
     from pd_tool.reference import plant_reference_video
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
@@ -50,8 +50,8 @@ def main() -> None:
         scene = load_splats(path, device=args.device)
         cam = scene_camera(scene, width=args.size, height=args.size)
         video, _, _ = plant_reference_video(tmp / "video", scene, cam, prepare_options=PrepareOptions(
-            static_below=POT_TOP, grid_res=int(q["grid_res"])), region_E=REGION_TRUTH_E,
-            driver_ratio=float(q["driver_ratio"]), n_frames=args.frames, cfl_safety=float(q["cfl_safety"]),
+            static_below=POT_TOP, grid_res=fit_simulation(q)[0]), region_E=REGION_TRUTH_E,
+            driver_ratio=fit_simulation(q)[2], n_frames=args.frames, cfl_safety=fit_simulation(q)[1],
             device=args.device)
         refs = [load_reference_video(video, working_size=args.size, device=args.device)]
         labels = scene.labels

@@ -69,7 +69,7 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
     from pd_tool.io import load_splats
     from pd_tool.memory import PREVIEW_PIXELS, estimate_bake_memory, estimate_fit_memory
     from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.presets import Material, load_preset
+    from pd_tool.presets import Material, fit_simulation, load_preset
     from pd_tool.synthetic import POT_TOP, make_plant
 
     wd = Path(workdir)
@@ -95,17 +95,18 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
                                      device=device))
     seconds = time.perf_counter() - t
     peak = _status("VmHWM")
-    opts = PrepareOptions(static_below=POT_TOP, grid_res=int(q["grid_res"]))
+    grid, _, ratio = (int(q["grid_res"]), 0.0, float(q["driver_ratio"])) if kind == "bake" else fit_simulation(q)
+    opts = PrepareOptions(static_below=POT_TOP, grid_res=grid)
     prep = prepare_scene(scene, opts)
     if kind == "bake":
         est = estimate_bake_memory(n_gaussians=scene.count, n_simulated=len(prep.positions_sim),
-                                   driver_ratio=float(q["driver_ratio"]),
+                                   driver_ratio=ratio,
                                    grid_dims=prep.grid_dims, frames=BAKE_FRAMES,
                                    preview_pixels=PREVIEW_PIXELS if preview else 0,
                                    sh_coeffs=int(scene.sh.shape[1]), device=device)
     else:
         est = estimate_fit_memory(n_gaussians=scene.count, n_simulated=len(prep.positions_sim),
-                                  driver_ratio=float(q["driver_ratio"]),
+                                  driver_ratio=ratio,
                                   grid_dims=prep.grid_dims, frames=[refs[0].num_frames],
                                   image_pixels=int(refs[0].frames[0].numel() // 3), device=device)
     return {"kind": kind, "n": n, "quality": quality, "device": device, "baseline": base, "peak": peak,

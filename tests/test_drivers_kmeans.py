@@ -182,6 +182,14 @@ def test_driver_count_rules():
         driver_count(pts[:0], dx)
 
 
+def test_driver_ratio_is_capped_per_occupied_cell():
+    dx = 0.1
+    pts = torch.cat([torch.full((500, 3), 0.05), torch.full((500, 3), 0.55)])  # 2 occupied cells
+    assert driver_count(pts, dx, ratio=0.5) == 2 * 64  # not 500: the grid cannot use them
+    assert driver_count(pts, dx, ratio=0.5, max_per_cell=1000) == 500
+    assert driver_count(pts, dx, ratio=0.05) == 50  # under the cap: the ratio rules
+
+
 def _sums_match(ds, pts, volume, mass):
     q = len(ds)
     labels = ds.labels.cpu()

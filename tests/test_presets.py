@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from cli import main
 from pd_tool.errors import PresetError
-from pd_tool.presets import KINDS, Material, builtin, load_preset
+from pd_tool.presets import KINDS, Material, builtin, fit_simulation, load_preset
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -23,6 +23,23 @@ def test_required_names_shipped() -> None:
     assert {"flower", "leafy-plant", "fabric-hat", "rubber-cord", "jelly"} <= set(builtin("materials"))
     assert {"draft", "default", "final"} <= set(builtin("quality"))
     assert {"poke", "gust", "drag"} <= set(builtin("forces"))
+
+
+def test_fit_has_its_own_simulation_settings(tmp_path: Path) -> None:
+    q = load_preset("quality", "default")
+    grid, cfl, ratio = fit_simulation(q)
+    assert (grid, cfl, ratio) == (q["fit_grid_res"], q["fit_cfl_safety"], q["fit_driver_ratio"])
+    # every shipped fit resolves thin parts at least as finely as its bake
+    for name in builtin("quality"):
+        assert fit_simulation(load_preset("quality", name))[0] >= max(24, load_preset("quality", name)["grid_res"])
+    # a user's quality file without fit_* values fits with its bake values
+    mine = tmp_path / "mine.toml"
+    mine.write_text("grid_res = 40\ncfl_safety = 0.4\ndriver_ratio = 0.2\nfit_velocity_iters = 1\n"
+                    "fit_material_iters = 1\n")
+    assert fit_simulation(load_preset("quality", mine)) == (40, 0.4, 0.2)
+    mine.write_text(mine.read_text() + "fit_grid_res = 2\n")
+    with pytest.raises(PresetError, match="fit_grid_res"):
+        load_preset("quality", mine)
 
 
 def test_user_toml_file(tmp_path: Path) -> None:

@@ -10,6 +10,12 @@ from pd_tool.drivers.kmeans import DriverError, kmeans
 from pd_tool.drivers.knn import nearest_drivers
 
 MIN_PER_CELL = 8  # paper: occupied grid cells hold at least 8 drivers on average
+# A ratio never asks for more than this many drivers per occupied cell: the grid cannot
+# resolve motion finer than a cell, so more particles cost time and memory and add no
+# accuracy (docs/benchmark_study.md: 4 to 39 per cell give the same error at grid 16).
+# Without it a 300k-Gaussian scene at ratio 0.5 on a 16-cell grid would put thousands of
+# particles in each cell.
+MAX_PER_CELL = 64
 NEIGHBORS = 8  # drivers per Gaussian for the interpolation (paper)
 
 
@@ -20,13 +26,15 @@ def driver_count(
     ratio: float | None = None,
     count: int | None = None,
     min_per_cell: int = MIN_PER_CELL,
+    max_per_cell: int = MAX_PER_CELL,
 ) -> int:
     """Number of driving particles for N Gaussians.
 
     Args:
         points_sim: [N, 3] Gaussian centres in simulation units.
         dx: simulation grid spacing (same units).
-        ratio: drivers per Gaussian in (0, 1]; overrides the default rule.
+        ratio: drivers per Gaussian in (0, 1]; overrides the default rule, capped at
+            max_per_cell drivers per occupied cell.
         count: an exact number of drivers (>= 1); overrides ratio and the rule.
         min_per_cell: the default rule: min_per_cell drivers times the number of grid
             cells (spacing dx, origin 0) holding at least one Gaussian.
@@ -44,13 +52,18 @@ def driver_count(
         if not 0.0 < float(ratio) <= 1.0:
             raise DriverError(f"driver_count: ratio={ratio}; use a fraction in (0, 1], e.g. 0.1")
         q = int(round(float(ratio) * n))
+        if dx > 0.0 and q > max_per_cell:
+            q = min(q, max_per_cell * _occupied_cells(points_sim, dx))
     else:
         if not dx > 0.0:
             raise DriverError(f"driver_count: grid spacing dx={dx}; it must be > 0")
-        cells = torch.floor(points_sim / dx).long()
-        occupied = int(torch.unique(cells, dim=0).shape[0])
-        q = min_per_cell * occupied
+        q = min_per_cell * _occupied_cells(points_sim, dx)
     return max(1, min(q, n))
+
+
+def _occupied_cells(points_sim: Tensor, dx: float) -> int:
+    """Grid cells (spacing dx, origin 0) holding at least one point."""
+    return int(torch.unique(torch.floor(points_sim / dx).long(), dim=0).shape[0])
 
 
 @dataclass

@@ -24,7 +24,7 @@ import torch
 from pd_tool.atomic import atomic_output
 from pd_tool.errors import PdToolError, VideoError
 from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene
-from pd_tool.presets import load_preset
+from pd_tool.presets import fit_simulation, load_preset
 from pd_tool.scene import GaussianScene
 
 CHECKPOINT_VERSION = 1
@@ -80,7 +80,7 @@ class FitSettings:
         if out.material_iters is None:
             out.material_iters = int(q["fit_material_iters"])
         if out.driver_ratio is None:
-            out.driver_ratio = float(q["driver_ratio"])
+            out.driver_ratio = fit_simulation(q)[2]
         return out
 
 
@@ -112,9 +112,8 @@ class FitProblem:
         self.device = torch.device(settings.device)
         torch.manual_seed(settings.seed)
         quality = load_preset("quality", settings.quality)
-        prep_options.grid_res = int(quality["grid_res"])
+        prep_options.grid_res, self.cfl_safety, _ = fit_simulation(quality)
         prep_options.density_kg_m3 = settings.density
-        self.cfl_safety = float(quality["cfl_safety"])
         self.scene = scene.to(self.device)
         self.prep = prepare_scene(self.scene, prep_options)
         p = self.prep
