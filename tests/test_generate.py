@@ -127,7 +127,7 @@ def test_generate_count_two_from_a_camera_file(tiny_model: Path, shared_data: Pa
     square = auto_camera(load_splats(scene).positions.numpy(), 100, 100, up_axis="-y")
     save_camera_json(tmp_path / "cams.json", square)
     res = run_cli(scene, "--camera", tmp_path / "cams.json", "--view", "0", "--model", tiny_model, *SIZE, *FAST,
-                  "--count", "2", "--seed", "7", "--static-below", "0", "--up", "-y", "-o", out)
+                  "--count", "2", "--seed", "7", "--static-below", "2.5", "--up", "-y", "-o", out)
     assert res.exit_code == 0, res.output
     videos = [np.stack([read_png(f) for f in sorted((out / f"video_{k}").glob("frame_*.png"))]) for k in (0, 1)]
     assert all(v.shape == (4, 48, 64, 3) for v in videos)
@@ -143,6 +143,7 @@ def test_generate_count_two_from_a_camera_file(tiny_model: Path, shared_data: Pa
     record = json.loads((out / "generate.json").read_text())
     assert [v["seed"] for v in record["videos"]] == [7, 8]
     assert [v["folder"] for v in record["videos"]] == ["video_0", "video_1"]
+    assert record["camera_motion_region"] == "static Gaussians"  # the bowl's lower part (--static-below)
 
 
 @needs_extra
@@ -291,3 +292,23 @@ def test_frame_camera_fits_the_view_without_stretching() -> None:
     a, b = cam.project(pts), framed.project(pts)
     np.testing.assert_allclose(b[:, 0], a[:, 0] * 0.32, atol=1e-9)
     np.testing.assert_allclose(b[:, 1], a[:, 1] * 0.32 + 0.5 * (64 - 100 * 0.32), atol=1e-9)
+
+
+def test_camera_motion_on_rendered_views(shared_data: Path) -> None:
+    # Real renders of the udon capture (white background, texture only on the object): the
+    # camera's principal point moved by (3, -2) px and its focal length by 2% -> the image
+    # content shifts by (3, -2) px and zooms by 1.02 about the principal point.
+    import dataclasses
+
+    from pd_tool.io import load_splats
+    from pd_tool.views import render_image, scene_camera
+
+    scene = load_splats(shared_data / "udon.ply")
+    cam = scene_camera(scene, None, None, width=160, height=120, up_axis="-y")
+    moved = dataclasses.replace(cam, cx=cam.cx + 3.0, cy=cam.cy - 2.0)
+    zoomed = dataclasses.replace(cam, fx=cam.fx * 1.02, fy=cam.fy * 1.02)
+    frames = np.stack([render_image(scene, c) for c in (cam, moved, zoomed)])
+    m = estimate_camera_motion(frames[0], frames)
+    assert m.displacement[0] < 0.05
+    np.testing.assert_allclose(m.shifts[1], [3.0, -2.0], atol=0.15)
+    assert m.zooms[2] == pytest.approx(1.02, abs=2e-3)
