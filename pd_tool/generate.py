@@ -287,8 +287,9 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
 def animate(pipe, image: np.ndarray, settings: GenerateSettings, seed: int) -> np.ndarray:
     """Run the image-to-video pipeline on image [H, W, 3] uint8 -> frames [T, H, W, 3] uint8.
 
-    The noise comes from a CPU generator, so a seed gives the same video on CPU and CUDA
-    (up to float precision).
+    The noise comes from a CPU generator seeded with `seed`: the same seed gives the same
+    video again (video k of a --count run is the --seed SEED+k video), and the same
+    starting noise on CPU and CUDA.
     """
     from PIL import Image
 
@@ -393,7 +394,8 @@ def generate_reference_videos(
     image = render_image(scene, camera, background=background)
     weight = static_weight(scene, camera, static) if static is not None else None
     if static is not None and weight is None:
-        say("the static Gaussians are not in view; camera motion is measured on the whole frame")
+        say("--static-below/--static-box select no Gaussians in view; the camera motion is measured on the "
+            "whole frame")
     say(f"loading {model.class_name} from {model.path}")
     pipe = load_pipeline(model, device)
     candidates: list[Candidate] = []

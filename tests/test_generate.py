@@ -144,6 +144,12 @@ def test_generate_count_two_from_a_camera_file(tiny_model: Path, shared_data: Pa
     assert [v["seed"] for v in record["videos"]] == [7, 8]
     assert [v["folder"] for v in record["videos"]] == ["video_0", "video_1"]
     assert record["camera_motion_region"] == "static Gaussians"  # the bowl's lower part (--static-below)
+    # video k is the --seed SEED+k video: a chosen candidate can be made again on its own
+    again = tmp_path / "again"
+    res = run_cli(scene, "--camera", tmp_path / "cams.json", "--model", tiny_model, *SIZE, *FAST, "--seed", "8",
+                  "--up", "-y", "-o", again)
+    assert res.exit_code == 0, res.output
+    np.testing.assert_array_equal(np.stack([read_png(f) for f in sorted(again.glob("frame_*.png"))]), videos[1])
 
 
 @needs_extra
