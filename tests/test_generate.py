@@ -318,3 +318,22 @@ def test_camera_motion_on_rendered_views(shared_data: Path) -> None:
     assert m.displacement[0] < 0.05
     np.testing.assert_allclose(m.shifts[1], [3.0, -2.0], atol=0.15)
     assert m.zooms[2] == pytest.approx(1.02, abs=2e-3)
+
+
+@needs_extra
+def test_fp16_only_download_loads(tiny_model: Path, tmp_path: Path) -> None:
+    # `huggingface-cli download ... --include "*.fp16.safetensors"` leaves only the fp16
+    # variant files; inspect_model notices and the pipeline loads them (local files only).
+    import shutil
+
+    from pd_tool.generate import inspect_model, load_pipeline
+
+    folder = tmp_path / "fp16"
+    shutil.copytree(tiny_model, folder)
+    for f in folder.glob("*/*.safetensors"):
+        f.rename(f.with_name(f.name.replace(".safetensors", ".fp16.safetensors")))
+    info = inspect_model(folder)
+    assert (info.variant, info.multiple, info.class_name) == ("fp16", 8, "StableVideoDiffusionPipeline")
+    pipe = load_pipeline(info, "cpu")
+    assert pipe.unet.dtype == torch.float32 and pipe.vae_scale_factor == 4
+    assert inspect_model(tiny_model).variant is None
