@@ -60,6 +60,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="CPU scale: 3000 Gaussians, 192 px, draft")
     ap.add_argument("--velocity-iters", type=int, default=None)
     ap.add_argument("--material-iters", type=int, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a FitSettings field, e.g. --set refine_velocity=true (repeatable)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -82,8 +84,12 @@ def main() -> None:
     if args.device == "cpu":
         torch.set_num_threads(1)
     q = load_preset("quality", args.quality)
+    overrides = {}
+    for item in args.set:
+        key, _, text = item.partition("=")
+        overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
     settings = FitSettings(quality=args.quality, device=args.device, working_long_side=args.size,
-                           velocity_iters=args.velocity_iters, material_iters=args.material_iters)
+                           velocity_iters=args.velocity_iters, material_iters=args.material_iters, **overrides)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
@@ -132,7 +138,7 @@ def main() -> None:
     out = {
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
-        "frames": args.frames, "quality": args.quality, "fit_s": fit_s, "regions": regions,
+        "frames": args.frames, "quality": args.quality, "overrides": overrides, "fit_s": fit_s, "regions": regions,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),
                       "peak_motion_truth": float(np.linalg.norm(x_true[:, fg] - x_true[0, fg], axis=-1).max() / size)},
