@@ -255,7 +255,9 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
         state = pb.initial_state(v0s[i])
         h = pb.s.material_horizon
         for k in range(1, video.num_frames):
-            if h is not None and (k - 1) % h == 0:
+            # Cut the graph every h frames, but never before the first frame: its loss must
+            # still reach v0 when stage 2 refines it (a cut at k = 1 left v0 without gradient).
+            if h is not None and k > 1 and (k - 1) % h == 0:
                 state = tuple(t.detach() for t in state)
             state = pb.step(state, E, sub, k)
             total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
