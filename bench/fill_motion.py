@@ -1,33 +1,40 @@
 """Filled against hollow: a thick horizontal rod (a branch) clamped at one end, same poke.
 
-A solid cylinder of radius R and free length L (a cantilever along +x, clamped at x0 by its
-first CLAMP_CELLS cells) is scanned as a closed shell of flat Gaussians: the side and two
-end caps, about 3 Gaussians per surface cell. Two MPM simulations with the same Young's
-modulus, Poisson's ratio, density and poke:
-  hollow: the shell Gaussians only (what simulating a scan as it is gives);
-  filled: the shell plus `fill_interior` particles (mode "auto", so it also shows the
-          decision).
+A solid cylinder of radius R and free length L (a cantilever along +x whose first
+CLAMP_CELLS cells, x < x0, sit in a clamp) is scanned as a closed shell of flat Gaussians:
+the side and two end caps, about 3 Gaussians per surface cell. Two MPM simulations with
+the same Young's modulus, Poisson's ratio, density, clamp and poke:
+  hollow: the free part of the shell Gaussians only (what simulating a scan as it is gives);
+  filled: the same plus the `fill_interior` particles (mode "auto" on the whole closed
+          scan, so it also shows the decision).
+The clamp (--clamp block, default) is a static solid block of lattice particles over the
+root's cross-section, the same in both runs. (--clamp shell: the scan's own particles with
+x < x0 are static instead, bake's rule; a hollow rod is then held by a one-node ring of
+pinned grid nodes, which hinges, and it creeps back without ringing.)
 Particle volumes follow the preparation step (cell volume / particles in that cell, over
-all particles), masses = density * volume; every particle with x < x0 is static. Gravity is
-off, so the straight rest shape is the equilibrium and the free vibration crosses it. The
-poke: a downward (-z) acceleration POKE_ACCEL on every free particle for POKE_S seconds
-(a short gust; the paper's interaction with the whole rod as the pushed region).
+all particles), masses = density * volume. Gravity is off, so the straight rest shape is
+the equilibrium and the free vibration crosses it. The poke: a downward (-z) acceleration
+POKE_ACCEL on every free particle for POKE_S seconds (a short gust; the paper's
+interaction with the whole rod as the pushed region).
 
 Measured: mass, linear density of the rod's middle, peak tip displacement and the frequency
 of the free vibration after the poke (tip = shell particles in the last cell, what a viewer
 sees; whole periods between zero crossings about the rest position, as bench/physics.py).
 
-Beam theory for each run, from its own measured linear density (so the shell thickness the
-MPM gives a one-cell shell enters, not a guess): Euler-Bernoulli with Rayleigh's tip-mass
-correction, f = 1/(2 pi) sqrt(3 E I / (L^3 (0.2427 m_rod + m_tip))), m_rod = lambda L and
-m_tip the rest of the free mass (the end cap);
-  filled: solid rod of the effective radius sqrt(lambda / (rho pi)), I = pi R^4 / 4;
-  hollow: tube of mid radius R and wall t = lambda / (rho 2 pi R), I = pi (Ro^4 - Ri^4) / 4.
-Thin tube against solid rod of the same radius: I/A = R^2/2 against R^2/4, so the hollow rod
-rings sqrt(2) faster; the filled one is R/(2t) times heavier and, under the same
-acceleration, deflects 2x further statically (sqrt(2)x for a short poke).
-Peak tip displacement, one mode: 2 d_s |sin(w POKE_S / 2)|, d_s = a (lambda L^4/(8 E I) +
-m_tip L^3 / (3 E I)) the static deflection under the poke's acceleration a.
+Beam theory (Euler-Bernoulli cantilever, Rayleigh's tip-mass correction):
+f = 1/(2 pi) sqrt(3 E I / (L^3 (0.2427 lambda L + m_tip))), static tip deflection under an
+acceleration a: d_s = a (lambda L^4 / (8 E I) + m_tip L^3 / (3 E I)), peak tip displacement
+of the one-mode response to the poke: 2 d_s |sin(w POKE_S / 2)|; plus Timoshenko shear
+(Dunkerley's sum with the fixed-free shear beam; -2% solid, -5% tube at L = 10 R; see
+`cantilever`). Two references:
+  theory (per run): A, I = sum(volume * z^2) and lambda = rho A from the run's own particles
+          in the middle 60% of the rod (what the MPM integrates), m_tip = free mass - lambda L;
+  nominal: a solid rod of the scan's radius R (I/A = R^2/4) against a tube of mid radius R
+          (I/A ~ R^2/2) whose wall t = lambda_hollow / (rho 2 pi R) is the one the MPM gives
+          the one-cell shell, plus its end cap as tip mass.
+A thin tube rings sqrt(2) faster than a solid rod of the same radius; the solid one is
+R/(2t) times heavier and deflects 2x further under the same acceleration (statically;
+sqrt(2)x for a short poke).
 
     python bench/fill_motion.py --device cpu --json fill_motion.json         # ~2 min CPU
     python bench/fill_motion.py --device cuda --radius-cells 8 --json fill_motion.json
@@ -73,12 +80,14 @@ def quat_z_to(n: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def rod_scan(x_start: float, x_end: float, cy: float, cz: float, radius: float, dx: float):
-    """Flat Gaussians on a closed cylinder along x (side and both caps), ~3 per surface cell.
+def rod_scan(x_start: float, x_end: float, cy: float, cz: float, radius: float, dx: float,
+             per_cell: float = SCAN_PER_CELL):
+    """Flat Gaussians on a closed cylinder along x (side and both caps), `per_cell` per
+    surface cell.
 
     Returns positions [N, 3] m, quats [N, 4] wxyz, scales [N, 3] m, opacities [N].
     """
-    s = dx / math.sqrt(SCAN_PER_CELL)  # spacing between Gaussians, m
+    s = dx / math.sqrt(per_cell)  # spacing between Gaussians, m
     n_th = max(8, int(round(2 * math.pi * radius / s)))
     n_x = int(round((x_end - x_start) / s)) + 1
     xs = np.linspace(x_start, x_end, n_x)
@@ -86,7 +95,7 @@ def rod_scan(x_start: float, x_end: float, cy: float, cz: float, radius: float, 
     xg = np.broadcast_to(xs[:, None], th.shape)
     side_n = np.stack([np.zeros(th.size), np.cos(th).ravel(), np.sin(th).ravel()], 1)
     side_p = np.stack([xg.ravel(), cy + radius * side_n[:, 1], cz + radius * side_n[:, 2]], 1)
-    n_cap = max(8, int(round(SCAN_PER_CELL * math.pi * radius**2 / dx**2)))
+    n_cap = max(8, int(round(per_cell * math.pi * radius**2 / dx**2)))
     i = np.arange(n_cap) + 0.5
     r, a = radius * np.sqrt(i / n_cap), math.pi * (3 - math.sqrt(5)) * i  # sunflower disc
     disc = np.stack([cy + r * np.cos(a), cz + r * np.sin(a)], 1)
@@ -135,14 +144,33 @@ def section(x: np.ndarray, vol: np.ndarray, x0: float, L: float) -> dict:
             "tip_mass_kg": max(m_free - RHO * area * L, 0.0)}
 
 
-def cantilever(inertia: float, lam: float, m_tip: float, L: float) -> dict:
-    """Euler-Bernoulli cantilever with Rayleigh's tip-mass correction: first frequency (Hz),
-    static tip deflection under the poke's acceleration and under gravity (m), and the peak
-    tip displacement of the one-mode response to the poke (m)."""
-    k = 3 * E_PA * inertia / L**3  # tip stiffness, N/m
-    omega = math.sqrt(k / (RAYLEIGH_MASS * lam * L + m_tip))
-    per_accel = lam * L**4 / (8 * E_PA * inertia) + m_tip / k  # m per m/s^2
-    return {"frequency_hz": omega / (2 * math.pi), "static_deflection_m": POKE_ACCEL * per_accel,
+def shear_coefficient(kind: str) -> float:
+    """Timoshenko shear coefficient: solid circle 6(1+nu)/(7+6nu), thin tube 2(1+nu)/(4+3nu)."""
+    return 6 * (1 + NU) / (7 + 6 * NU) if kind == "filled" else 2 * (1 + NU) / (4 + 3 * NU)
+
+
+def cantilever(inertia: float, lam: float, m_tip: float, L: float, kappa: float) -> dict:
+    """Cantilever of second moment I (m^4), linear density lam (kg/m), tip mass m_tip (kg),
+    length L (m) and shear coefficient kappa: first frequency (Hz), static tip deflection
+    under the poke's acceleration and under gravity (m), peak tip displacement of the
+    one-mode response to the poke (m).
+
+    Bending: Euler-Bernoulli with Rayleigh's tip mass. Shear (Timoshenko, L/R = 10 makes it
+    a few per cent, more for a tube): Dunkerley's sum 1/w^2 = 1/w_bend^2 + 1/w_shear^2 with
+    the fixed-free shear beam w_shear = (pi / 2L) sqrt(kappa G / rho); shear deflection added
+    to the static one.
+    """
+    area, shear_mod = lam / RHO, E_PA / (2 * (1 + NU))
+    k = 3 * E_PA * inertia / L**3  # bending tip stiffness, N/m
+    w_bend2 = k / (RAYLEIGH_MASS * lam * L + m_tip)
+    w_shear2 = (math.pi / (2 * L)) ** 2 * kappa * shear_mod / RHO
+    omega = 1 / math.sqrt(1 / w_bend2 + 1 / w_shear2)
+    ka = kappa * shear_mod * area
+    per_accel = (lam * L**4 / (8 * E_PA * inertia) + m_tip / k  # m per m/s^2: bending
+                 + lam * L**2 / (2 * ka) + m_tip * L / ka)  # and shear
+    return {"frequency_hz": omega / (2 * math.pi),
+            "frequency_bending_only_hz": math.sqrt(w_bend2) / (2 * math.pi),
+            "static_deflection_m": POKE_ACCEL * per_accel,
             "peak_displacement_m": 2 * POKE_ACCEL * per_accel * abs(math.sin(omega * POKE_S / 2)),
             "gravity_sag_m": 9.81 * per_accel}
 
@@ -156,7 +184,8 @@ def nominal(kind: str, radius: float, L: float, wall: float) -> dict:
         ro, ri = radius + wall / 2, max(radius - wall / 2, 0.0)
         area, inertia = math.pi * (ro**2 - ri**2), math.pi * (ro**4 - ri**4) / 4
         m_tip = RHO * math.pi * radius**2 * wall
-    return {"A_m2": area, "I_m4": inertia, **cantilever(inertia, RHO * area, m_tip, L)}
+    return {"A_m2": area, "I_m4": inertia,
+            **cantilever(inertia, RHO * area, m_tip, L, shear_coefficient(kind))}
 
 
 def setup(radius_cells: int, slender: float):
@@ -216,10 +245,11 @@ def simulate(x: np.ndarray, n_shell: int, x0: float, x_end: float, domain, secon
 
 
 def run(radius_cells: int = 4, slender: float = 10.0, seconds: float = 1.0, cfl: float = 0.5,
-        clamp: str = "block", device: str = "cpu", log=print) -> dict:
+        clamp: str = "block", scan_per_cell: float = SCAN_PER_CELL, device: str = "cpu",
+        log=print) -> dict:
     """Scan, fill and simulate both rods; returns the measurements with beam theory."""
     domain, x_start, x0, x_end, c, radius, L = setup(radius_cells, slender)
-    p, q, s, o = rod_scan(x_start, x_end, c, c, radius, DX)
+    p, q, s, o = rod_scan(x_start, x_end, c, c, radius, DX, scan_per_cell)
     t0 = time.perf_counter()
     fill = fill_interior(p, q, s, o, cell=DX, mode="auto", grid_origin=(0.0, 0.0, 0.0))
     t_fill = time.perf_counter() - t0
@@ -239,7 +269,8 @@ def run(radius_cells: int = 4, slender: float = 10.0, seconds: float = 1.0, cfl:
                     ("filled", np.concatenate([shell, pts, held]))):
         r = simulate(x.astype(np.float32), len(shell), x0, x_end, domain, seconds, cfl, device)
         sec = r["section"]
-        r["theory"] = cantilever(sec["I_m4"], sec["lam_kg_m"], sec["tip_mass_kg"], L)
+        r["theory"] = cantilever(sec["I_m4"], sec["lam_kg_m"], sec["tip_mass_kg"], L,
+                                 shear_coefficient(name))
         out["runs"][name] = r
         th = r["theory"]
         log(f"{name:7s} particles {r['particles']:6,d}  free mass {r['free_mass_kg']:.3f} kg  "
@@ -275,6 +306,8 @@ def main(argv=None) -> int:
     ap.add_argument("--clamp", choices=["block", "shell"], default="block",
                     help="block: a static solid vice at the root (both runs); shell: only "
                          "the scan's own particles in the clamp are static")
+    ap.add_argument("--scan-per-cell", type=float, default=SCAN_PER_CELL,
+                    help="Gaussians per surface cell of the scanned shell")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the fill)")
     ap.add_argument("--json", type=Path, help="write the results here")
     a = ap.parse_args(argv)
@@ -285,11 +318,12 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     t0 = time.perf_counter()
-    out = run(a.radius_cells, a.slender, a.seconds, a.cfl, a.clamp, a.device)
+    out = run(a.radius_cells, a.slender, a.seconds, a.cfl, a.clamp, a.scan_per_cell, a.device)
     out.update({"command": "python bench/fill_motion.py " + " ".join(sys.argv[1:] if argv is None else argv),
                 "device": a.device, "platform": platform.processor() or platform.machine(),
                 "E_pa": E_PA, "nu": NU, "rho": RHO, "dx_m": DX, "poke_accel": POKE_ACCEL,
                 "poke_s": POKE_S, "gravity": 0.0, "cfl_safety": a.cfl,
+                "scan_per_cell": a.scan_per_cell,
                 "wall_s": time.perf_counter() - t0})
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
