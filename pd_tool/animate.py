@@ -3,7 +3,8 @@
 `GaussianAnimator` holds the rest state in simulation axes and, given the drivers'
 current positions (metres, simulation box), returns the whole scene's Gaussian centres and
 orientations in scene units and axes. Gaussians that are not simulated (background,
-outliers, transparent ones) keep their rest pose. Differentiable in the driver positions.
+outliers, transparent ones) and static ones (the Dirichlet region: a pot, a clamp) keep
+their rest pose. Differentiable in the driver positions.
 """
 from __future__ import annotations
 
@@ -49,6 +50,9 @@ class GaussianAnimator:
 
         self._interp = DriverInterpolator(self.rest_points, self.rest_quats, self.drivers_rest, self.neighbors,
                                           mode=mode)
+        # A static Gaussian near the edge of its region can have free drivers among its 8
+        # nearest (one grid cell reaches deeper on a coarse grid): it must not follow them.
+        self.static = torch.as_tensor(np.asarray(prep.static[:f], bool), device=dev)[:, None]
 
     def to_scene_points(self, x_sim: torch.Tensor) -> torch.Tensor:
         """Simulation metres [M, 3] -> scene units [M, 3] (torch, differentiable)."""
@@ -59,6 +63,8 @@ class GaussianAnimator:
         `drivers_now` [Q, 3] (metres, simulation box)."""
         d = torch.as_tensor(drivers_now, dtype=torch.float32, device=self.device)
         pts, quats = self._interp(d)[:2]
+        pts = torch.where(self.static, self.rest_points, pts)
+        quats = torch.where(self.static, self.rest_quats, quats)
         q_scene = quat_multiply(self._q_scene.expand_as(quats), quats)
         positions = self.scene_positions.index_put((self.fg,), self.to_scene_points(pts))
         orientations = self.scene_quats.index_put((self.fg,), q_scene)
