@@ -47,18 +47,27 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="100000:64")
     ap.add_argument("--substeps", type=int, default=32)
     ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--blocks", default="", help="PARTICLE:CELL block sizes to sweep for the binned "
+                    "P2G, comma separated, e.g. 256:256,128:128 (default: the module's)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     wp.config.quiet = True
     wp.init()
     out = {"hardware": hardware(args.device), "rows": []}
+    from pd_tool.sim import gather as G
+
+    blocks = [tuple(int(v) for v in b.split(":")) for b in args.blocks.split(",") if b]
     for item in args.sizes.split(","):
         n, res = (int(v) for v in item.split(":"))
-        for gather in (False, True):
+        runs = [(False, None)] + [(True, b) for b in (blocks or [None])]
+        for gather, block in runs:
+            if block is not None:
+                G.PARTICLE_BLOCK, G.CELL_BLOCK = block
             prof = profile(n, res, args.substeps, args.frames, args.device, gather)
-            out["rows"].append({"particles": n, "grid": res, "gather": gather, "kernels": prof})
+            out["rows"].append({"particles": n, "grid": res, "gather": gather, "blocks": block, "kernels": prof})
             total = sum(k["us_per_substep"] for k in prof.values())
-            print(f"N={n} grid={res}^3 {'gather' if gather else 'scatter'}: {total:.1f} us/substep")
+            label = "gather" if gather else "scatter"
+            print(f"N={n} grid={res}^3 {label}{'' if block is None else f' blocks {block}'}: {total:.1f} us/substep")
             for name, k in prof.items():
                 print(f"    {k['us_per_substep']:8.2f} us  {name} ({k['calls']} calls)")
     if args.json:
