@@ -13,8 +13,7 @@ of a 100k-particle substep on an H200). Here:
    the contributions of the cell's particles to those nodes, then one atomic per node and
    component. Atomics drop by the particles per cell (about 8), and the threads of a cell
    read the same payload (L1 broadcasts) and write different nodes.
-3. `grid_update_clear_bins` (per node of the 4^3-node tiles that some cell's stencil
-   reaches, flagged during binning): the usual grid update, clearing the grid, the cell
+3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid, the cell
    counters and the occupied-cell count for the next substep.
 
 Cell lists have a fixed capacity (`CELL_CAPACITY`); a particle that finds its cell full
@@ -34,12 +33,11 @@ from pd_tool.sim import kernels as K
 
 CELL_CAPACITY = 16  # particle slots per cell; more spill to atomics (8 per cell is typical)
 CELL_CAPACITY_W = wp.constant(CELL_CAPACITY)
-# CUDA threads per block of the particle kernels and of the per-cell sums (warp's default
-# is 256); module attributes so that bench/sim_profile.py can sweep them.
-PARTICLE_BLOCK = 64  # H200, 100k particles: 256 -> 32 us, 128 -> 25 us, 64 -> 24 us (bench/sim_profile.py)
-CELL_BLOCK = 256  # the per-cell sums take 29-31 us at any size from 64 to 512
-TILE = 4  # nodes per axis of a "tile in use" flag: the grid update skips unused tiles
-TILE_W = wp.constant(TILE)
+# CUDA threads per block (warp's default is 256); module attributes so that
+# bench/sim_profile.py --blocks can sweep them. H200, 100k particles: the particle kernel
+# takes 32 us at 256, 25 at 128, 24 at 64; the per-cell sums 29-31 us at any size.
+PARTICLE_BLOCK = 64
+CELL_BLOCK = 256
 
 
 @wp.func
@@ -57,7 +55,6 @@ def bin_particle(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    tiles: wp.vec3i,
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
     occupied: wp.array(dtype=int),
@@ -65,7 +62,6 @@ def bin_particle(
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
-    tile_used: wp.array(dtype=int),
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
@@ -76,11 +72,6 @@ def bin_particle(
     slot = wp.atomic_add(counts, cell, 1)
     if slot == 0:
         occupied[wp.atomic_add(n_occupied, 0, 1)] = cell
-        # the cell's stencil (nodes b .. b + 2) spans at most two tiles per axis
-        for ti in range(b[0] // TILE_W, (b[0] + 2) // TILE_W + 1):
-            for tj in range(b[1] // TILE_W, (b[1] + 2) // TILE_W + 1):
-                for tk in range(b[2] // TILE_W, (b[2] + 2) // TILE_W + 1):
-                    tile_used[(ti * tiles[1] + tj) * tiles[2] + tk] = 1
     if slot < CELL_CAPACITY_W:
         lm = K.lame(E, nu)
         tau = K.kirchhoff_stress(F, lm[0], lm[1])
@@ -108,7 +99,6 @@ def p2g_bin(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    tiles: wp.vec3i,
     t_frame: wp.array(dtype=float),
     t_offset: float,
     n_forces: int,
@@ -122,7 +112,6 @@ def p2g_bin(
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
-    tile_used: wp.array(dtype=int),
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
@@ -130,7 +119,7 @@ def p2g_bin(
     p = wp.tid()
     a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, tiles, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, tile_used, grid_m, grid_mv)
+                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
 
 
 @wp.kernel(enable_backward=False)
@@ -149,7 +138,6 @@ def g2p_bin(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    tiles: wp.vec3i,
     min_det_f: float,
     edge_lo: wp.vec3,
     edge_hi: wp.vec3,
@@ -166,7 +154,6 @@ def g2p_bin(
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
-    tile_used: wp.array(dtype=int),
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     stats: wp.array(dtype=float),
@@ -177,7 +164,7 @@ def g2p_bin(
                  u, v, C, F, stats)
     a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, tiles, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, tile_used, grid_m, grid_mv)
+                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
 
 
 @wp.func
@@ -280,29 +267,16 @@ def grid_update_clear_bins(
     grid_v: wp.array3d(dtype=wp.vec3),
     counts: wp.array(dtype=int),
     n_occupied: wp.array(dtype=int),
-    tiles: wp.vec3i,
-    tile_used: wp.array(dtype=int),
-    tile_used_next: wp.array(dtype=int),
 ):
-    """kernels.grid_update_and_clear over the tiles in use, also emptying the cell lists.
-
-    Nodes of unused tiles are skipped: no particle's stencil reaches them, so they hold no
-    mass, no count, and G2P never reads their (stale) velocity. The flags are double
-    buffered: this substep's are read, the other buffer (set during the substep before,
-    already consumed) is cleared for the next binning."""
+    """kernels.grid_update_and_clear that also empties the cell lists for the next binning."""
     i, j, k = wp.tid()
-    tile = ((i // TILE_W) * tiles[1] + j // TILE_W) * tiles[2] + k // TILE_W
-    if i % TILE_W == 0 and j % TILE_W == 0 and k % TILE_W == 0:
-        tile_used_next[tile] = 0
-    if i == 0 and j == 0 and k == 0:
-        n_occupied[0] = 0
-    if tile_used[tile] == 0:
-        return
     grid_v[i, j, k] = K.node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
                                       gravity, damping_factor, pad, nodes, use_ground, ground_z)
     grid_m[i, j, k] = 0.0
     grid_mv[i, j, k] = wp.vec3(0.0)
     counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+    if i == 0 and j == 0 and k == 0:
+        n_occupied[0] = 0
 
 
 @dataclass
@@ -316,19 +290,15 @@ class CellBins:
     pay_fx: wp.array
     pay_mv: wp.array
     pay_A: wp.array
-    tile_used: tuple[wp.array, wp.array]
-    tiles: tuple[int, int, int]
 
     @classmethod
     def alloc(cls, nodes: tuple[int, int, int], n_particles: int, device) -> "CellBins":
         n_cells = nodes[0] * nodes[1] * nodes[2]
-        tiles = tuple(-(-s // TILE) for s in nodes)
-        n_tiles = tiles[0] * tiles[1] * tiles[2]
         z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
         return cls(counts=z(n_cells), slots=z(n_cells * CELL_CAPACITY),
                    occupied=z(min(n_cells, max(1, n_particles))), n_occupied=z(1),
                    pay_fx=z(n_particles, wp.vec3), pay_mv=z(n_particles, wp.vec4),
-                   pay_A=z(n_particles, wp.mat33), tile_used=(z(n_tiles), z(n_tiles)), tiles=tiles)
+                   pay_A=z(n_particles, wp.mat33))
 
     def arrays(self) -> list[wp.array]:
         return [self.counts, self.slots, self.occupied, self.n_occupied, self.pay_fx, self.pay_mv, self.pay_A]
@@ -338,39 +308,33 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
     """n substeps in place without a tape, with the binned P2G (see module doc).
 
     Same arguments as solver.run_substeps_fused plus the bins; the same result up to the
-    order of float sums. Three launches per substep. The lists and both tile-flag buffers
-    are cleared here first, so a call (or a replay of its captured graph) never sees state
-    left by the one before.
+    order of float sums. Three launches per substep. The lists are cleared here first, so a
+    call (or a replay of its captured graph) never sees counters left by the one before.
     """
     geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
     nodes = geo.nodes_vec
-    tiles = wp.vec3i(*bins.tiles)
     count = st.u.shape[0]
     g.m.zero_()
     g.mv.zero_()
     bins.counts.zero_()
     bins.n_occupied.zero_()
-    for flags in bins.tile_used:
-        flags.zero_()
     wp.launch(p2g_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
         ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, float(cfg.nu), float(geo.dx),
-        float(dt), nodes, tiles, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel, fa.window, *bins.arrays(),
-        bins.tile_used[0], g.m, g.mv])
+        float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel, fa.window, *bins.arrays(),
+        g.m, g.mv])
     cell_args = [*bins.arrays(), float(geo.dx), nodes, g.m, g.mv]
     grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts, bins.n_occupied,
-                 tiles]
+                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts, bins.n_occupied]
     for s in range(n):
-        cur, nxt = bins.tile_used[s % 2], bins.tile_used[(s + 1) % 2]
         wp.launch(p2g_cells, dim=9 * bins.occupied.shape[0], device=dev, inputs=cell_args, block_dim=CELL_BLOCK)
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[*grid_args, cur, nxt])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
         if s < n - 1:
             wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
                 ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
-                float(cfg.nu), float(geo.dx), float(dt), nodes, tiles, float(cfg.min_det_f),
+                float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
                 geo.edge_lo, geo.edge_hi, ctx.t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
-                fa.window, *bins.arrays(), nxt, g.m, g.mv, ctx.stats])
+                fa.window, *bins.arrays(), g.m, g.mv, ctx.stats])
         else:
             wp.launch(K.g2p, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
                 ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,
