@@ -38,6 +38,9 @@ CELL_CAPACITY_W = wp.constant(CELL_CAPACITY)
 # takes 32 us at 256, 25 at 128, 24 at 64; the per-cell sums 29-31 us at any size.
 PARTICLE_BLOCK = 64
 CELL_BLOCK = 256
+# Occupied cells summed per pass of the per-cell kernel: it is launched for this many (or
+# every possible) cells and loops, instead of one idle thread group per possible cell.
+CELLS_PER_PASS = 16384
 
 
 @wp.func
@@ -180,12 +183,13 @@ def bspline_at(fx: float, a: int) -> float:
     return w
 
 
-@wp.kernel(enable_backward=False)
-def p2g_cells(
+@wp.func
+def cell_row_sums(
+    cell: int,
+    a: int,
+    b: int,
     counts: wp.array(dtype=int),
     slots: wp.array(dtype=int),
-    occupied: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
     pay_fx: wp.array(dtype=wp.vec3),
     pay_mv: wp.array(dtype=wp.vec4),
     pay_A: wp.array(dtype=wp.mat33),
@@ -194,24 +198,8 @@ def p2g_cells(
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
-    """Thread (occupied cell, stencil offsets a, b): the cell's particles' shares of the
-    three nodes (a, b, 0..2), then 3 x 4 atomics.
-
-    Nine threads a cell: each payload read serves three nodes, and the cell's threads read
-    the same payload (L1 broadcasts). Launched for the largest possible number of occupied
-    cells; threads past the real count (known only on the device) return at once. (Measured
-    on an H200 at 100k particles: 27 threads a cell 34 us, 9 threads 29 us, 3 threads 29 us;
-    launching 9 threads per particle and letting only each cell's first particle work, to
-    save the shared occupied-cell counter, 44 us.)
-    """
-    t = wp.tid()
-    slot = t // 9
-    if slot >= n_occupied[0]:
-        return
-    o = t - 9 * slot
-    a = o // 3
-    b = o - 3 * a
-    cell = occupied[slot]
+    """One cell's particles' shares of the three nodes (a, b, 0..2) of its stencil, then
+    3 x 4 atomics."""
     ck = cell % nodes[2]
     cj = (cell // nodes[2]) % nodes[1]
     ci = cell // (nodes[1] * nodes[2])
@@ -249,6 +237,43 @@ def p2g_cells(
     wp.atomic_add(grid_mv, ci + a, cj + b, ck, mv0)
     wp.atomic_add(grid_mv, ci + a, cj + b, ck + 1, mv1)
     wp.atomic_add(grid_mv, ci + a, cj + b, ck + 2, mv2)
+
+
+@wp.kernel(enable_backward=False)
+def p2g_cells(
+    counts: wp.array(dtype=int),
+    slots: wp.array(dtype=int),
+    occupied: wp.array(dtype=int),
+    n_occupied: wp.array(dtype=int),
+    pay_fx: wp.array(dtype=wp.vec3),
+    pay_mv: wp.array(dtype=wp.vec4),
+    pay_A: wp.array(dtype=wp.mat33),
+    dx: float,
+    nodes: wp.vec3i,
+    cells_per_pass: int,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """Thread (cell lane, stencil offsets a, b): for the occupied cells lane, lane +
+    cells_per_pass, ... (the count is known only on the device), that cell's shares of the
+    row of nodes (a, b, 0..2).
+
+    Nine threads a cell: each payload read serves three nodes, and the cell's threads read
+    the same payload (L1 broadcasts). Measured on an H200 at 100k particles: 27 threads a
+    cell 34 us, 9 threads 29 us, 3 threads 29 us; launching 9 threads per particle and
+    letting only each cell's first particle work, to save the shared occupied-cell
+    counter, 44 us.
+    """
+    t = wp.tid()
+    lane = t // 9
+    o = t - 9 * lane
+    a = o // 3
+    b = o - 3 * a
+    n = n_occupied[0]
+    slot = lane
+    while slot < n:
+        cell_row_sums(occupied[slot], a, b, counts, slots, pay_fx, pay_mv, pay_A, dx, nodes, grid_m, grid_mv)
+        slot += cells_per_pass
 
 
 @wp.kernel(enable_backward=False)
@@ -322,12 +347,13 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
         ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, float(cfg.nu), float(geo.dx),
         float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel, fa.window, *bins.arrays(),
         g.m, g.mv])
-    cell_args = [*bins.arrays(), float(geo.dx), nodes, g.m, g.mv]
+    per_pass = min(CELLS_PER_PASS, bins.occupied.shape[0])
+    cell_args = [*bins.arrays(), float(geo.dx), nodes, per_pass, g.m, g.mv]
     grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
                  float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts, bins.n_occupied]
     for s in range(n):
-        wp.launch(p2g_cells, dim=9 * bins.occupied.shape[0], device=dev, inputs=cell_args, block_dim=CELL_BLOCK)
+        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, inputs=cell_args, block_dim=CELL_BLOCK)
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
         if s < n - 1:
             wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
