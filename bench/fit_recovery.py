@@ -55,6 +55,8 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=100_000)
     ap.add_argument("--size", type=int, default=1024, help="reference frames' long side, px")
     ap.add_argument("--frames", type=int, default=14)
+    ap.add_argument("--fps", type=float, default=30.0, help="reference video frame rate (the fit reads it "
+                    "from camera.json); lower = the same frames span more of the oscillation")
     ap.add_argument("--quality", default="default")
     ap.add_argument("--seconds", type=float, default=2.0, help="length of the new-force test")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 3000 Gaussians, 192 px, draft")
@@ -98,7 +100,7 @@ def main() -> None:
         cam = scene_camera(scene, width=args.size, height=h)
         video, _, _ = plant_reference_video(
             tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=fit_simulation(q)[0]),
-            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames,
+            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames, fps=args.fps,
             cfl_safety=fit_simulation(q)[1], device=args.device)
         refs = [load_reference_video(video, working_size=args.size, device=args.device)]
         t0 = time.perf_counter()
@@ -138,7 +140,7 @@ def main() -> None:
     out = {
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
-        "frames": args.frames, "quality": args.quality, "overrides": overrides, "fit_s": fit_s, "regions": regions,
+        "frames": args.frames, "fps": args.fps, "quality": args.quality, "overrides": overrides, "fit_s": fit_s, "regions": regions,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),
                       "peak_motion_truth": float(np.linalg.norm(x_true[:, fg] - x_true[0, fg], axis=-1).max() / size)},
