@@ -16,7 +16,7 @@ import torch
 import warp as wp
 
 from pd_tool.sim import kernels as K
-from pd_tool.sim.gather import CellBins, run_substeps_binned
+from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -144,7 +144,7 @@ class DiffSim:
         if wp.get_device(self.device).is_cuda:
             bins = getattr(self, "_bins", None)
             if bins is None:
-                bins = self._bins = CellBins.alloc(self.geo.nodes, self.n, self.device)
+                bins = self._bins = alloc_cell_lists(self.geo.nodes, self.n, self.device)
             run_substeps_binned(sctx, n, dt, st, self._grid_cache(), bins)
         else:
             run_substeps_fused(sctx, n, dt, st, self._grid_cache())

@@ -25,8 +25,6 @@ whose adjoint warp generates.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import warp as wp
 
 from pd_tool.sim import kernels as K
@@ -41,6 +39,25 @@ CELL_BLOCK = 256
 # Occupied cells summed per pass of the per-cell kernel: it is launched for this many (or
 # every possible) cells and loops, instead of one idle thread group per possible cell.
 CELLS_PER_PASS = 16384
+
+
+@wp.struct
+class CellLists:
+    """Per-cell particle lists and the per-particle P2G payload, on the device.
+
+    counts [cells]: particles binned in each cell this substep (may exceed the capacity);
+    slots [cells * CELL_CAPACITY]: their indices; occupied [<= cells]: the cells holding at
+    least one particle, n_occupied [1] of them; pay_fx [N]: B-spline offset x/dx - base;
+    pay_mv [N]: momentum (kg m/s) and mass (kg); pay_A [N]: MLS affine matrix
+    m C - 4/dx^2 dt V tau (kg/s)."""
+
+    counts: wp.array(dtype=int)
+    slots: wp.array(dtype=int)
+    occupied: wp.array(dtype=int)
+    n_occupied: wp.array(dtype=int)
+    pay_fx: wp.array(dtype=wp.vec3)
+    pay_mv: wp.array(dtype=wp.vec4)
+    pay_A: wp.array(dtype=wp.mat33)
 
 
 @wp.func
@@ -58,13 +75,7 @@ def bin_particle(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    counts: wp.array(dtype=int),
-    slots: wp.array(dtype=int),
-    occupied: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
-    pay_fx: wp.array(dtype=wp.vec3),
-    pay_mv: wp.array(dtype=wp.vec4),
-    pay_A: wp.array(dtype=wp.mat33),
+    lists: CellLists,
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
 ):
@@ -72,61 +83,25 @@ def bin_particle(
     inv_dx = 1.0 / dx
     b = K.stencil_base(x, inv_dx, nodes)
     cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-    slot = wp.atomic_add(counts, cell, 1)
+    slot = wp.atomic_add(lists.counts, cell, 1)
     if slot == 0:
-        occupied[wp.atomic_add(n_occupied, 0, 1)] = cell
+        lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
     if slot < CELL_CAPACITY_W:
         lm = K.lame(E, nu)
         tau = K.kirchhoff_stress(F, lm[0], lm[1])
-        pay_fx[p] = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+        lists.pay_fx[p] = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
         mv = m * (v + a_ext * dt)
-        pay_mv[p] = wp.vec4(mv[0], mv[1], mv[2], m)
-        pay_A[p] = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
-        slots[cell * CELL_CAPACITY_W + slot] = p
+        lists.pay_mv[p] = wp.vec4(mv[0], mv[1], mv[2], m)
+        lists.pay_A[p] = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
+        lists.slots[cell * CELL_CAPACITY_W + slot] = p
     else:
         # Overflow: the atomic scatter, added to the same grid as the binned sums.
         K.p2g_scatter(x, v, C, F, E, vol, m, a_ext, nu, dx, dt, nodes, grid_m, grid_mv)
 
 
 @wp.kernel(enable_backward=False)
-def p2g_bin(
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    t_frame: wp.array(dtype=float),
-    t_offset: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
-    counts: wp.array(dtype=int),
-    slots: wp.array(dtype=int),
-    occupied: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
-    pay_fx: wp.array(dtype=wp.vec3),
-    pay_mv: wp.array(dtype=wp.vec4),
-    pay_A: wp.array(dtype=wp.mat33),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-):
-    """The first substep's binning (no G2P before it)."""
-    p = wp.tid()
-    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
-
-
-@wp.kernel(enable_backward=False)
 def g2p_bin(
+    do_g2p: int,
     base: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -150,24 +125,20 @@ def g2p_bin(
     force_mask: wp.array2d(dtype=float),
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
-    counts: wp.array(dtype=int),
-    slots: wp.array(dtype=int),
-    occupied: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
-    pay_fx: wp.array(dtype=wp.vec3),
-    pay_mv: wp.array(dtype=wp.vec4),
-    pay_A: wp.array(dtype=wp.mat33),
+    lists: CellLists,
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     stats: wp.array(dtype=float),
 ):
-    """G2P of this substep in place, then the next substep's payload and binning."""
+    """G2P of this substep in place (unless do_g2p is 0: the run's first binning), then the
+    next substep's payload and binning."""
     p = wp.tid()
-    K.g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
-                 u, v, C, F, stats)
+    if do_g2p != 0:
+        K.g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
+                     u, v, C, F, stats)
     a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, counts, slots, occupied, n_occupied, pay_fx, pay_mv, pay_A, grid_m, grid_mv)
+                 nodes, lists, grid_m, grid_mv)
 
 
 @wp.func
@@ -188,11 +159,7 @@ def cell_row_sums(
     cell: int,
     a: int,
     b: int,
-    counts: wp.array(dtype=int),
-    slots: wp.array(dtype=int),
-    pay_fx: wp.array(dtype=wp.vec3),
-    pay_mv: wp.array(dtype=wp.vec4),
-    pay_A: wp.array(dtype=wp.mat33),
+    lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
     grid_m: wp.array3d(dtype=float),
@@ -209,12 +176,12 @@ def cell_row_sums(
     mv0 = wp.vec3(0.0)
     mv1 = wp.vec3(0.0)
     mv2 = wp.vec3(0.0)
-    cnt = wp.min(counts[cell], CELL_CAPACITY_W)
+    cnt = wp.min(lists.counts[cell], CELL_CAPACITY_W)
     for s in range(cnt):
-        q = slots[cell * CELL_CAPACITY_W + s]
-        fx = pay_fx[q]
-        pm = pay_mv[q]
-        A = pay_A[q]
+        q = lists.slots[cell * CELL_CAPACITY_W + s]
+        fx = lists.pay_fx[q]
+        pm = lists.pay_mv[q]
+        A = lists.pay_A[q]
         wab = bspline_at(fx[0], a) * bspline_at(fx[1], b)
         wz = K.bspline_w(fx[2])
         mom = wp.vec3(pm[0], pm[1], pm[2])
@@ -241,13 +208,7 @@ def cell_row_sums(
 
 @wp.kernel(enable_backward=False)
 def p2g_cells(
-    counts: wp.array(dtype=int),
-    slots: wp.array(dtype=int),
-    occupied: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
-    pay_fx: wp.array(dtype=wp.vec3),
-    pay_mv: wp.array(dtype=wp.vec4),
-    pay_A: wp.array(dtype=wp.mat33),
+    lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
     cells_per_pass: int,
@@ -269,10 +230,10 @@ def p2g_cells(
     o = t - 9 * lane
     a = o // 3
     b = o - 3 * a
-    n = n_occupied[0]
+    n = lists.n_occupied[0]
     slot = lane
     while slot < n:
-        cell_row_sums(occupied[slot], a, b, counts, slots, pay_fx, pay_mv, pay_A, dx, nodes, grid_m, grid_mv)
+        cell_row_sums(lists.occupied[slot], a, b, lists, dx, nodes, grid_m, grid_mv)
         slot += cells_per_pass
 
 
@@ -290,8 +251,7 @@ def grid_update_clear_bins(
     use_ground: int,
     ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
-    counts: wp.array(dtype=int),
-    n_occupied: wp.array(dtype=int),
+    lists: CellLists,
 ):
     """kernels.grid_update_and_clear that also empties the cell lists for the next binning."""
     i, j, k = wp.tid()
@@ -299,68 +259,54 @@ def grid_update_clear_bins(
                                       gravity, damping_factor, pad, nodes, use_ground, ground_z)
     grid_m[i, j, k] = 0.0
     grid_mv[i, j, k] = wp.vec3(0.0)
-    counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+    lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
     if i == 0 and j == 0 and k == 0:
-        n_occupied[0] = 0
+        lists.n_occupied[0] = 0
 
 
-@dataclass
-class CellBins:
-    """Per-cell particle lists, the occupied-cell list and the per-particle P2G payload."""
-
-    counts: wp.array
-    slots: wp.array
-    occupied: wp.array
-    n_occupied: wp.array
-    pay_fx: wp.array
-    pay_mv: wp.array
-    pay_A: wp.array
-
-    @classmethod
-    def alloc(cls, nodes: tuple[int, int, int], n_particles: int, device) -> "CellBins":
-        n_cells = nodes[0] * nodes[1] * nodes[2]
-        z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
-        return cls(counts=z(n_cells), slots=z(n_cells * CELL_CAPACITY),
-                   occupied=z(min(n_cells, max(1, n_particles))), n_occupied=z(1),
-                   pay_fx=z(n_particles, wp.vec3), pay_mv=z(n_particles, wp.vec4),
-                   pay_A=z(n_particles, wp.mat33))
-
-    def arrays(self) -> list[wp.array]:
-        return [self.counts, self.slots, self.occupied, self.n_occupied, self.pay_fx, self.pay_mv, self.pay_A]
+def alloc_cell_lists(nodes: tuple[int, int, int], n_particles: int, device) -> CellLists:
+    """CellLists for a grid of `nodes` and n_particles particles (zeroed)."""
+    n_cells = nodes[0] * nodes[1] * nodes[2]
+    z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
+    lists = CellLists()
+    lists.counts, lists.slots = z(n_cells), z(n_cells * CELL_CAPACITY)
+    lists.occupied, lists.n_occupied = z(min(n_cells, max(1, n_particles))), z(1)
+    lists.pay_fx, lists.pay_mv, lists.pay_A = z(n_particles, wp.vec3), z(n_particles, wp.vec4), z(n_particles, wp.mat33)
+    return lists
 
 
-def run_substeps_binned(ctx, n: int, dt: float, st, g, bins: CellBins) -> None:
+def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None:
     """n substeps in place without a tape, with the binned P2G (see module doc).
 
-    Same arguments as solver.run_substeps_fused plus the bins; the same result up to the
-    order of float sums. Three launches per substep. The lists are cleared here first, so a
-    call (or a replay of its captured graph) never sees counters left by the one before.
+    Same arguments as solver.run_substeps_fused plus the cell lists; the same result up to
+    the order of float sums. Three launches per substep. The lists are cleared here first,
+    so a call (or a replay of its captured graph) never sees counters left by the one before.
     """
     geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
     nodes = geo.nodes_vec
     count = st.u.shape[0]
     g.m.zero_()
     g.mv.zero_()
-    bins.counts.zero_()
-    bins.n_occupied.zero_()
-    wp.launch(p2g_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, float(cfg.nu), float(geo.dx),
-        float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel, fa.window, *bins.arrays(),
-        g.m, g.mv])
-    per_pass = min(CELLS_PER_PASS, bins.occupied.shape[0])
-    cell_args = [*bins.arrays(), float(geo.dx), nodes, per_pass, g.m, g.mv]
+    lists.counts.zero_()
+    lists.n_occupied.zero_()
+
+    def bin_particles(do_g2p: int, t_offset: float) -> None:
+        wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+            do_g2p, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
+            float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
+            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, g.m, g.mv, ctx.stats])
+
+    bin_particles(0, 0.0)
+    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, bins.counts, bins.n_occupied]
+                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, lists]
     for s in range(n):
-        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, inputs=cell_args, block_dim=CELL_BLOCK)
+        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+                  inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
         if s < n - 1:
-            wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-                ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
-                float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
-                geo.edge_lo, geo.edge_hi, ctx.t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
-                fa.window, *bins.arrays(), g.m, g.mv, ctx.stats])
+            bin_particles(1, (s + 1) * dt)
         else:
             wp.launch(K.g2p, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
                 ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,

@@ -17,7 +17,7 @@ import warp as wp
 from pd_tool.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import CellBins, run_substeps_binned
+from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats, fold_stat_lanes
 
 wp.config.quiet = True
@@ -403,7 +403,7 @@ class MPMSolver:
         self._stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=d)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
-        self._bins = CellBins.alloc(self.geo.nodes, self.n, d) if self._gather else None
+        self._bins = alloc_cell_lists(self.geo.nodes, self.n, d) if self._gather else None
 
     # ---------------------------------------------------------------- inputs
     def set_velocity(self, v) -> None:
