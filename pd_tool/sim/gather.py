@@ -5,10 +5,10 @@ The scatter P2G (kernels.p2g_scatter) does 27 x 4 float atomics per particle. On
 those atomics, not arithmetic, bound the substep (bench/sim_profile.py: 105 of the 136 us
 of a 100k-particle substep on an H200). Here:
 
-1. `g2p_bin` (per particle): G2P of this substep, then the particle's P2G payload for the
-   next one (B-spline offset fx, mass, momentum, MLS affine matrix: the stress is
-   evaluated once per particle) and a slot in the list of its stencil cell. The first
-   particle of a cell appends the cell to the list of occupied cells.
+1. `g2p_bin` (per particle): G2P of this substep (skipped for a run's first binning), then
+   the particle's P2G payload for the next one (B-spline offset fx, mass, momentum, MLS
+   affine matrix: the stress is evaluated once per particle) and a slot in the list of its
+   stencil cell. The first particle of a cell appends the cell to the occupied cells.
 2. `p2g_cells` (9 threads per occupied cell, each owning a row of 3 stencil nodes): sum
    the contributions of the cell's particles to those nodes, then one atomic per node and
    component. Atomics drop by the particles per cell (about 8), and the threads of a cell
@@ -19,12 +19,13 @@ of a 100k-particle substep on an H200). Here:
 Cell lists have a fixed capacity (`CELL_CAPACITY`); a particle that finds its cell full
 scatters with atomics as before, so the result is exact at any compression.
 
-Only the fast path (no tape) uses this; the differentiable path keeps the scatter P2G,
-whose adjoint warp generates.
+Only untaped runs use this (the fast path, and the differentiable path's forward and
+recompute); the taped replay keeps the scatter P2G, whose adjoint warp generates.
 """
 from __future__ import annotations
 
 import math
+
 import warp as wp
 
 from pd_tool.sim import kernels as K
