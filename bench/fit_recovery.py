@@ -55,6 +55,9 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=100_000)
     ap.add_argument("--size", type=int, default=1024, help="reference frames' long side, px")
     ap.add_argument("--frames", type=int, default=14)
+    ap.add_argument("--views", type=int, default=1,
+                    help="reference videos: view k is pushed along x (k even) or y (k odd) and seen from "
+                         "45 + 90 k degrees azimuth; one shared E is fitted to all (multi-view)")
     ap.add_argument("--fps", type=float, default=30.0, help="reference video frame rate (the fit reads it "
                     "from camera.json); lower = the same frames span more of the oscillation")
     ap.add_argument("--quality", default="default")
@@ -80,6 +83,7 @@ def main() -> None:
     from pd_tool.presets import fit_simulation, load_preset
     from pd_tool.reference import plant_reference_video
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+    from pd_tool.cameras import auto_camera
     from pd_tool.views import scene_camera
 
     init_warp_quietly()
@@ -97,12 +101,17 @@ def main() -> None:
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
         h = args.size * 9 // 16 if args.size >= 512 else args.size
-        cam = scene_camera(scene, width=args.size, height=h)
-        video, _, _ = plant_reference_video(
-            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=fit_simulation(q)[0]),
-            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames, fps=args.fps,
-            cfl_safety=fit_simulation(q)[1], device=args.device)
-        refs = [load_reference_video(video, working_size=args.size, device=args.device)]
+        grid, cfl, ratio = fit_simulation(q)
+        refs = []
+        for k in range(args.views):
+            cam = scene_camera(scene, width=args.size, height=h) if k == 0 else auto_camera(
+                scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
+            video, _, _ = plant_reference_video(
+                tmp / f"video{k}", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),
+                region_E=REGION_TRUTH_E, driver_ratio=ratio, n_frames=args.frames, fps=args.fps,
+                push_direction=(1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0), cfl_safety=cfl,
+                device=args.device)
+            refs.append(load_reference_video(video, working_size=args.size, device=args.device))
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
                       settings=settings)
@@ -127,7 +136,7 @@ def main() -> None:
                          "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
     s = settings.resolved()
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
-               cfl_safety=fit_simulation(q)[1])
+               cfl_safety=cfl)
     x_true = simulate_positions(scene, prep, drivers, truth_E, **sim)
     x_fit = simulate_positions(scene, prep, drivers, res.driver_E, **sim)
     x_base = simulate_positions(scene, prep, drivers, np.full(len(truth_E), s.init_E), **sim)
@@ -140,7 +149,8 @@ def main() -> None:
     out = {
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
-        "frames": args.frames, "fps": args.fps, "quality": args.quality, "overrides": overrides, "fit_s": fit_s, "regions": regions,
+        "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
+        "overrides": overrides, "fit_s": fit_s, "regions": regions,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),
                       "peak_motion_truth": float(np.linalg.norm(x_true[:, fg] - x_true[0, fg], axis=-1).max() / size)},

@@ -88,6 +88,7 @@ def plant_reference_video(
     fps: float = 30.0,
     nu: float = 0.3,
     push_speed: float = 0.6,
+    push_direction: tuple[float, float, float] = (1.0, 0.0, 0.0),
     cfl_safety: float = 0.5,
     seed: int = 0,
     device: str = "cpu",
@@ -116,7 +117,7 @@ def plant_reference_video(
     driver_E = table[votes.argmax(axis=1)]
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
-    driver_v0 = push_velocity(d_rest, d_static, speed=push_speed)
+    driver_v0 = push_velocity(d_rest, d_static, direction=push_direction, speed=push_speed)
     frames = simulate_reference(scene, prep, drivers, driver_E, driver_v0, camera, n_frames=n_frames, fps=fps,
                                 nu=nu, cfl_safety=cfl_safety, device=device)
     folder = write_video_folder(out, frames, camera, fps, overwrite=True)
