@@ -81,7 +81,7 @@ def main() -> None:
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
     from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_video
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.cameras import auto_camera
     from pd_tool.views import scene_camera
@@ -101,16 +101,14 @@ def main() -> None:
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
         h = args.size * 9 // 16 if args.size >= 512 else args.size
-        grid, cfl, ratio = fit_simulation(q)
+        cfl = fit_simulation(q)[1]
         refs = []
         for k in range(args.views):
             cam = scene_camera(scene, width=args.size, height=h) if k == 0 else auto_camera(
                 scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
-            video, _, _ = plant_reference_video(
-                tmp / f"video{k}", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),
-                region_E=REGION_TRUTH_E, driver_ratio=ratio, n_frames=args.frames, fps=args.fps,
-                push_direction=(1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0), cfl_safety=cfl,
-                device=args.device)
+            video, _, _ = plant_reference_for_fit(
+                tmp / f"video{k}", scene, cam, args.quality, n_frames=args.frames, fps=args.fps,
+                push_direction=(1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0), device=args.device)
             refs.append(load_reference_video(video, working_size=args.size, device=args.device))
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),

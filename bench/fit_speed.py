@@ -36,13 +36,11 @@ def main() -> None:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_video
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
 
     init_warp_quietly()
-    q = load_preset("quality", args.quality)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         scene_path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
@@ -51,10 +49,8 @@ def main() -> None:
         scene = load_splats(scene_path, device=args.device)
         cam = scene_camera(scene, width=args.width, height=args.height)
         t0 = time.perf_counter()
-        video, truth, _ = plant_reference_video(
-            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=fit_simulation(q)[0]),
-            region_E=REGION_TRUTH_E, driver_ratio=fit_simulation(q)[2], n_frames=args.frames,
-            cfl_safety=fit_simulation(q)[1], device=args.device)
+        video, truth, _ = plant_reference_for_fit(tmp / "video", scene, cam, args.quality, n_frames=args.frames,
+                                                  device=args.device)
         t_video = time.perf_counter() - t0
         refs = [load_reference_video(video, working_size=max(args.width, args.height), device=args.device)]
         s = FitSettings(quality=args.quality, device=args.device, velocity_iters=args.velocity_iters,

@@ -34,25 +34,21 @@ def main() -> None:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_video
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
 
     init_warp_quietly()
     if args.device == "cpu":
         torch.set_num_threads(1)
-    q = load_preset("quality", args.quality)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
         cam = scene_camera(scene, width=args.size, height=args.size)
-        video, _, _ = plant_reference_video(tmp / "video", scene, cam, prepare_options=PrepareOptions(
-            static_below=POT_TOP, grid_res=fit_simulation(q)[0]), region_E=REGION_TRUTH_E,
-            driver_ratio=fit_simulation(q)[2], n_frames=args.frames, cfl_safety=fit_simulation(q)[1],
-            device=args.device)
+        video, _, _ = plant_reference_for_fit(tmp / "video", scene, cam, args.quality, n_frames=args.frames,
+                                              device=args.device)
         refs = [load_reference_video(video, working_size=args.size, device=args.device)]
         labels = scene.labels
         for cfg in json.loads(args.configs):

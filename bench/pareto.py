@@ -176,22 +176,18 @@ def fit_sweep(args) -> list[dict]:
     from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import load_preset
-    from pd_tool.reference import plant_reference_video
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.views import scene_camera
 
     rows = []
-    q = load_preset("quality", args.fit_quality)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         scene_path = save_splats(make_plant(args.fit_gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(scene_path, device=args.device)
         cam = scene_camera(scene, width=args.fit_size, height=args.fit_size)
-        video, _, _ = plant_reference_video(
-            tmp / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=int(q["grid_res"])),
-            region_E=REGION_TRUTH_E, driver_ratio=float(q["driver_ratio"]), n_frames=args.fit_frames,
-            cfl_safety=float(q["cfl_safety"]), device=args.device)
+        video, _, _ = plant_reference_for_fit(tmp / "video", scene, cam, args.fit_quality, n_frames=args.fit_frames,
+                                              device=args.device)
         refs = [load_reference_video(video, working_size=args.fit_size, device=args.device)]
         for spec in args.fit_iters.split(","):
             vi, mi = (int(v) for v in spec.split("/"))

@@ -43,8 +43,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     from pd_tool.io import load_splats, save_splats
     from pd_tool.material_file import MaterialFile, write_record
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_video
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import make_plant
     from pd_tool.views import scene_camera
 
@@ -62,12 +61,8 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
 
     # 2. a reference video of the hidden truth: E per region, pushed sideways at t = 0
     t0 = time.perf_counter()
-    grid, cfl, ratio = fit_simulation(load_preset("quality", quality))
     cam = scene_camera(scene, width=size, height=size)
-    prep_opts = PrepareOptions(static_below=POT_TOP, grid_res=grid)
-    video, truth, _ = plant_reference_video(out / "video", scene, cam, prepare_options=prep_opts,
-                                            region_E=REGION_TRUTH_E, driver_ratio=ratio,
-                                            n_frames=n_frames, cfl_safety=cfl, device=device)
+    video, truth, _ = plant_reference_for_fit(out / "video", scene, cam, quality, n_frames=n_frames, device=device)
     paths["video"] = video
     video_s = time.perf_counter() - t0
     say(f"video      {video}/ ({n_frames} frames of a hidden stiffness field, camera.json)")

@@ -122,3 +122,22 @@ def plant_reference_video(
                                 nu=nu, cfl_safety=cfl_safety, device=device)
     folder = write_video_folder(out, frames, camera, fps, overwrite=True)
     return folder, ReferenceTruth(driver_E, driver_v0, gaussian_E), prep
+
+
+def plant_reference_for_fit(
+    out: str | Path,
+    scene: GaussianScene,
+    camera: Camera,
+    quality: str | Path,
+    **kwargs,
+) -> tuple[Path, ReferenceTruth, PreparedScene]:
+    """plant_reference_video of the synthetic plant (pot static, REGION_TRUTH_E) simulated
+    with the fit's grid, CFL safety and driver ratio of a quality preset, so that a fit at
+    that quality sees the same discretisation as the video. kwargs: n_frames, fps,
+    push_speed, push_direction, device, ..."""
+    from pd_tool.presets import fit_simulation, load_preset
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E
+
+    grid, cfl, ratio = fit_simulation(load_preset("quality", quality))
+    return plant_reference_video(out, scene, camera, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),
+                                 region_E=REGION_TRUTH_E, driver_ratio=ratio, cfl_safety=cfl, **kwargs)
