@@ -52,17 +52,21 @@ def random_state(x, static, rng, near_rest: bool):
     return xt, v, C, F, E
 
 
+@pytest.mark.parametrize("backward", ["adjoint", "adjoint-binned", "tape"])
 @pytest.mark.parametrize("near_rest", [True, False])
-def test_frame_gradients_match_float64_twin(device, near_rest):
+def test_frame_gradients_match_float64_twin(device, near_rest, backward):
     """All five gradients of one frame (7 substeps, segments of 3: two checkpoints plus a
-    remainder) against torch autograd through the float64 twin, same random cotangents.
+    remainder) against torch autograd through the float64 twin, same random cotangents, for
+    the hand-written adjoint (atomics, or cell lists as on CUDA) and the taped replay.
     This also catches in-place updates under the tape, which corrupt later substeps."""
     if device != "cpu":
         pytest.skip("the differentiable path takes torch tensors; the CPU torch build is installed")
     x, static, vol, rng = scene()
     n = len(x)
-    cfg = SimConfig(grid_res=8, gravity=(0, 0, -9.81), damping=1.0, segment=3)
+    cfg = SimConfig(grid_res=8, gravity=(0, 0, -9.81), damping=1.0, segment=3,
+                    backward="tape" if backward == "tape" else "adjoint")
     sim = DiffSim(vol, vol * 1000, static, cfg, device="cpu")
+    sim.binned = backward == "adjoint-binned"
     frame_dt, substeps = 7e-3, 7
     push = Force(mask=x[:, 0] > 4 * 0.125, accel=(5.0, 0.0, 3.0), t_start=2e-3, t_end=5e-3)
     ins = [t.requires_grad_() for t in random_state(x, static, rng, near_rest)]

@@ -16,6 +16,7 @@ import torch
 import warp as wp
 
 from pd_tool.sim import kernels as K
+from pd_tool.sim.adjoint import adjoint_substep, recompute_substep, subtract_vec3
 from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
@@ -100,6 +101,9 @@ class DiffSim:
         self.volume = wp.array(vol, dtype=float, device=self.device)
         self.mass = wp.array(m, dtype=float, device=self.device)
         self.static = wp.array(st, dtype=wp.int32, device=self.device)
+        # P2G (and the adjoint's grid scatter) through cell lists (gather.py): on CUDA,
+        # where float atomics bound the substep. Tests switch it on for the CPU too.
+        self.binned = wp.get_device(self.device).is_cuda
 
     def forces(self, forces: Sequence[Force]) -> ForceArrays:
         return ForceArrays.build(list(forces), self.n, self.device)
@@ -140,12 +144,9 @@ class DiffSim:
     def run_untaped(self, sctx: SubstepContext, n: int, dt: float, st: ParticleState) -> None:
         """n substeps in place without a tape: the forward and the backward's recompute.
 
-        On CUDA with the binned P2G of the fast path (gather.py), elsewhere the fused scatter."""
-        if wp.get_device(self.device).is_cuda:
-            bins = getattr(self, "_bins", None)
-            if bins is None:
-                bins = self._bins = alloc_cell_lists(self.geo.nodes, self.n, self.device)
-            run_substeps_binned(sctx, n, dt, st, self._grid_cache(), bins)
+        With the binned P2G of the fast path (gather.py) when self.binned, else the fused scatter."""
+        if self.binned:
+            run_substeps_binned(sctx, n, dt, st, self._grid_cache(), self._lists(True))
         else:
             run_substeps_fused(sctx, n, dt, st, self._grid_cache())
 
@@ -157,6 +158,31 @@ class DiffSim:
         return SubstepContext(geo=self.geo, cfg=self.config, order=order, base=base, mat=mat,
                               fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
                               device=self.device)
+
+    def _lists(self, binned: bool):
+        # The fast path's cell lists on CUDA (a run leaves them empty); unbinned, a one-cell
+        # set that no kernel reads.
+        if binned:
+            bins = getattr(self, "_bins", None)
+            if bins is None:
+                bins = self._bins = alloc_cell_lists(self.geo.nodes, self.n, self.device)
+            return bins
+        tiny = getattr(self, "_tiny_lists", None)
+        if tiny is None:
+            tiny = self._tiny_lists = alloc_cell_lists((1, 1, 1), 1, self.device)
+        return tiny
+
+    def _adjoint_pool(self, count: int):
+        # count + 1 particle states and count grids of forward values, plus the grid
+        # cotangents (adj_grid_v and scratch_m start zeroed and are left zeroed).
+        pool = getattr(self, "_adj_pool", None)
+        if pool is None or len(pool[1]) < count:
+            z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
+            pool = self._adj_pool = (
+                [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
+                [GridArrays.alloc(self.geo, self.device) for _ in range(count)],
+                (z(wp.vec3), z(float), z(wp.vec3), z(float)))
+        return pool
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
         # count + 1 particle states and count grids with gradients, for one taped segment.
@@ -219,7 +245,66 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     of the end displacement, i.e. of the end position). Returns warp arrays
     (grad_x through the stencil and stress only, grad_v, grad_C, grad_F, grad_E); the caller
     adds the direct term gx of x_out = x + u to grad_x. The input arrays are not modified.
+    `sim.config.backward` picks the hand-written adjoint kernels or the taped replay.
     """
+    if sim.config.backward == "tape":
+        return backward_frame_taped(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF)
+    return backward_frame_adjoint(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF)
+
+
+def _checkpoints(sim: DiffSim, sctx: SubstepContext, v: wp.array, C: wp.array, F: wp.array,
+                 t0: float, dt: float, substeps: int, seg: int) -> tuple[list[int], dict]:
+    # Recompute the frame without a tape, keeping the state at every segment start.
+    st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=sim.device), wp.clone(v), wp.clone(C), wp.clone(F))
+    starts = list(range(0, substeps, seg))
+    ckpts = {}
+    for k0 in starts:
+        ckpts[k0] = st.clone()
+        if k0 == starts[-1]:
+            break  # the last segment is replayed in reverse anyway
+        sctx.t_frame.fill_(t0 + k0 * dt)  # the fused run counts time from its first substep
+        sim.run_untaped(sctx, seg, dt, st)
+    sctx.t_frame.fill_(t0)
+    return starts, ckpts
+
+
+def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
+                           forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
+                           gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
+    """backward_frame with the hand-written adjoint kernels (adjoint.py): per segment, a
+    recompute that stores each substep's particle state and grid, then the substeps'
+    adjoints in reverse."""
+    dev, n = sim.device, sim.n
+    dt = frame_dt / substeps
+    seg = max(1, int(sim.config.segment))
+    order, fixed = sim._order_fixed(x)
+    sctx = sim._context(x, E, order, fixed, forces, t0)
+    binned = sim.binned
+    lists = sim._lists(binned)
+    starts, ckpts = _checkpoints(sim, sctx, v, C, F, t0, dt, substeps, seg)
+    states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
+    adj = (wp.clone(gu), wp.clone(gv), wp.clone(gC), wp.clone(gF), wp.zeros(n, dtype=float, device=dev))
+    for k0 in reversed(starts):
+        k1 = min(k0 + seg, substeps)
+        ck = ckpts.pop(k0)
+        first = states[0]
+        for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
+            wp.copy(dst, src)
+        del ck
+        for i in range(k1 - k0):
+            recompute_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i], lists, binned)
+        for i in reversed(range(k1 - k0)):
+            adjoint_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i], adj, adj_grid,
+                            lists, binned)
+    grad_x = wp.empty_like(gu)
+    wp.launch(subtract_vec3, dim=n, device=dev, inputs=[adj[0], gu, grad_x])
+    return grad_x, adj[1], adj[2], adj[3], adj[4]
+
+
+def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
+                         forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
+                         gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
+    """backward_frame replaying each segment under a wp.Tape (warp's generated adjoints)."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     seg = max(1, int(sim.config.segment))
@@ -230,17 +315,7 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     order, fixed = sim._order_fixed(base)
     sctx = sim._context(base, E_w, order, fixed, forces, t0)
     # 1. recompute without a tape, keeping a checkpoint at every segment start
-    st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=dev), wp.clone(v), wp.clone(C), wp.clone(F))
-    starts = list(range(0, substeps, seg))
-    ckpts = {}
-    for k0 in starts:
-        ckpts[k0] = st.clone()
-        if k0 == starts[-1]:
-            break  # the last segment is replayed under the tape anyway
-        sctx.t_frame.fill_(t0 + k0 * dt)  # the fused run counts time from its first substep
-        sim.run_untaped(sctx, seg, dt, st)
-    sctx.t_frame.fill_(t0)
-    del st
+    starts, ckpts = _checkpoints(sim, sctx, v, C, F, t0, dt, substeps, seg)
     # 2. replay the segments in reverse under a tape, one array set per substep (a pool
     #    reused by every segment and frame: allocating it per segment costs more than the
     #    adjoint kernels on the CPU)

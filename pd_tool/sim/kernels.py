@@ -62,22 +62,28 @@ def polar_rotation(F: wp.mat33) -> wp.mat33:
     return X
 
 
-@wp.func_grad(polar_rotation)
-def adj_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
-    # With F = R S and Omega = R^T dR = [w]x:  R^T dF - dF^T R = [(tr(S) I - S) w]x, so
-    # w = (tr(S) I - S)^-1 axial(R^T dF - dF^T R). The matrix tr(S) I - S has eigenvalues
-    # s_i + s_j (2 at rest), unlike the s_i^2 - s_j^2 that warp's svd3 adjoint divides by,
-    # so this gradient stays bounded at F = I. Its adjoint: dL/dF = R [y]x with
-    # y = (tr(S) I - S)^-1 m, m = axial part of R^T adj_R (m . w = <R^T adj_R, [w]x>).
-    R = polar_rotation(F)
+@wp.func
+def polar_vjp(F: wp.mat33, R: wp.mat33, adj_R: wp.mat33) -> wp.mat33:
+    """dL/dF through R = polar_rotation(F), given R and dL/dR.
+
+    With F = R S and Omega = R^T dR = [w]x:  R^T dF - dF^T R = [(tr(S) I - S) w]x, so
+    w = (tr(S) I - S)^-1 axial(R^T dF - dF^T R). The matrix tr(S) I - S has eigenvalues
+    s_i + s_j (2 at rest), unlike the s_i^2 - s_j^2 that warp's svd3 adjoint divides by,
+    so this gradient stays bounded at F = I. Its adjoint: dL/dF = R [y]x with
+    y = (tr(S) I - S)^-1 m, m = axial part of R^T adj_R (m . w = <R^T adj_R, [w]x>).
+    """
     S = wp.transpose(R) * F
     S = 0.5 * (S + wp.transpose(S))
     A = wp.identity(n=3, dtype=float) * wp.trace(S) - S
-    M = wp.transpose(R) * adj_ret
+    M = wp.transpose(R) * adj_R
     m = wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
     y = wp.inverse(A) * m
-    Y = wp.mat33(0.0, -y[2], y[1], y[2], 0.0, -y[0], -y[1], y[0], 0.0)
-    wp.adjoint[F] += R * Y
+    return R * wp.mat33(0.0, -y[2], y[1], y[2], 0.0, -y[0], -y[1], y[0], 0.0)
+
+
+@wp.func_grad(polar_rotation)
+def adj_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
+    wp.adjoint[F] += polar_vjp(F, polar_rotation(F), adj_ret)
 
 
 @wp.func

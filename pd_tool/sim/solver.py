@@ -44,7 +44,10 @@ class SimConfig:
         ground_z: optional ground plane height in metres (nodes below stop falling).
         boundary_pad: wall thickness in nodes (free-slip walls).
         min_det_f: guard threshold: det F below this counts as collapsed/inverted.
-        segment: substeps recomputed per tape in the differentiable backward (memory knob).
+        segment: substeps recomputed and stored per pass of the differentiable backward
+            (memory knob: one particle state and one grid per substep of a segment).
+        backward: "adjoint" (hand-written reverse kernels, adjoint.py) or "tape" (warp's
+            generated adjoints replayed under a wp.Tape; slower, kept as the reference).
     """
 
     grid_res: int = 64
@@ -58,6 +61,7 @@ class SimConfig:
     boundary_pad: int = 3
     min_det_f: float = 1e-2
     segment: int = 16
+    backward: str = "adjoint"
 
     def validate(self) -> None:
         if self.grid_res < 4:
@@ -72,6 +76,8 @@ class SimConfig:
             raise SimConfigError(f"SimConfig.substeps={self.substeps}: must be >= 1 or None (CFL)")
         if self.boundary_pad < 1:
             raise SimConfigError(f"SimConfig.boundary_pad={self.boundary_pad}: must be >= 1")
+        if self.backward not in ("adjoint", "tape"):
+            raise SimConfigError(f"SimConfig.backward={self.backward!r}: use 'adjoint' or 'tape'")
         if self.damping < 0:
             raise SimConfigError(f"SimConfig.damping={self.damping}: must be >= 0 (1/s)")
 

@@ -1,0 +1,373 @@
+"""Hand-written reverse pass of the MPM substep: the differentiable path's backward.
+
+Warp's generated adjoints of the scatter P2G replay every particle's 27 x 4 atomics under a
+tape and add 27 x 4 more in reverse; the taped backward ran 12-15x the fast forward. Here
+each stage's adjoint is written out:
+
+- `g2p_adjoint` (per particle): the G2P's adjoint. Its only grid output, the cotangent of
+  the grid velocity, is a scatter of the same form as the P2G (w_n (q + A dpos_n)), so on
+  CUDA it goes through the cell lists of gather.py (few atomics) and elsewhere straight
+  to the grid.
+- `grid_adjoint` (per node): the cotangents of node mass and momentum, with the boundary
+  conditions' masks rebuilt from the stored forward values.
+- `p2g_adjoint` (per particle): the P2G's adjoint is a gather (each particle reads its 27
+  nodes' cotangents, no atomics), with the stress's vector-Jacobian product written out.
+
+The forward values each adjoint reads (particle state and grid per substep) come from a
+recompute of the segment, stored in a pool reused by every segment and frame. With
+x = base + u, the position's cotangent flows through u; the frame's start has u = 0, so
+the cotangent of the start position is the cotangent of u at substep 0.
+
+Derivation (per particle p and stencil node n, w_n the B-spline weight, dpos_n =
+(offset_n - fx) dx, fx = x/dx - stencil base):
+  P2G:  m_n += w_n m;  mv_n += w_n (mv_p + A_p dpos_n),
+        mv_p = m (v + a dt),  A_p = m C - 4 dt / dx^2 V tau(F, E)
+  G2P:  v' = sum w_n v_n;  C' = 4/dx^2 sum w_n v_n dpos_n^T;  F' = (I + dt C') F;
+        u' = u + dt v'
+and d dpos_n / dx = -I, so every position cotangent is sum_n gw_n grad w_n / dx - sum_n gdpos_n.
+"""
+from __future__ import annotations
+
+import math
+
+import warp as wp
+
+from pd_tool.sim import kernels as K
+from pd_tool.sim.gather import (
+    CELL_BLOCK,
+    CELL_CAPACITY_W,
+    CELLS_PER_PASS,
+    PARTICLE_BLOCK,
+    CellLists,
+    g2p_bin,
+    p2g_cells,
+)
+
+
+@wp.func
+def bspline_dw(fx: float) -> wp.vec3:
+    """d/dfx of kernels.bspline_w (offsets 0, 1, 2)."""
+    return wp.vec3(fx - 1.5, 2.0 - 2.0 * fx, fx - 0.5)
+
+
+@wp.func
+def cofactor(F: wp.mat33) -> wp.mat33:
+    """J F^-T (defined for singular F too): columns f1 x f2, f2 x f0, f0 x f1."""
+    Ft = wp.transpose(F)
+    return wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+
+
+@wp.func
+def stress_vjp(F: wp.mat33, E: float, nu: float, G: wp.mat33):
+    """Cotangents (dL/dF, dL/dE) of the fixed-corotated Kirchhoff stress, given G = dL/dtau.
+
+    tau = 2 mu (F F^T - R F^T) + lam (J^2 - J) I.
+    """
+    lm = K.lame(E, nu)
+    mu = lm[0]
+    lam = lm[1]
+    R = K.polar_rotation(F)
+    J = wp.determinant(F)
+    Gt = wp.transpose(G)
+    trG = wp.trace(G)
+    gF = (2.0 * mu) * ((G + Gt) * F - Gt * R)
+    gF += K.polar_vjp(F, R, (-2.0 * mu) * (G * F))
+    gF += (lam * (2.0 * J - 1.0) * trG) * cofactor(F)
+    g_mu = 2.0 * wp.ddot(G, (F - R) * wp.transpose(F))
+    g_lam = (J - 1.0) * J * trG
+    g_E = g_mu / (2.0 * (1.0 + nu)) + g_lam * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return gF, g_E
+
+
+@wp.func
+def scatter_direct(
+    b: wp.vec3i,
+    fx: wp.vec3,
+    q: wp.vec3,
+    A: wp.mat33,
+    dx: float,
+    out: wp.array3d(dtype=wp.vec3),
+):
+    """out_n += w_n (q + A dpos_n) over the 27 stencil nodes, with atomics."""
+    wx = K.bspline_w(fx[0])
+    wy = K.bspline_w(fx[1])
+    wz = K.bspline_w(fx[2])
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = wx[i] * wy[j] * wz[k]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                wp.atomic_add(out, b[0] + i, b[1] + j, b[2] + k, w * (q + A * dpos))
+
+
+@wp.kernel(enable_backward=False)
+def g2p_adjoint(
+    binned: int,
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    v_next: wp.array(dtype=wp.vec3),
+    C_next: wp.array(dtype=wp.mat33),
+    is_static: wp.array(dtype=int),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    adj_u: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    lists: CellLists,
+    adj_grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """Adjoint of G2P for particle p: adj_* hold the cotangents of the substep's output state
+    and are overwritten with the partial cotangents of its input u and F (the P2G adjoint
+    adds the rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to
+    the cell lists (binned != 0, summed by gather.p2g_cells) or straight to adj_grid_v."""
+    p = order[wp.tid()]
+    gu = adj_u[p]
+    gFn = adj_F[p]
+    Fp = F[p]
+    Cn = C_next[p]
+    adj_F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * Cn) * gFn
+    if is_static[p] != 0:
+        # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
+        adj_u[p] = gu
+        return
+    inv_dx = 1.0 / dx
+    gvel = adj_v[p] + dt * gu
+    Ag = (4.0 * inv_dx * inv_dx) * (adj_C[p] + dt * gFn * wp.transpose(Fp))
+    x = base[p] + u[p]
+    b = K.stencil_base(x, inv_dx, nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    wx = K.bspline_w(fx[0])
+    wy = K.bspline_w(fx[1])
+    wz = K.bspline_w(fx[2])
+    dwx = bspline_dw(fx[0])
+    dwy = bspline_dw(fx[1])
+    dwz = bspline_dw(fx[2])
+    gfx = wp.vec3(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gw = wp.dot(grid_v[b[0] + i, b[1] + j, b[2] + k], gvel + Ag * dpos)
+                gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
+    # sum_n w_n Ag^T v_n = Ag^T v' (the particle's new velocity): the dpos term in one product
+    adj_u[p] = gu + gfx * inv_dx - wp.transpose(Ag) * v_next[p]
+    if binned == 0:
+        scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
+    else:
+        cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+        slot = wp.atomic_add(lists.counts, cell, 1)
+        if slot == 0:
+            lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
+        if slot < CELL_CAPACITY_W:
+            lists.pay_fx[p] = fx
+            lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
+            lists.pay_A[p] = Ag
+            lists.slots[cell * CELL_CAPACITY_W + slot] = p
+        else:
+            scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
+
+
+@wp.kernel(enable_backward=False)
+def grid_adjoint(
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    fixed: wp.array3d(dtype=int),
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_m: wp.array3d(dtype=float),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    scratch_m: wp.array3d(dtype=float),
+    binned: int,
+    lists: CellLists,
+):
+    """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and, when
+    binned, clears the cell lists and the scratch mass grid for the next substep's scatter."""
+    i, j, k = wp.tid()
+    g = adj_grid_v[i, j, k]
+    adj_grid_v[i, j, k] = wp.vec3(0.0)
+    if binned != 0:
+        scratch_m[i, j, k] = 0.0
+        lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+        if i == 0 and j == 0 and k == 0:
+            lists.n_occupied[0] = 0
+    m = grid_m[i, j, k]
+    gm = float(0.0)
+    gmv = wp.vec3(0.0)
+    if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
+        mv = grid_mv[i, j, k]
+        vel = (mv / m + dt * gravity) * damping_factor
+        # each boundary condition zeroes one component by the sign of that component only
+        if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
+            g = wp.vec3(0.0, g[1], g[2])
+        if (j < pad and vel[1] < 0.0) or (j >= nodes[1] - pad and vel[1] > 0.0):
+            g = wp.vec3(g[0], 0.0, g[2])
+        if (k < pad and vel[2] < 0.0) or (k >= nodes[2] - pad and vel[2] > 0.0):
+            g = wp.vec3(g[0], g[1], 0.0)
+        if use_ground != 0:
+            if float(k) * dx <= ground_z and vel[2] < 0.0:
+                g = wp.vec3(g[0], g[1], 0.0)
+        gq = g * damping_factor  # cotangent of mv / m
+        gmv = gq / m
+        gm = -wp.dot(gq, mv) / (m * m)
+    adj_m[i, j, k] = gm
+    adj_mv[i, j, k] = gmv
+
+
+@wp.kernel(enable_backward=False)
+def p2g_adjoint(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    t_frame: wp.array(dtype=float),
+    t_offset: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+    adj_m: wp.array3d(dtype=float),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_u: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    adj_E: wp.array(dtype=float),
+):
+    """Adjoint of P2G for particle p, a gather of its 27 nodes' cotangents: sets adj_v and
+    adj_C, adds to adj_u, adj_F (partials from g2p_adjoint) and adj_E (summed over substeps)."""
+    p = order[wp.tid()]
+    inv_dx = 1.0 / dx
+    x = base[p] + u[p]
+    Fp = F[p]
+    Ep = E[p]
+    m = mass[p]
+    kv = 4.0 * inv_dx * inv_dx * dt * volume[p]
+    lm = K.lame(Ep, nu)
+    A = m * C[p] - kv * K.kirchhoff_stress(Fp, lm[0], lm[1])
+    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
+    mvp = m * (v[p] + a_ext * dt)
+    b = K.stencil_base(x, inv_dx, nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    wx = K.bspline_w(fx[0])
+    wy = K.bspline_w(fx[1])
+    wz = K.bspline_w(fx[2])
+    dwx = bspline_dw(fx[0])
+    dwy = bspline_dw(fx[1])
+    dwz = bspline_dw(fx[2])
+    g_mv = wp.vec3(0.0)
+    gA = wp.mat33(0.0)
+    gfx = wp.vec3(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = wx[i] * wy[j] * wz[k]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gn = adj_mv[b[0] + i, b[1] + j, b[2] + k]
+                g_mv += w * gn
+                gA += w * wp.outer(gn, dpos)
+                gw = wp.dot(gn, mvp + A * dpos) + adj_m[b[0] + i, b[1] + j, b[2] + k] * m
+                gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
+    adj_v[p] = m * g_mv
+    adj_C[p] = m * gA
+    gF, gE = stress_vjp(Fp, Ep, nu, -kv * gA)
+    adj_F[p] = adj_F[p] + gF
+    adj_E[p] = adj_E[p] + gE
+    adj_u[p] = adj_u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
+
+
+@wp.kernel(enable_backward=False)
+def subtract_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    """out = a - b."""
+    p = wp.tid()
+    out[p] = a[p] - b[p]
+
+
+# --------------------------------------------------------------------------------------
+# Launchers
+# --------------------------------------------------------------------------------------
+def _grid_bc_args(ctx, dt: float) -> list:
+    geo, cfg = ctx.geo, ctx.cfg
+    return [ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity), float(math.exp(-cfg.damping * dt)),
+            int(geo.pad), geo.nodes_vec, int(cfg.ground_z is not None),
+            float(cfg.ground_z if cfg.ground_z is not None else 0.0)]
+
+
+def recompute_substep(ctx, dt: float, t_offset: float, s_in, s_out, grid, lists: CellLists,
+                      binned: bool) -> None:
+    """One forward substep s_in -> s_out (separate arrays) keeping the grid's mass, momentum
+    and velocity for the adjoints. binned: P2G through the cell lists (CUDA), which are
+    left empty again."""
+    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
+    nodes = geo.nodes_vec
+    n = s_in.u.shape[0]
+    grid.m.zero_()
+    grid.mv.zero_()
+    if not binned:
+        wp.launch(K.p2g, dim=n, device=dev, inputs=[
+            ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
+            float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
+            fa.n, fa.mask, fa.accel, fa.window, grid.m, grid.mv])
+    else:
+        wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+            0, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass, mat.static, grid.v,
+            float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
+            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, grid.m, grid.mv, ctx.stats])
+        per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+                  inputs=[lists, float(geo.dx), nodes, per_pass, grid.m, grid.mv])
+        lists.counts.zero_()
+        lists.n_occupied.zero_()
+    wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[grid.m, grid.mv] + _grid_bc_args(ctx, dt) + [grid.v])
+    wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+        ctx.order, ctx.base, s_in.u, s_in.F, mat.static, grid.v, float(geo.dx), float(dt), nodes,
+        float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+
+
+def adjoint_substep(ctx, dt: float, t_offset: float, s_in, s_out, grid, adj, adj_grid, lists: CellLists,
+                    binned: bool) -> None:
+    """Reverse of one substep: adj (u, v, C, F cotangents of s_out, plus E's running sum)
+    becomes the cotangents of s_in, in place.
+
+    adj_grid = (adj_grid_v, adj_m, adj_mv, scratch_m): adj_grid_v and scratch_m must be zero
+    on entry and are left zero (grid_adjoint consumes them); so are the lists. binned: the
+    grid-velocity cotangent goes through the cell lists (CUDA) instead of atomics; unbinned,
+    `lists` may be any (unused) set."""
+    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
+    nodes = geo.nodes_vec
+    n = s_in.u.shape[0]
+    adj_u, adj_v, adj_C, adj_F, adj_E = adj
+    adj_gv, adj_m, adj_mv, scratch_m = adj_grid
+    wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+        int(binned), ctx.order, ctx.base, s_in.u, s_in.F, s_out.v, s_out.C, mat.static, grid.v,
+        float(geo.dx), float(dt), nodes, adj_u, adj_v, adj_C, adj_F, lists, adj_gv])
+    if binned:
+        per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+                  inputs=[lists, float(geo.dx), nodes, per_pass, scratch_m, adj_gv])
+    wp.launch(grid_adjoint, dim=geo.nodes, device=dev, inputs=[grid.m, grid.mv] + _grid_bc_args(ctx, dt) + [
+        adj_gv, adj_m, adj_mv, scratch_m, int(binned), lists])
+    wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+        ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
+        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
+        fa.n, fa.mask, fa.accel, fa.window, adj_m, adj_mv, adj_u, adj_v, adj_C, adj_F, adj_E])
