@@ -1,8 +1,11 @@
 """Where a fast-path MPM substep spends its GPU time: per-kernel CUDA times (warp's
 activity timing), scatter P2G against the gather P2G, without CUDA graphs (timing needs
-plain launches; a graph replays the same kernels).
+plain launches; a graph replays the same kernels). --backward profiles the differentiable
+path's backward of a frame instead (hand-written adjoints), with its wall time per substep,
+so that host launch overhead shows as the gap between the two.
 
     python bench/sim_profile.py --device cuda --sizes 100000:64 --json profile.json
+    python bench/sim_profile.py --device cuda --sizes 100000:64 --backward
 """
 from __future__ import annotations
 
@@ -41,6 +44,43 @@ def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: b
             for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
 
 
+def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int) -> dict:
+    """Per-kernel GPU time and wall time (us per substep) of backward_frame."""
+    import time
+
+    import numpy as np
+
+    from pd_tool.sim import DiffSim
+    from pd_tool.sim.autograd import backward_frame
+
+    x, vol, mass, E, static = make_block(n, res)
+    dsim = DiffSim(vol, mass, static, SimConfig(grid_res=res, segment=segment), device=device)
+    arr = lambda a, t: wp.array(np.asarray(a, np.float32), dtype=t, device=device)  # noqa: E731
+    args = [arr(x, wp.vec3), wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros(n, dtype=wp.mat33, device=device),
+            arr(np.tile(np.eye(3), (n, 1, 1)), wp.mat33), arr(E, float), dsim.forces([]), 0.0, 1e-3, substeps,
+            arr(np.ones((n, 3)), wp.vec3), wp.zeros(n, dtype=wp.vec3, device=device),
+            wp.zeros(n, dtype=wp.mat33, device=device), wp.zeros(n, dtype=wp.mat33, device=device)]
+    backward_frame(dsim, *args)
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        backward_frame(dsim, *args)
+    wp.synchronize_device(device)
+    wall = (time.perf_counter() - t0) / (frames * substeps) * 1e6
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET | wp.TIMING_MEMCPY)
+    for _ in range(frames):
+        backward_frame(dsim, *args)
+    results = wp.timing_end()
+    per = defaultdict(float)
+    calls = defaultdict(int)
+    for r in results:
+        per[r.name] += r.elapsed
+        calls[r.name] += 1
+    kernels = {name: {"us_per_substep": 1e3 * t / (frames * substeps), "calls": calls[name]}
+               for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
+    return {"wall_us_per_substep": wall, "kernels": kernels}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda")
@@ -49,11 +89,26 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--blocks", default="", help="PARTICLE:CELL block sizes to sweep for the binned "
                     "P2G, comma separated, e.g. 256:256,128:128 (default: the module's)")
+    ap.add_argument("--backward", action="store_true", help="profile the differentiable backward instead")
+    ap.add_argument("--segment", type=int, default=16, help="backward: substeps per recomputed segment")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     wp.config.quiet = True
     wp.init()
     out = {"hardware": hardware(args.device), "rows": []}
+    if args.backward:
+        for item in args.sizes.split(","):
+            n, res = (int(v) for v in item.split(":"))
+            prof = profile_backward(n, res, args.substeps, args.frames, args.device, args.segment)
+            out["rows"].append({"particles": n, "grid": res, "segment": args.segment, **prof})
+            gpu = sum(k["us_per_substep"] for k in prof["kernels"].values())
+            print(f"N={n} grid={res}^3 backward: wall {prof['wall_us_per_substep']:.1f} us/substep, "
+                  f"GPU {gpu:.1f} us/substep")
+            for name, k in prof["kernels"].items():
+                print(f"    {k['us_per_substep']:8.2f} us  {name} ({k['calls']} calls)")
+        if args.json:
+            args.json.write_text(json.dumps(out, indent=1))
+        return 0
     from pd_tool.sim import gather as G
 
     blocks = [tuple(int(v) for v in b.split(":")) for b in args.blocks.split(",") if b]

@@ -13,7 +13,8 @@ average) given in random order, in a unit box with a res^3 grid. Variants:
   (particles binned per cell, nodes gather; pd_tool/sim/gather.py); on the CPU the same as
   fast_scatter.
 - fwd+bwd: the differentiable path's cost per frame: the checkpointed forward plus the
-  backward (recompute and taped replay of segments), on warp arrays.
+  backward (recompute of segments, then the hand-written adjoint kernels in reverse), on
+  warp arrays. fwd+bwd_tape (--backward both): the same with warp's taped adjoints.
 
     python bench/sim_speed.py --device cpu --sizes 20000:32 --json cpu.json
     python bench/sim_speed.py --device cuda --json h100.json      # 20k/32, 100k/64, 300k/128
@@ -80,9 +81,10 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
     return n * substeps * frames / (time.perf_counter() - t0)
 
 
-def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int) -> float:
+def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int,
+                          backward: str = "adjoint") -> float:
     x, vol, mass, E, static = make_block(n, res)
-    cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment)
+    cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=backward)
     dsim = DiffSim(vol, mass, static, cfg, device=device)
     xw = wp.array(x, dtype=wp.vec3, device=device)
     vw = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -113,6 +115,29 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
     return n * substeps * frames / (time.perf_counter() - t0)
 
 
+def check_adjoint(n: int, res: int, substeps: int, device: str, segment: int) -> float:
+    """Largest relative difference (per gradient, relative to its max) between the
+    hand-written and the taped backward of one frame from a moving, deformed state."""
+    x, vol, mass, E, static = make_block(n, res)
+    rng = np.random.default_rng(1)
+    v = rng.normal(0, 0.3, (n, 3)).astype(np.float32)
+    v[static] = 0
+    F = (np.eye(3) + rng.normal(0, 0.02, (n, 3, 3))).astype(np.float32)
+    cot = [rng.normal(0, 1, s).astype(np.float32) for s in ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3))]
+    grads = {}
+    for mode in ("adjoint", "tape"):
+        cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=mode)
+        dsim = DiffSim(vol, mass, static, cfg, device=device)
+        arr = lambda a, t: wp.array(a, dtype=t, device=device)  # noqa: E731
+        out = backward_frame(dsim, arr(x, wp.vec3), arr(v, wp.vec3), wp.zeros(n, dtype=wp.mat33, device=device),
+                             arr(F, wp.mat33), arr(E.astype(np.float32), float), dsim.forces([]), 0.0, 1e-3,
+                             substeps, arr(cot[0], wp.vec3), arr(cot[1], wp.vec3), arr(cot[2], wp.mat33),
+                             arr(cot[3], wp.mat33))
+        grads[mode] = [g.numpy().astype(np.float64) for g in out]
+    return max(float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-30))
+               for a, b in zip(grads["adjoint"], grads["tape"]))
+
+
 def hardware(device: str) -> str:
     if device.startswith("cuda"):
         return wp.get_device(device).name
@@ -129,10 +154,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default=DEFAULT_SIZES, help="N:res pairs, comma separated")
     ap.add_argument("--substeps", type=int, default=None, help="substeps per frame (default 64 cuda, 8 cpu)")
     ap.add_argument("--frames", type=int, default=None, help="timed frames (default 10 cuda, 2 cpu)")
-    ap.add_argument("--segment", type=int, default=16, help="substeps per taped segment in backward")
+    ap.add_argument("--segment", type=int, default=16, help="substeps per recomputed segment in backward")
+    ap.add_argument("--backward", choices=["adjoint", "tape", "both"], default="adjoint",
+                    help="backward kernels: hand-written adjoints, warp's taped adjoints, or both")
     ap.add_argument("--no-backward", action="store_true", help="forward only")
     ap.add_argument("--ablation", action="store_true",
                     help="also time each optimisation alone (sort_only, fuse_only, graph_only)")
+    ap.add_argument("--check", action="store_true",
+                    help="also compare the hand-written backward with the taped one (max relative difference)")
     ap.add_argument("--json", type=Path, help="write results here")
     args = ap.parse_args(argv)
     wp.config.quiet = True
@@ -151,8 +180,17 @@ def main(argv=None) -> int:
         for v in variants:
             row[f"{v}_fwd"] = time_forward(n, res, substeps, frames, args.device, v)
         if not args.no_backward:
-            row["fwd_bwd"] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device, args.segment)
+            modes = ["adjoint", "tape"] if args.backward == "both" else [args.backward]
+            for mode in modes:
+                key = "fwd_bwd" if mode == modes[0] else "fwd_bwd_tape"
+                row[key] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device,
+                                                 args.segment, mode)
+            row["backward_kernels"] = modes[0]
+            row["segment"] = args.segment
             row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
+        if args.check:
+            row["adjoint_vs_tape_rel"] = check_adjoint(n, res, min(substeps, 16), args.device, args.segment)
+            print(f"  adjoint vs tape: max relative difference {row['adjoint_vs_tape_rel']:.2e}", flush=True)
         rows.append(row)
         extra = "".join(f"  {v} {row[v + '_fwd']:.3e}" for v in variants if v not in ("baseline", "fast"))
         print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}{extra}  fast {row['fast_fwd']:.3e}"

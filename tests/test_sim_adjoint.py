@@ -27,6 +27,7 @@ def block(dx: float, per_cell_axis: int, seed: int):
     x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     rng = np.random.default_rng(seed)
     x = x + rng.uniform(-0.3, 0.3, x.shape) * h  # off the lattice: every weight differs
+    x = x[rng.permutation(len(x))]  # input order unlike the cell order the kernels run in
     return x, x[:, 2] < 3.5 * dx, np.full(len(x), h**3), rng
 
 

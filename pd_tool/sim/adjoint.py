@@ -39,6 +39,7 @@ from pd_tool.sim.gather import (
     CELLS_PER_PASS,
     PARTICLE_BLOCK,
     CellLists,
+    bspline_at,
     g2p_bin,
     p2g_cells,
 )
@@ -100,10 +101,10 @@ def scatter_direct(
                 wp.atomic_add(out, b[0] + i, b[1] + j, b[2] + k, w * (q + A * dpos))
 
 
-@wp.kernel(enable_backward=False)
-def g2p_adjoint(
+@wp.func
+def g2p_adjoint_particle(
+    p: int,
     binned: int,
-    order: wp.array(dtype=int),
     base: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
@@ -124,110 +125,54 @@ def g2p_adjoint(
     """Adjoint of G2P for particle p: adj_* hold the cotangents of the substep's output state
     and are overwritten with the partial cotangents of its input u and F (the P2G adjoint
     adds the rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to
-    the cell lists (binned != 0, summed by gather.p2g_cells) or straight to adj_grid_v."""
-    p = order[wp.tid()]
+    the cell lists (binned != 0, summed by scatter_cells) or straight to adj_grid_v."""
     gu = adj_u[p]
     gFn = adj_F[p]
-    Fp = F[p]
-    Cn = C_next[p]
-    adj_F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * Cn) * gFn
+    adj_F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * C_next[p]) * gFn
     if is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj_u[p] = gu
-        return
-    inv_dx = 1.0 / dx
-    gvel = adj_v[p] + dt * gu
-    Ag = (4.0 * inv_dx * inv_dx) * (adj_C[p] + dt * gFn * wp.transpose(Fp))
-    x = base[p] + u[p]
-    b = K.stencil_base(x, inv_dx, nodes)
-    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
-    wx = K.bspline_w(fx[0])
-    wy = K.bspline_w(fx[1])
-    wz = K.bspline_w(fx[2])
-    dwx = bspline_dw(fx[0])
-    dwy = bspline_dw(fx[1])
-    dwz = bspline_dw(fx[2])
-    gfx = wp.vec3(0.0)
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                gw = wp.dot(grid_v[b[0] + i, b[1] + j, b[2] + k], gvel + Ag * dpos)
-                gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
-    # sum_n w_n Ag^T v_n = Ag^T v' (the particle's new velocity): the dpos term in one product
-    adj_u[p] = gu + gfx * inv_dx - wp.transpose(Ag) * v_next[p]
-    if binned == 0:
-        scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
     else:
-        cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-        slot = wp.atomic_add(lists.counts, cell, 1)
-        if slot == 0:
-            lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
-        if slot < CELL_CAPACITY_W:
-            lists.pay_fx[p] = fx
-            lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
-            lists.pay_A[p] = Ag
-            lists.slots[cell * CELL_CAPACITY_W + slot] = p
-        else:
+        inv_dx = 1.0 / dx
+        gvel = adj_v[p] + dt * gu
+        Ag = (4.0 * inv_dx * inv_dx) * (adj_C[p] + dt * gFn * wp.transpose(F[p]))
+        x = base[p] + u[p]
+        b = K.stencil_base(x, inv_dx, nodes)
+        fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+        wx = K.bspline_w(fx[0])
+        wy = K.bspline_w(fx[1])
+        wz = K.bspline_w(fx[2])
+        dwx = bspline_dw(fx[0])
+        dwy = bspline_dw(fx[1])
+        dwz = bspline_dw(fx[2])
+        gfx = wp.vec3(0.0)
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                    gw = wp.dot(grid_v[b[0] + i, b[1] + j, b[2] + k], gvel + Ag * dpos)
+                    gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
+        # sum_n w_n Ag^T v_n = Ag^T v' (the particle's new velocity): the dpos term in one product
+        adj_u[p] = gu + gfx * inv_dx - wp.transpose(Ag) * v_next[p]
+        if binned == 0:
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
+        else:
+            cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+            slot = wp.atomic_add(lists.counts, cell, 1)
+            if slot == 0:
+                lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
+            if slot < CELL_CAPACITY_W:
+                lists.pay_fx[p] = fx
+                lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
+                lists.pay_A[p] = Ag
+                lists.slots[cell * CELL_CAPACITY_W + slot] = p
+            else:
+                scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
 
 
-@wp.kernel(enable_backward=False)
-def grid_adjoint(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
-    adj_m: wp.array3d(dtype=float),
-    adj_mv: wp.array3d(dtype=wp.vec3),
-    scratch_m: wp.array3d(dtype=float),
-    binned: int,
-    lists: CellLists,
-):
-    """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and, when
-    binned, clears the cell lists and the scratch mass grid for the next substep's scatter."""
-    i, j, k = wp.tid()
-    g = adj_grid_v[i, j, k]
-    adj_grid_v[i, j, k] = wp.vec3(0.0)
-    if binned != 0:
-        scratch_m[i, j, k] = 0.0
-        lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
-        if i == 0 and j == 0 and k == 0:
-            lists.n_occupied[0] = 0
-    m = grid_m[i, j, k]
-    gm = float(0.0)
-    gmv = wp.vec3(0.0)
-    if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
-        mv = grid_mv[i, j, k]
-        vel = (mv / m + dt * gravity) * damping_factor
-        # each boundary condition zeroes one component by the sign of that component only
-        if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
-            g = wp.vec3(0.0, g[1], g[2])
-        if (j < pad and vel[1] < 0.0) or (j >= nodes[1] - pad and vel[1] > 0.0):
-            g = wp.vec3(g[0], 0.0, g[2])
-        if (k < pad and vel[2] < 0.0) or (k >= nodes[2] - pad and vel[2] > 0.0):
-            g = wp.vec3(g[0], g[1], 0.0)
-        if use_ground != 0:
-            if float(k) * dx <= ground_z and vel[2] < 0.0:
-                g = wp.vec3(g[0], g[1], 0.0)
-        gq = g * damping_factor  # cotangent of mv / m
-        gmv = gq / m
-        gm = -wp.dot(gq, mv) / (m * m)
-    adj_m[i, j, k] = gm
-    adj_mv[i, j, k] = gmv
-
-
-@wp.kernel(enable_backward=False)
-def p2g_adjoint(
-    order: wp.array(dtype=int),
+@wp.func
+def p2g_adjoint_particle(
+    p: int,
     base: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -240,12 +185,7 @@ def p2g_adjoint(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    t_frame: wp.array(dtype=float),
-    t_offset: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
+    a_ext: wp.vec3,
     adj_m: wp.array3d(dtype=float),
     adj_mv: wp.array3d(dtype=wp.vec3),
     adj_u: wp.array(dtype=wp.vec3),
@@ -255,8 +195,8 @@ def p2g_adjoint(
     adj_E: wp.array(dtype=float),
 ):
     """Adjoint of P2G for particle p, a gather of its 27 nodes' cotangents: sets adj_v and
-    adj_C, adds to adj_u, adj_F (partials from g2p_adjoint) and adj_E (summed over substeps)."""
-    p = order[wp.tid()]
+    adj_C, adds to adj_u, adj_F (partials from the G2P adjoint) and adj_E (summed over
+    substeps)."""
     inv_dx = 1.0 / dx
     x = base[p] + u[p]
     Fp = F[p]
@@ -265,7 +205,6 @@ def p2g_adjoint(
     kv = 4.0 * inv_dx * inv_dx * dt * volume[p]
     lm = K.lame(Ep, nu)
     A = m * C[p] - kv * K.kirchhoff_stress(Fp, lm[0], lm[1])
-    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
     mvp = m * (v[p] + a_ext * dt)
     b = K.stencil_base(x, inv_dx, nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
@@ -297,6 +236,251 @@ def p2g_adjoint(
 
 
 @wp.kernel(enable_backward=False)
+def g2p_adjoint(
+    binned: int,
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    v_next: wp.array(dtype=wp.vec3),
+    C_next: wp.array(dtype=wp.mat33),
+    is_static: wp.array(dtype=int),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    adj_u: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    lists: CellLists,
+    adj_grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """g2p_adjoint_particle for every particle (the last substep of a segment)."""
+    p = order[wp.tid()]
+    g2p_adjoint_particle(p, binned, base, u, F, v_next, C_next, is_static, grid_v, dx, dt, nodes,
+                         adj_u, adj_v, adj_C, adj_F, lists, adj_grid_v)
+
+
+@wp.kernel(enable_backward=False)
+def p2g_adjoint(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    t_frame: wp.array(dtype=float),
+    t_offset: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+    adj_m: wp.array3d(dtype=float),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_u: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    adj_E: wp.array(dtype=float),
+):
+    """p2g_adjoint_particle for every particle (the first substep of a segment)."""
+    p = order[wp.tid()]
+    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
+    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_m, adj_mv,
+                         adj_u, adj_v, adj_C, adj_F, adj_E)
+
+
+@wp.kernel(enable_backward=False)
+def p2g_g2p_adjoint(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    u_prev: wp.array(dtype=wp.vec3),
+    F_prev: wp.array(dtype=wp.mat33),
+    E: wp.array(dtype=float),
+    volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float),
+    is_static: wp.array(dtype=int),
+    grid_v_prev: wp.array3d(dtype=wp.vec3),
+    nu: float,
+    dx: float,
+    dt: float,
+    nodes: wp.vec3i,
+    t_frame: wp.array(dtype=float),
+    t_offset: float,
+    n_forces: int,
+    force_mask: wp.array2d(dtype=float),
+    force_accel: wp.array(dtype=wp.vec3),
+    force_window: wp.array(dtype=wp.vec2),
+    adj_m: wp.array3d(dtype=float),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_u: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    adj_E: wp.array(dtype=float),
+    binned: int,
+    lists: CellLists,
+    adj_grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """The P2G adjoint of substep s (state u, v, C, F) fused with the G2P adjoint of substep
+    s - 1 (state u_prev, F_prev, its grid velocity grid_v_prev): each thread owns its
+    particle's cotangents, so the second reads what the first wrote, and the cotangents are
+    read and written once instead of twice."""
+    p = order[wp.tid()]
+    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
+    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_m, adj_mv,
+                         adj_u, adj_v, adj_C, adj_F, adj_E)
+    g2p_adjoint_particle(p, binned, base, u_prev, F_prev, v, C, is_static, grid_v_prev, dx, dt, nodes,
+                         adj_u, adj_v, adj_C, adj_F, lists, adj_grid_v)
+
+
+@wp.func
+def cell_row_sums_vec(
+    cell: int,
+    a: int,
+    b: int,
+    lists: CellLists,
+    dx: float,
+    nodes: wp.vec3i,
+    out: wp.array3d(dtype=wp.vec3),
+):
+    """gather.cell_row_sums without the mass: sum w_n (q + A dpos_n) of one cell's particles
+    over the nodes (a, b, 0..2) of its stencil, then three vector atomics."""
+    ck = cell % nodes[2]
+    cj = (cell // nodes[2]) % nodes[1]
+    ci = cell // (nodes[1] * nodes[2])
+    s0 = wp.vec3(0.0)
+    s1 = wp.vec3(0.0)
+    s2 = wp.vec3(0.0)
+    cnt = wp.min(lists.counts[cell], CELL_CAPACITY_W)
+    for s in range(cnt):
+        q = lists.slots[cell * CELL_CAPACITY_W + s]
+        fx = lists.pay_fx[q]
+        pq = lists.pay_mv[q]
+        A = lists.pay_A[q]
+        wab = bspline_at(fx[0], a) * bspline_at(fx[1], b)
+        wz = K.bspline_w(fx[2])
+        q0 = wp.vec3(pq[0], pq[1], pq[2]) + A * (wp.vec3(float(a) - fx[0], float(b) - fx[1], -fx[2]) * dx)
+        dq = wp.vec3(A[0, 2], A[1, 2], A[2, 2]) * dx
+        s0 += (wab * wz[0]) * q0
+        s1 += (wab * wz[1]) * (q0 + dq)
+        s2 += (wab * wz[2]) * (q0 + 2.0 * dq)
+    wp.atomic_add(out, ci + a, cj + b, ck, s0)
+    wp.atomic_add(out, ci + a, cj + b, ck + 1, s1)
+    wp.atomic_add(out, ci + a, cj + b, ck + 2, s2)
+
+
+@wp.kernel(enable_backward=False)
+def scatter_cells(
+    lists: CellLists,
+    dx: float,
+    nodes: wp.vec3i,
+    cells_per_pass: int,
+    out: wp.array3d(dtype=wp.vec3),
+):
+    """gather.p2g_cells for the grid-velocity cotangent (nine threads per occupied cell)."""
+    t = wp.tid()
+    lane = t // 9
+    o = t - 9 * lane
+    a = o // 3
+    b = o - 3 * a
+    n = lists.n_occupied[0]
+    slot = lane
+    while slot < n:
+        cell_row_sums_vec(lists.occupied[slot], a, b, lists, dx, nodes, out)
+        slot += cells_per_pass
+
+
+@wp.kernel(enable_backward=False)
+def grid_adjoint(
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    fixed: wp.array3d(dtype=int),
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_m: wp.array3d(dtype=float),
+    adj_mv: wp.array3d(dtype=wp.vec3),
+    binned: int,
+    lists: CellLists,
+):
+    """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and, when
+    binned, clears the cell lists for the next substep's scatter."""
+    i, j, k = wp.tid()
+    g = adj_grid_v[i, j, k]
+    adj_grid_v[i, j, k] = wp.vec3(0.0)
+    if binned != 0:
+        lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+        if i == 0 and j == 0 and k == 0:
+            lists.n_occupied[0] = 0
+    m = grid_m[i, j, k]
+    gm = float(0.0)
+    gmv = wp.vec3(0.0)
+    if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
+        mv = grid_mv[i, j, k]
+        vel = (mv / m + dt * gravity) * damping_factor
+        # each boundary condition zeroes one component by the sign of that component only
+        if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
+            g = wp.vec3(0.0, g[1], g[2])
+        if (j < pad and vel[1] < 0.0) or (j >= nodes[1] - pad and vel[1] > 0.0):
+            g = wp.vec3(g[0], 0.0, g[2])
+        if (k < pad and vel[2] < 0.0) or (k >= nodes[2] - pad and vel[2] > 0.0):
+            g = wp.vec3(g[0], g[1], 0.0)
+        if use_ground != 0:
+            if float(k) * dx <= ground_z and vel[2] < 0.0:
+                g = wp.vec3(g[0], g[1], 0.0)
+        gq = g * damping_factor  # cotangent of mv / m
+        gmv = gq / m
+        gm = -wp.dot(gq, mv) / (m * m)
+    adj_m[i, j, k] = gm
+    adj_mv[i, j, k] = gmv
+
+
+@wp.kernel(enable_backward=False)
+def grid_update_keep(
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    fixed: wp.array3d(dtype=int),
+    dx: float,
+    dt: float,
+    gravity: wp.vec3,
+    damping_factor: float,
+    pad: int,
+    nodes: wp.vec3i,
+    use_ground: int,
+    ground_z: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    lists: CellLists,
+):
+    """kernels.grid_update that empties the cell lists for the next binning but keeps the
+    mass and momentum (the adjoint reads them)."""
+    i, j, k = wp.tid()
+    grid_v[i, j, k] = K.node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+                                      gravity, damping_factor, pad, nodes, use_ground, ground_z)
+    lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
+    if i == 0 and j == 0 and k == 0:
+        lists.n_occupied[0] = 0
+
+
+@wp.kernel(enable_backward=False)
 def subtract_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
     """out = a - b."""
     p = wp.tid()
@@ -313,61 +497,102 @@ def _grid_bc_args(ctx, dt: float) -> list:
             float(cfg.ground_z if cfg.ground_z is not None else 0.0)]
 
 
-def recompute_substep(ctx, dt: float, t_offset: float, s_in, s_out, grid, lists: CellLists,
+def _force_args(ctx) -> list:
+    fa = ctx.forces
+    return [fa.n, fa.mask, fa.accel, fa.window]
+
+
+def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists: CellLists,
                       binned: bool) -> None:
-    """One forward substep s_in -> s_out (separate arrays) keeping the grid's mass, momentum
-    and velocity for the adjoints. binned: P2G through the cell lists (CUDA), which are
-    left empty again."""
-    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
+    """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
+    to states[1:] and keeping each substep's grid mass, momentum and velocity in grids.
+
+    binned (CUDA): as the fast path, each G2P fused with the next substep's binning
+    (gather.g2p_bin with separate input and output arrays), P2G by the cell lists;
+    otherwise the atomic scatter P2G. The lists are left empty."""
+    geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
     nodes = geo.nodes_vec
-    n = s_in.u.shape[0]
-    grid.m.zero_()
-    grid.mv.zero_()
+    n = states[0].u.shape[0]
+    count = len(grids)
+    bc = _grid_bc_args(ctx, dt)
+    for g in grids:
+        g.m.zero_()
+        g.mv.zero_()
+
+    def g2p_into(i: int) -> None:
+        s_in, s_out = states[i], states[i + 1]
+        wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+            ctx.order, ctx.base, s_in.u, s_in.F, mat.static, grids[i].v, float(geo.dx), float(dt), nodes,
+            float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+
     if not binned:
-        wp.launch(K.p2g, dim=n, device=dev, inputs=[
-            ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
-            float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
-            fa.n, fa.mask, fa.accel, fa.window, grid.m, grid.mv])
-    else:
+        for i in range(count):
+            s_in, g = states[i], grids[i]
+            wp.launch(K.p2g, dim=n, device=dev, inputs=[
+                ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
+                float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
+                *_force_args(ctx), g.m, g.mv])
+            wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v])
+            g2p_into(i)
+        return
+
+    def g2p_bin_into(do_g2p: int, i_in: int, i_out: int) -> None:
+        # G2P of substep i_in (skipped if do_g2p is 0) into state i_out, binned for substep i_out
+        s_in, s_out = states[i_in], states[i_out]
         wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            0, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass, mat.static, grid.v,
-            float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
-            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, grid.m, grid.mv, ctx.stats])
-        per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+            do_g2p, ctx.base, s_in.u, s_in.F, s_out.u, s_out.v, s_out.C, s_out.F, mat.E, mat.volume, mat.mass,
+            mat.static, grids[i_in].v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
+            geo.edge_lo, geo.edge_hi, ctx.t_frame, float((k0 + i_out) * dt), *_force_args(ctx), lists,
+            grids[i_out].m, grids[i_out].mv, ctx.stats])
+
+    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+    g2p_bin_into(0, 0, 0)
+    for i in range(count):
+        g = grids[i]
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, grid.m, grid.mv])
-        lists.counts.zero_()
-        lists.n_occupied.zero_()
-    wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[grid.m, grid.mv] + _grid_bc_args(ctx, dt) + [grid.v])
-    wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        ctx.order, ctx.base, s_in.u, s_in.F, mat.static, grid.v, float(geo.dx), float(dt), nodes,
-        float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+                  inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])
+        wp.launch(grid_update_keep, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v, lists])
+        if i < count - 1:
+            g2p_bin_into(1, i, i + 1)
+        else:
+            g2p_into(i)
 
 
-def adjoint_substep(ctx, dt: float, t_offset: float, s_in, s_out, grid, adj, adj_grid, lists: CellLists,
+def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj_grid, lists: CellLists,
                     binned: bool) -> None:
-    """Reverse of one substep: adj (u, v, C, F cotangents of s_out, plus E's running sum)
-    becomes the cotangents of s_in, in place.
+    """Reverse of substeps k0 .. k0 + len(grids) - 1 (forward values from recompute_segment):
+    adj (u, v, C, F cotangents of the segment's last state, plus E's running sum) becomes the
+    cotangents of states[0], in place.
 
-    adj_grid = (adj_grid_v, adj_m, adj_mv, scratch_m): adj_grid_v and scratch_m must be zero
-    on entry and are left zero (grid_adjoint consumes them); so are the lists. binned: the
-    grid-velocity cotangent goes through the cell lists (CUDA) instead of atomics; unbinned,
-    `lists` may be any (unused) set."""
-    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
+    adj_grid = (adj_grid_v, adj_m, adj_mv): adj_grid_v must be zero on entry and is left
+    zero. binned: the grid-velocity cotangent goes through the cell lists (CUDA) instead of
+    atomics; unbinned, `lists` may be any (unused) set."""
+    geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
     nodes = geo.nodes_vec
-    n = s_in.u.shape[0]
+    n = states[0].u.shape[0]
     adj_u, adj_v, adj_C, adj_F, adj_E = adj
-    adj_gv, adj_m, adj_mv, scratch_m = adj_grid
+    adj_gv, adj_m, adj_mv = adj_grid
+    bc = _grid_bc_args(ctx, dt)
+    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+    count = len(grids)
+    last = count - 1
     wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        int(binned), ctx.order, ctx.base, s_in.u, s_in.F, s_out.v, s_out.C, mat.static, grid.v,
-        float(geo.dx), float(dt), nodes, adj_u, adj_v, adj_C, adj_F, lists, adj_gv])
-    if binned:
-        per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
-        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, scratch_m, adj_gv])
-    wp.launch(grid_adjoint, dim=geo.nodes, device=dev, inputs=[grid.m, grid.mv] + _grid_bc_args(ctx, dt) + [
-        adj_gv, adj_m, adj_mv, scratch_m, int(binned), lists])
-    wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
-        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
-        fa.n, fa.mask, fa.accel, fa.window, adj_m, adj_mv, adj_u, adj_v, adj_C, adj_F, adj_E])
+        int(binned), ctx.order, ctx.base, states[last].u, states[last].F, states[count].v, states[count].C,
+        mat.static, grids[last].v, float(geo.dx), float(dt), nodes, adj_u, adj_v, adj_C, adj_F, lists, adj_gv])
+    for i in range(last, -1, -1):
+        s, g = states[i], grids[i]
+        if binned:
+            wp.launch(scatter_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+                      inputs=[lists, float(geo.dx), nodes, per_pass, adj_gv])
+        wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
+                  inputs=[g.m, g.mv] + bc + [adj_gv, adj_m, adj_mv, int(binned), lists])
+        common = [float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
+                  *_force_args(ctx), adj_m, adj_mv, adj_u, adj_v, adj_C, adj_F, adj_E]
+        if i > 0:
+            prev = states[i - 1]
+            wp.launch(p2g_g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+                ctx.order, ctx.base, s.u, s.v, s.C, s.F, prev.u, prev.F, mat.E, mat.volume, mat.mass,
+                mat.static, grids[i - 1].v] + common + [int(binned), lists, adj_gv])
+        else:
+            wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+                ctx.order, ctx.base, s.u, s.v, s.C, s.F, mat.E, mat.volume, mat.mass] + common)

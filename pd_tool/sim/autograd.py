@@ -9,14 +9,14 @@ frame-boundary states plus one segment's tape, whatever the number of frames.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 import warp as wp
 
 from pd_tool.sim import kernels as K
-from pd_tool.sim.adjoint import adjoint_substep, recompute_substep, subtract_vec3
+from pd_tool.sim.adjoint import adjoint_segment, recompute_segment, subtract_vec3
 from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
@@ -151,10 +151,11 @@ class DiffSim:
             run_substeps_fused(sctx, n, dt, st, self._grid_cache())
 
     def _context(self, base: wp.array, E: wp.array, order: wp.array, fixed: wp.array,
-                 forces: ForceArrays, t0: float) -> SubstepContext:
+                 forces: ForceArrays, t0: float, mat: Materials | None = None) -> SubstepContext:
         t_frame = wp.array([t0], dtype=float, device=self.device)
         stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
-        mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
+        if mat is None:
+            mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
         return SubstepContext(geo=self.geo, cfg=self.config, order=order, base=base, mat=mat,
                               fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
                               device=self.device)
@@ -174,14 +175,14 @@ class DiffSim:
 
     def _adjoint_pool(self, count: int):
         # count + 1 particle states and count grids of forward values, plus the grid
-        # cotangents (adj_grid_v and scratch_m start zeroed and are left zeroed).
+        # cotangents (adj_grid_v starts zeroed and is left zeroed).
         pool = getattr(self, "_adj_pool", None)
         if pool is None or len(pool[1]) < count:
             z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
             pool = self._adj_pool = (
                 [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
                 [GridArrays.alloc(self.geo, self.device) for _ in range(count)],
-                (z(wp.vec3), z(float), z(wp.vec3), z(float)))
+                (z(wp.vec3), z(float), z(wp.vec3)))
         return pool
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
@@ -193,6 +194,12 @@ class DiffSim:
                 [GridArrays.alloc(self.geo, self.device, requires_grad=True) for _ in range(count)])
         return pool
 
+    def _identity(self) -> wp.array:
+        ident = getattr(self, "_ident", None)
+        if ident is None:
+            ident = self._ident = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=self.device)
+        return ident
+
     def _order_fixed(self, base: wp.array) -> tuple[wp.array, wp.array]:
         zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
         keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
@@ -201,20 +208,73 @@ class DiffSim:
         return values[: self.n], fixed_nodes(self.geo, base, zero_u, self.static, self.device)
 
 
+@wp.kernel(enable_backward=False)
+def _gather_rows(src: wp.array(dtype=Any), order: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+    t = wp.tid()
+    dst[t] = src[order[t]]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_rows(src: wp.array(dtype=Any), order: wp.array(dtype=int), dst: wp.array(dtype=Any)):
+    t = wp.tid()
+    dst[order[t]] = src[t]
+
+
+@wp.kernel(enable_backward=False)
+def _gather_columns(src: wp.array2d(dtype=float), order: wp.array(dtype=int), dst: wp.array2d(dtype=float)):
+    k, t = wp.tid()
+    dst[k, t] = src[k, order[t]]
+
+
+class _SortedFrame:
+    """One frame's particles stored in stencil-cell order (sorted by the frame's start
+    positions), so that neighbouring threads read neighbouring particles and grid nodes:
+    the adjoint kernels read every particle array by index. Inputs are gathered into that
+    order, results scattered back; per frame that is a few copies, against every substep's
+    scattered reads without it."""
+
+    def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays) -> None:
+        self.sim = sim
+        self.order, self.fixed = sim._order_fixed(x)
+        self.identity = sim._identity()
+        mask = wp.empty_like(forces.mask)
+        wp.launch(_gather_columns, dim=mask.shape, device=sim.device, inputs=[forces.mask, self.order, mask])
+        self.forces = ForceArrays(n=forces.n, mask=mask, accel=forces.accel, window=forces.window)
+        self.volume, self.mass, self.static = (self.gather(a) for a in (sim.volume, sim.mass, sim.static))
+
+    def gather(self, a: wp.array) -> wp.array:
+        """A new array holding a in sorted order."""
+        out = wp.empty_like(a)
+        wp.launch(_gather_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
+        return out
+
+    def scatter(self, a: wp.array, out: wp.array) -> None:
+        """out (input order) = a (sorted order)."""
+        wp.launch(_scatter_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
+
+    def context(self, base: wp.array, E: wp.array, t0: float) -> SubstepContext:
+        mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
+        return self.sim._context(base, E, self.identity, self.fixed, self.forces, t0, mat=mat)
+
+
 class _FrameFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index):
         dev = sim.device
         dt = frame_dt / substeps
-        x_out = torch.empty_like(x)
-        v_out, C_out, F_out = (t.detach().clone().contiguous() for t in (v, C, F))
+        x_out, v_out, C_out, F_out = (torch.empty_like(t) for t in (x, v, C, F))
         with _stream_scope(dev):
-            base = _vec3(x)
-            order, fixed = sim._order_fixed(base)
-            sctx = sim._context(base, wp.from_torch(E.detach().contiguous()), order, fixed, forces, t0)
-            st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+            fr = _SortedFrame(sim, _vec3(x), forces)
+            base = fr.gather(_vec3(x))
+            st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), fr.gather(_vec3(v)),
+                               fr.gather(_mat33(C)), fr.gather(_mat33(F)))
+            sctx = fr.context(base, fr.gather(wp.from_torch(E.detach().contiguous())), t0)
             sim.run_untaped(sctx, substeps, dt, st)
-            wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, _vec3(x_out)])
+            x_sorted = wp.empty_like(base)
+            wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, x_sorted])
+            for a, out in ((x_sorted, _vec3(x_out)), (st.v, _vec3(v_out)), (st.C, _mat33(C_out)),
+                           (st.F, _mat33(F_out))):
+                fr.scatter(a, out)
             stats = sctx.stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
@@ -277,13 +337,15 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     seg = max(1, int(sim.config.segment))
-    order, fixed = sim._order_fixed(x)
-    sctx = sim._context(x, E, order, fixed, forces, t0)
+    fr = _SortedFrame(sim, x, forces)
+    base = fr.gather(x)
+    sctx = fr.context(base, fr.gather(E), t0)
     binned = sim.binned
     lists = sim._lists(binned)
-    starts, ckpts = _checkpoints(sim, sctx, v, C, F, t0, dt, substeps, seg)
+    starts, ckpts = _checkpoints(sim, sctx, fr.gather(v), fr.gather(C), fr.gather(F), t0, dt, substeps, seg)
     states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
-    adj = (wp.clone(gu), wp.clone(gv), wp.clone(gC), wp.clone(gF), wp.zeros(n, dtype=float, device=dev))
+    gu_sorted = fr.gather(gu)
+    adj = (wp.clone(gu_sorted), fr.gather(gv), fr.gather(gC), fr.gather(gF), wp.zeros(n, dtype=float, device=dev))
     for k0 in reversed(starts):
         k1 = min(k0 + seg, substeps)
         ck = ckpts.pop(k0)
@@ -291,14 +353,15 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
             wp.copy(dst, src)
         del ck
-        for i in range(k1 - k0):
-            recompute_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i], lists, binned)
-        for i in reversed(range(k1 - k0)):
-            adjoint_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i], adj, adj_grid,
-                            lists, binned)
-    grad_x = wp.empty_like(gu)
-    wp.launch(subtract_vec3, dim=n, device=dev, inputs=[adj[0], gu, grad_x])
-    return grad_x, adj[1], adj[2], adj[3], adj[4]
+        recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
+        adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], adj, adj_grid, lists, binned)
+    wp.launch(subtract_vec3, dim=n, device=dev, inputs=[adj[0], gu_sorted, gu_sorted])
+    grads = []
+    for a in (gu_sorted,) + adj[1:]:
+        out = wp.empty_like(a)
+        fr.scatter(a, out)
+        grads.append(out)
+    return tuple(grads)
 
 
 def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,

@@ -104,6 +104,8 @@ def bin_particle(
 def g2p_bin(
     do_g2p: int,
     base: wp.array(dtype=wp.vec3),
+    u_in: wp.array(dtype=wp.vec3),
+    F_in: wp.array(dtype=wp.mat33),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
@@ -131,11 +133,13 @@ def g2p_bin(
     grid_mv: wp.array3d(dtype=wp.vec3),
     stats: wp.array(dtype=float),
 ):
-    """G2P of this substep in place (unless do_g2p is 0: the run's first binning), then the
-    next substep's payload and binning."""
+    """G2P of this substep from (u_in, F_in) into (u, v, C, F) (unless do_g2p is 0: the run's
+    first binning), then the next substep's payload and binning of (u, v, C, F). The fast
+    path passes u_in = u and F_in = F (in place: each thread owns its particle); the
+    backward's recompute passes the previous substep's arrays, keeping every state."""
     p = wp.tid()
     if do_g2p != 0:
-        K.g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
+        K.g2p_gather(p, base, u_in, F_in, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
                      u, v, C, F, stats)
     a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
@@ -293,7 +297,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
     def bin_particles(do_g2p: int, t_offset: float) -> None:
         wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
+            do_g2p, ctx.base, st.u, st.F, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
             float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
             ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, g.m, g.mv, ctx.stats])
 
