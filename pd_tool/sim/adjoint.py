@@ -422,20 +422,23 @@ def grid_adjoint(
     binned: int,
     lists: CellLists,
 ):
-    """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and, when
-    binned, clears the cell lists for the next substep's scatter."""
+    """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and the stored
+    mass and momentum (the next recompute's P2G adds into them: this saves two memsets per
+    substep) and, when binned, clears the cell lists for the next substep's scatter."""
     i, j, k = wp.tid()
     g = adj_grid_v[i, j, k]
     adj_grid_v[i, j, k] = wp.vec3(0.0)
+    m = grid_m[i, j, k]
+    mv = grid_mv[i, j, k]
+    grid_m[i, j, k] = 0.0
+    grid_mv[i, j, k] = wp.vec3(0.0)
     if binned != 0:
         lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
         if i == 0 and j == 0 and k == 0:
             lists.n_occupied[0] = 0
-    m = grid_m[i, j, k]
     gm = float(0.0)
     gmv = wp.vec3(0.0)
     if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
-        mv = grid_mv[i, j, k]
         vel = (mv / m + dt * gravity) * damping_factor
         # each boundary condition zeroes one component by the sign of that component only
         if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
@@ -515,9 +518,7 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
     n = states[0].u.shape[0]
     count = len(grids)
     bc = _grid_bc_args(ctx, dt)
-    for g in grids:
-        g.m.zero_()
-        g.mv.zero_()
+    # grids arrive with zero mass and momentum: adjoint_segment's grid_adjoint leaves them so
 
     def g2p_into(i: int) -> None:
         s_in, s_out = states[i], states[i + 1]
@@ -565,7 +566,7 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     cotangents of states[0], in place.
 
     adj_grid = (adj_grid_v, adj_m, adj_mv): adj_grid_v must be zero on entry and is left
-    zero. binned: the grid-velocity cotangent goes through the cell lists (CUDA) instead of
+    zero; so are the grids' mass and momentum on exit (ready for the next recompute). binned: the grid-velocity cotangent goes through the cell lists (CUDA) instead of
     atomics; unbinned, `lists` may be any (unused) set."""
     geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
     nodes = geo.nodes_vec

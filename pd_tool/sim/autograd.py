@@ -46,12 +46,6 @@ def _mat33(t: torch.Tensor) -> wp.array:
     return wp.from_torch(t.detach().contiguous(), dtype=wp.mat33)
 
 
-def _copy(t: torch.Tensor, dtype, requires_grad: bool = False) -> wp.array:
-    a = wp.clone(wp.from_torch(t.detach().contiguous(), dtype=dtype))
-    a.requires_grad = requires_grad
-    return a
-
-
 def _stream_scope(device: str):
     # Launch on torch's current stream so that torch and warp work is ordered on CUDA.
     if device.startswith("cuda"):
@@ -104,6 +98,9 @@ class DiffSim:
         # P2G (and the adjoint's grid scatter) through cell lists (gather.py): on CUDA,
         # where float atomics bound the substep. Tests switch it on for the CPU too.
         self.binned = wp.get_device(self.device).is_cuda
+        # Replay the backward's segments as captured CUDA graphs (CUDA only).
+        self.cuda_graph = True
+        self._graphs: dict = {}
 
     def forces(self, forces: Sequence[Force]) -> ForceArrays:
         return ForceArrays.build(list(forces), self.n, self.device)
@@ -178,6 +175,7 @@ class DiffSim:
         # cotangents (adj_grid_v starts zeroed and is left zeroed).
         pool = getattr(self, "_adj_pool", None)
         if pool is None or len(pool[1]) < count:
+            self._graphs = {}  # captured graphs point into the old pool
             z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
             pool = self._adj_pool = (
                 [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
@@ -193,6 +191,22 @@ class DiffSim:
                 [ParticleState.zeros(self.n, self.device, requires_grad=True) for _ in range(count + 1)],
                 [GridArrays.alloc(self.geo, self.device, requires_grad=True) for _ in range(count)])
         return pool
+
+    def _frame_buffers(self, n_force_rows: int) -> dict:
+        # Sorted inputs and cotangents of a frame in arrays that outlive it (see _SortedFrame).
+        bufs = getattr(self, "_bufs", None)
+        if bufs is None or bufs["mask"].shape[0] != n_force_rows:
+            n, dev = self.n, self.device
+            z = lambda t, shape=n: wp.zeros(shape, dtype=t, device=dev)  # noqa: E731
+            bufs = self._bufs = {
+                "base": z(wp.vec3), "E": z(float), "v": z(wp.vec3), "C": z(wp.mat33), "F": z(wp.mat33),
+                "gu": z(wp.vec3), "gv": z(wp.vec3), "gC": z(wp.mat33), "gF": z(wp.mat33),
+                "adj_u": z(wp.vec3), "adj_E": z(float),
+                "volume": z(float), "mass": z(float), "static": z(wp.int32), "fixed": z(int, self.geo.nodes),
+                "mask": z(float, (n_force_rows, n)), "accel": z(wp.vec3, n_force_rows),
+                "window": z(wp.vec2, n_force_rows), "t_frame": z(float, 1), "stats": z(float, K.N_STATS)}
+            self._graphs = {}
+        return bufs
 
     def _identity(self) -> wp.array:
         ident = getattr(self, "_ident", None)
@@ -231,20 +245,33 @@ class _SortedFrame:
     positions), so that neighbouring threads read neighbouring particles and grid nodes:
     the adjoint kernels read every particle array by index. Inputs are gathered into that
     order, results scattered back; per frame that is a few copies, against every substep's
-    scattered reads without it."""
+    scattered reads without it.
 
-    def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays) -> None:
+    With `persistent`, every sorted array lives in buffers the DiffSim keeps (same arrays
+    every frame), which is what lets the backward replay captured CUDA graphs."""
+
+    def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays, persistent: bool = False) -> None:
         self.sim = sim
-        self.order, self.fixed = sim._order_fixed(x)
+        self.buffers = sim._frame_buffers(forces.mask.shape[0]) if persistent else None
+        self.order, fixed = sim._order_fixed(x)
         self.identity = sim._identity()
-        mask = wp.empty_like(forces.mask)
+        if self.buffers is None:
+            self.fixed = fixed
+            mask, accel, window = wp.empty_like(forces.mask), forces.accel, forces.window
+        else:
+            b = self.buffers
+            wp.copy(b["fixed"], fixed)
+            wp.copy(b["accel"], forces.accel)
+            wp.copy(b["window"], forces.window)
+            self.fixed, mask, accel, window = b["fixed"], b["mask"], b["accel"], b["window"]
         wp.launch(_gather_columns, dim=mask.shape, device=sim.device, inputs=[forces.mask, self.order, mask])
-        self.forces = ForceArrays(n=forces.n, mask=mask, accel=forces.accel, window=forces.window)
-        self.volume, self.mass, self.static = (self.gather(a) for a in (sim.volume, sim.mass, sim.static))
+        self.forces = ForceArrays(n=forces.n, mask=mask, accel=accel, window=window)
+        self.volume, self.mass, self.static = (self.gather(a, name) for a, name in (
+            (sim.volume, "volume"), (sim.mass, "mass"), (sim.static, "static")))
 
-    def gather(self, a: wp.array) -> wp.array:
-        """A new array holding a in sorted order."""
-        out = wp.empty_like(a)
+    def gather(self, a: wp.array, name: str | None = None) -> wp.array:
+        """a in sorted order: a new array, or the persistent buffer `name`."""
+        out = wp.empty_like(a) if self.buffers is None or name is None else self.buffers[name]
         wp.launch(_gather_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
         return out
 
@@ -254,7 +281,11 @@ class _SortedFrame:
 
     def context(self, base: wp.array, E: wp.array, t0: float) -> SubstepContext:
         mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
-        return self.sim._context(base, E, self.identity, self.fixed, self.forces, t0, mat=mat)
+        sctx = self.sim._context(base, E, self.identity, self.fixed, self.forces, t0, mat=mat)
+        if self.buffers is not None:
+            self.buffers["t_frame"].fill_(t0)
+            sctx.t_frame, sctx.stats = self.buffers["t_frame"], self.buffers["stats"]
+        return sctx
 
 
 class _FrameFunction(torch.autograd.Function):
@@ -289,9 +320,8 @@ class _FrameFunction(torch.autograd.Function):
                           for g, t in ((gx, x), (gv, v), (gC, C), (gF, F)))
         with _stream_scope(sim.device):
             grads = backward_frame(
-                sim, _copy(x, wp.vec3), _copy(v, wp.vec3), _copy(C, wp.mat33), _copy(F, wp.mat33),
-                _copy(E, wp.float32), ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps,
-                _vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
+                sim, _vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()),
+                ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, _vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
             grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
         return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
 
@@ -337,15 +367,22 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     seg = max(1, int(sim.config.segment))
-    fr = _SortedFrame(sim, x, forces)
-    base = fr.gather(x)
-    sctx = fr.context(base, fr.gather(E), t0)
+    fr = _SortedFrame(sim, x, forces, persistent=True)
+    buf = fr.buffers
+    sctx = fr.context(fr.gather(x, "base"), fr.gather(E, "E"), t0)
     binned = sim.binned
     lists = sim._lists(binned)
-    starts, ckpts = _checkpoints(sim, sctx, fr.gather(v), fr.gather(C), fr.gather(F), t0, dt, substeps, seg)
+    starts, ckpts = _checkpoints(sim, sctx, fr.gather(v, "v"), fr.gather(C, "C"), fr.gather(F, "F"),
+                                 t0, dt, substeps, seg)
     states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
-    gu_sorted = fr.gather(gu)
-    adj = (wp.clone(gu_sorted), fr.gather(gv), fr.gather(gC), fr.gather(gF), wp.zeros(n, dtype=float, device=dev))
+    gu_sorted = fr.gather(gu, "gu")
+    wp.copy(buf["adj_u"], gu_sorted)
+    buf["adj_E"].zero_()
+    adj = (buf["adj_u"], fr.gather(gv, "gv"), fr.gather(gC, "gC"), fr.gather(gF, "gF"), buf["adj_E"])
+    # A frame's launches depend only on the segment's start, length and dt (every array is a
+    # kept buffer), so on CUDA each segment replays one captured graph: the host issues one
+    # launch instead of ~7 per substep, which otherwise bounds the backward.
+    use_graph = wp.get_device(dev).is_cuda and sim.cuda_graph
     for k0 in reversed(starts):
         k1 = min(k0 + seg, substeps)
         ck = ckpts.pop(k0)
@@ -353,8 +390,21 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
             wp.copy(dst, src)
         del ck
-        recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
-        adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], adj, adj_grid, lists, binned)
+
+        def segment(k0=k0, k1=k1):
+            recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
+            adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], adj, adj_grid, lists, binned)
+
+        if not use_graph:
+            segment()
+            continue
+        key = (k0, k1 - k0, dt, forces.n, binned)
+        graph = sim._graphs.get(key)
+        if graph is None:
+            with wp.ScopedCapture(device=dev) as cap:
+                segment()
+            graph = sim._graphs[key] = cap.graph
+        wp.capture_launch(graph)
     wp.launch(subtract_vec3, dim=n, device=dev, inputs=[adj[0], gu_sorted, gu_sorted])
     grads = []
     for a in (gu_sorted,) + adj[1:]:
@@ -368,7 +418,6 @@ def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F:
                          forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
                          gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
     """backward_frame replaying each segment under a wp.Tape (warp's generated adjoints)."""
-    dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     seg = max(1, int(sim.config.segment))
     base = wp.clone(x)
