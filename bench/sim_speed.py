@@ -35,8 +35,7 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pd_tool.sim import DiffSim, MPMSolver, SimConfig  # noqa: E402
-from pd_tool.sim.autograd import backward_frame  # noqa: E402
-from pd_tool.sim.solver import ParticleState  # noqa: E402
+from pd_tool.sim.autograd import backward_frame, forward_frame  # noqa: E402
 
 DEFAULT_SIZES = "20000:32,100000:64,300000:128"
 E_PA = 1.0e5
@@ -82,7 +81,8 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
 
 
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int,
-                          backward: str = "adjoint") -> float:
+                          backward: str = "adjoint") -> tuple[float, float]:
+    """(forward, forward + backward) particle-substeps/s of the differentiable path."""
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=backward)
     dsim = DiffSim(vol, mass, static, cfg, device=device)
@@ -97,22 +97,26 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
     zm = wp.zeros(n, dtype=wp.mat33, device=device)
     frame_dt = 1e-3
 
+    outs = (wp.empty_like(xw), wp.empty_like(vw), wp.empty_like(Cw), wp.empty_like(Fw))
+
     def one_frame():
-        # forward (no tape) + backward (recompute + taped segments), as the autograd bridge does
-        order, fixed = dsim._order_fixed(xw)
-        sctx = dsim._context(xw, Ew, order, fixed, forces, 0.0)
-        st = ParticleState(wp.zeros(n, dtype=wp.vec3, device=device), wp.clone(vw), wp.clone(Cw), wp.clone(Fw))
-        dsim.run_untaped(sctx, substeps, frame_dt / substeps, st)
-        sctx.stats.numpy()  # the guard's one sync per frame
+        # forward (no tape) + backward, as the autograd bridge runs them
+        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs).numpy()  # guard sync
         backward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, ones, zv, zm, zm)
 
-    one_frame()
-    sync(device)
-    t0 = time.perf_counter()
-    for _ in range(frames):
-        one_frame()
-    sync(device)
-    return n * substeps * frames / (time.perf_counter() - t0)
+    def forward_only():
+        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs).numpy()
+
+    rates = []
+    for fn in (forward_only, one_frame):
+        fn()
+        sync(device)
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            fn()
+        sync(device)
+        rates.append(n * substeps * frames / (time.perf_counter() - t0))
+    return tuple(rates)
 
 
 def check_adjoint(n: int, res: int, substeps: int, device: str, segment: int) -> float:
@@ -188,8 +192,12 @@ def main(argv=None) -> int:
             modes = ["adjoint", "tape"] if args.backward == "both" else [args.backward]
             for mode in modes:
                 key = "fwd_bwd" if mode == modes[0] else "fwd_bwd_tape"
-                row[key] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device,
-                                                 args.segment, mode)
+                diff_fwd, row[key] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device,
+                                                           args.segment, mode)
+                if mode == modes[0]:
+                    row["diff_fwd"] = diff_fwd
+                    # the backward alone against the differentiable path's own forward
+                    row["bwd_over_diff_fwd"] = diff_fwd / row[key] - 1.0
             row["backward_kernels"] = modes[0]
             row["segment"] = args.segment
             row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
@@ -199,7 +207,8 @@ def main(argv=None) -> int:
         rows.append(row)
         extra = "".join(f"  {v} {row[v + '_fwd']:.3e}" for v in variants if v not in ("baseline", "fast"))
         print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}{extra}  fast {row['fast_fwd']:.3e}"
-              + (f"  fwd+bwd {row['fwd_bwd']:.3e} (backward = {row['bwd_over_fwd']:.2f} x forward)"
+              + (f"  diff fwd {row['diff_fwd']:.3e}  fwd+bwd {row['fwd_bwd']:.3e} (backward = "
+                 f"{row['bwd_over_fwd']:.2f} x fast forward, {row['bwd_over_diff_fwd']:.2f} x its own forward)"
                  if "fwd_bwd" in row else "") + "  particle-substeps/s", flush=True)
     out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",
            "rows": rows}

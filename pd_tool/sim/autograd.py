@@ -201,6 +201,7 @@ class DiffSim:
             bufs = self._bufs = {
                 "base": z(wp.vec3), "E": z(float), "v": z(wp.vec3), "C": z(wp.mat33), "F": z(wp.mat33),
                 "gu": z(wp.vec3), "gv": z(wp.vec3), "gC": z(wp.mat33), "gF": z(wp.mat33),
+                "fu": z(wp.vec3), "fv": z(wp.vec3), "fC": z(wp.mat33), "fF": z(wp.mat33),
                 "adj_u": z(wp.vec3), "adj_E": z(float),
                 "volume": z(float), "mass": z(float), "static": z(wp.int32), "fixed": z(int, self.geo.nodes),
                 "mask": z(float, (n_force_rows, n)), "accel": z(wp.vec3, n_force_rows),
@@ -292,21 +293,12 @@ class _FrameFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index):
         dev = sim.device
-        dt = frame_dt / substeps
         x_out, v_out, C_out, F_out = (torch.empty_like(t) for t in (x, v, C, F))
         with _stream_scope(dev):
-            fr = _SortedFrame(sim, _vec3(x), forces)
-            base = fr.gather(_vec3(x))
-            st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=dev), fr.gather(_vec3(v)),
-                               fr.gather(_mat33(C)), fr.gather(_mat33(F)))
-            sctx = fr.context(base, fr.gather(wp.from_torch(E.detach().contiguous())), t0)
-            sim.run_untaped(sctx, substeps, dt, st)
-            x_sorted = wp.empty_like(base)
-            wp.launch(K.compose_positions, dim=sim.n, device=dev, inputs=[base, st.u, x_sorted])
-            for a, out in ((x_sorted, _vec3(x_out)), (st.v, _vec3(v_out)), (st.C, _mat33(C_out)),
-                           (st.F, _mat33(F_out))):
-                fr.scatter(a, out)
-            stats = sctx.stats.numpy().copy()  # one sync per frame for the guard
+            stats = forward_frame(sim, _vec3(x), _vec3(v), _mat33(C), _mat33(F),
+                                  wp.from_torch(E.detach().contiguous()), forces, t0, frame_dt, substeps,
+                                  _vec3(x_out), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+            stats = stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
@@ -324,6 +316,40 @@ class _FrameFunction(torch.autograd.Function):
                 ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, _vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
             grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
         return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
+
+
+def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
+                  forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
+                  x_out: wp.array, v_out: wp.array, C_out: wp.array, F_out: wp.array) -> wp.array:
+    """One frame without a tape on warp arrays (the bridge's forward; the benchmark's too).
+
+    Writes the end state to the *_out arrays (input order) and returns the guard's stats
+    array (read it once, after the frame). On CUDA the substeps replay a captured graph
+    keyed by (substeps, dt, forces): every array they touch is a kept buffer."""
+    dev, n = sim.device, sim.n
+    dt = frame_dt / substeps
+    fr = _SortedFrame(sim, x, forces, persistent=True)
+    buf = fr.buffers
+    base = fr.gather(x, "base")
+    sctx = fr.context(base, fr.gather(E, "E"), t0)
+    buf["stats"].zero_()
+    st = ParticleState(buf["fu"], fr.gather(v, "fv"), fr.gather(C, "fC"), fr.gather(F, "fF"))
+    st.u.zero_()
+    if wp.get_device(dev).is_cuda and sim.cuda_graph:
+        key = ("forward", substeps, dt, forces.n, sim.binned)
+        graph = sim._graphs.get(key)
+        if graph is None:
+            with wp.ScopedCapture(device=dev) as cap:
+                sim.run_untaped(sctx, substeps, dt, st)
+            graph = sim._graphs[key] = cap.graph
+        wp.capture_launch(graph)
+    else:
+        sim.run_untaped(sctx, substeps, dt, st)
+    x_sorted = buf["gu"]  # free until the backward
+    wp.launch(K.compose_positions, dim=n, device=dev, inputs=[base, st.u, x_sorted])
+    for a, out in ((x_sorted, x_out), (st.v, v_out), (st.C, C_out), (st.F, F_out)):
+        fr.scatter(a, out)
+    return sctx.stats
 
 
 def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
@@ -499,4 +525,4 @@ def cfl_substeps_for(E: torch.Tensor, sim: DiffSim, frame_dt: float, vmax: float
     return cfl_substeps(frame_dt, sim.geo.dx, c, vmax, sim.config.cfl_safety)
 
 
-__all__ = ["DiffSim", "initial_state", "simulate_frame", "simulate_frames", "cfl_substeps_for"]
+__all__ = ["DiffSim", "forward_frame", "backward_frame", "initial_state", "simulate_frame", "simulate_frames", "cfl_substeps_for"]
