@@ -80,7 +80,7 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
     return n * substeps * frames / (time.perf_counter() - t0)
 
 
-def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int,
+def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None,
                           backward: str = "adjoint") -> tuple[float, float]:
     """(forward, forward + backward) particle-substeps/s of the differentiable path."""
     x, vol, mass, E, static = make_block(n, res)
@@ -119,7 +119,7 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
     return tuple(rates)
 
 
-def check_adjoint(n: int, res: int, substeps: int, device: str, segment: int) -> float:
+def check_adjoint(n: int, res: int, substeps: int, device: str, segment: int | None) -> float:
     """Largest relative difference (per gradient, relative to its max) between the
     hand-written and the taped backward of one frame from a moving, deformed state."""
     x, vol, mass, E, static = make_block(n, res)
@@ -163,7 +163,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default=DEFAULT_SIZES, help="N:res pairs, comma separated")
     ap.add_argument("--substeps", type=int, default=None, help="substeps per frame (default 64 cuda, 8 cpu)")
     ap.add_argument("--frames", type=int, default=None, help="timed frames (default 10 cuda, 2 cpu)")
-    ap.add_argument("--segment", type=int, default=16, help="substeps per recomputed segment in backward")
+    ap.add_argument("--segment", type=int, default=None,
+                    help="substeps per recomputed segment in backward (default: SimConfig's, the whole frame "
+                         "within its memory budget)")
     ap.add_argument("--backward", choices=["adjoint", "tape", "both"], default="adjoint",
                     help="backward kernels: hand-written adjoints, warp's taped adjoints, or both")
     ap.add_argument("--no-backward", action="store_true", help="forward only")

@@ -483,13 +483,6 @@ def grid_update_keep(
         lists.n_occupied[0] = 0
 
 
-@wp.kernel(enable_backward=False)
-def subtract_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
-    """out = a - b."""
-    p = wp.tid()
-    out[p] = a[p] - b[p]
-
-
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------

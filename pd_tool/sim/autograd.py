@@ -16,7 +16,7 @@ import torch
 import warp as wp
 
 from pd_tool.sim import kernels as K
-from pd_tool.sim.adjoint import adjoint_segment, recompute_segment, subtract_vec3
+from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
@@ -68,7 +68,8 @@ class DiffSim:
     Args:
         volume: [N] m^3.  mass: [N] kg.  static: [N] bool (Dirichlet particles); numpy or
             CPU tensors.
-        config: SimConfig (grid, gravity, nu, walls; `segment` = substeps per tape).
+        config: SimConfig (grid, gravity, nu, walls; `segment` = substeps stored per pass
+            of the backward).
         device: torch device of every tensor passed later ("cpu" or "cuda").
     """
 
@@ -157,6 +158,14 @@ class DiffSim:
                               fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
                               device=self.device)
 
+    def segment_length(self, substeps: int) -> int:
+        """Substeps recomputed and stored per backward pass: config.segment, or (None) as
+        many as fit in config.segment_budget_mb, at most the frame."""
+        if self.config.segment is not None:
+            return max(1, int(self.config.segment))
+        per_substep = self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (1 + 3 + 3) * 4
+        return int(min(substeps, max(1, self.config.segment_budget_mb * 2**20 // per_substep)))
+
     def _lists(self, binned: bool):
         # The fast path's cell lists on CUDA (a run leaves them empty); unbinned, a one-cell
         # set that no kernel reads.
@@ -199,7 +208,7 @@ class DiffSim:
             n, dev = self.n, self.device
             z = lambda t, shape=n: wp.zeros(shape, dtype=t, device=dev)  # noqa: E731
             bufs = self._bufs = {
-                "base": z(wp.vec3), "E": z(float), "v": z(wp.vec3), "C": z(wp.mat33), "F": z(wp.mat33),
+                "base": z(wp.vec3), "E": z(float),
                 "gu": z(wp.vec3), "gv": z(wp.vec3), "gC": z(wp.mat33), "gF": z(wp.mat33),
                 "fu": z(wp.vec3), "fv": z(wp.vec3), "fC": z(wp.mat33), "fF": z(wp.mat33),
                 "adj_u": z(wp.vec3), "adj_E": z(float),
@@ -214,6 +223,20 @@ class DiffSim:
         if ident is None:
             ident = self._ident = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=self.device)
         return ident
+
+    def _sort_into(self, base: wp.array, fixed: wp.array) -> wp.array:
+        """_order_fixed into kept arrays: returns the order (a view of a kept array) and
+        marks the Dirichlet nodes in `fixed`."""
+        keys = getattr(self, "_sort_keys", None)
+        if keys is None:
+            keys = self._sort_keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
+            self._sort_values = wp.zeros(2 * self.n, dtype=int, device=self.device)
+            self._zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
+        sort_by_cell(self.geo, base, self._zero_u, keys, self._sort_values, self.device)
+        fixed.zero_()
+        wp.launch(K.mark_fixed_nodes, dim=self.n, device=self.device, inputs=[
+            base, self._zero_u, self.static, 1.0 / self.geo.dx, self.geo.nodes_vec, fixed])
+        return self._sort_values[: self.n]
 
     def _order_fixed(self, base: wp.array) -> tuple[wp.array, wp.array]:
         zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
@@ -236,6 +259,86 @@ def _scatter_rows(src: wp.array(dtype=Any), order: wp.array(dtype=int), dst: wp.
 
 
 @wp.kernel(enable_backward=False)
+def _gather_state(
+    order: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33), E: wp.array(dtype=float), volume: wp.array(dtype=float),
+    mass: wp.array(dtype=float), is_static: wp.array(dtype=wp.int32),
+    xs: wp.array(dtype=wp.vec3), vs: wp.array(dtype=wp.vec3), Cs: wp.array(dtype=wp.mat33),
+    Fs: wp.array(dtype=wp.mat33), Es: wp.array(dtype=float), volumes: wp.array(dtype=float),
+    masses: wp.array(dtype=float), is_static_s: wp.array(dtype=wp.int32), us: wp.array(dtype=wp.vec3),
+):
+    """A frame's start state and materials in sorted order (one launch instead of eight), u = 0."""
+    t = wp.tid()
+    p = order[t]
+    xs[t] = x[p]
+    vs[t] = v[p]
+    Cs[t] = C[p]
+    Fs[t] = F[p]
+    Es[t] = E[p]
+    volumes[t] = volume[p]
+    masses[t] = mass[p]
+    is_static_s[t] = is_static[p]  # (`static` is a C++ keyword)
+    us[t] = wp.vec3(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def _gather_cotangents(
+    order: wp.array(dtype=int),
+    gu: wp.array(dtype=wp.vec3), gv: wp.array(dtype=wp.vec3), gC: wp.array(dtype=wp.mat33),
+    gF: wp.array(dtype=wp.mat33),
+    gu_s: wp.array(dtype=wp.vec3), adj_u: wp.array(dtype=wp.vec3), adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33), adj_F: wp.array(dtype=wp.mat33), adj_E: wp.array(dtype=float),
+):
+    """The end-state cotangents in sorted order, twice for u (the adjoint consumes one copy),
+    and E's cotangent zeroed."""
+    t = wp.tid()
+    p = order[t]
+    gu_s[t] = gu[p]
+    adj_u[t] = gu[p]
+    adj_v[t] = gv[p]
+    adj_C[t] = gC[p]
+    adj_F[t] = gF[p]
+    adj_E[t] = 0.0
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_gradients(
+    order: wp.array(dtype=int),
+    adj_u: wp.array(dtype=wp.vec3), gu_s: wp.array(dtype=wp.vec3), adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33), adj_F: wp.array(dtype=wp.mat33), adj_E: wp.array(dtype=float),
+    gx: wp.array(dtype=wp.vec3), gv: wp.array(dtype=wp.vec3), gC: wp.array(dtype=wp.mat33),
+    gF: wp.array(dtype=wp.mat33), gE: wp.array(dtype=float),
+):
+    """The start-state gradients back in input order; x's without the direct term (see
+    backward_frame)."""
+    t = wp.tid()
+    p = order[t]
+    gx[p] = adj_u[t] - gu_s[t]
+    gv[p] = adj_v[t]
+    gC[p] = adj_C[t]
+    gF[p] = adj_F[t]
+    gE[p] = adj_E[t]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_state(
+    order: wp.array(dtype=int),
+    base: wp.array(dtype=wp.vec3), u: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33), F: wp.array(dtype=wp.mat33),
+    x_out: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3), C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+):
+    """The end state back in input order, x = base + u."""
+    t = wp.tid()
+    p = order[t]
+    x_out[p] = base[t] + u[t]
+    v_out[p] = v[t]
+    C_out[p] = C[t]
+    F_out[p] = F[t]
+
+
+@wp.kernel(enable_backward=False)
 def _gather_columns(src: wp.array2d(dtype=float), order: wp.array(dtype=int), dst: wp.array2d(dtype=float)):
     k, t = wp.tid()
     dst[k, t] = src[k, order[t]]
@@ -254,25 +357,33 @@ class _SortedFrame:
     def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays, persistent: bool = False) -> None:
         self.sim = sim
         self.buffers = sim._frame_buffers(forces.mask.shape[0]) if persistent else None
-        self.order, fixed = sim._order_fixed(x)
         self.identity = sim._identity()
         if self.buffers is None:
-            self.fixed = fixed
+            self.order, self.fixed = sim._order_fixed(x)
             mask, accel, window = wp.empty_like(forces.mask), forces.accel, forces.window
+            self.volume, self.mass, self.static = (self.gather(a) for a in (sim.volume, sim.mass, sim.static))
         else:
             b = self.buffers
-            wp.copy(b["fixed"], fixed)
+            self.order = sim._sort_into(x, b["fixed"])
             wp.copy(b["accel"], forces.accel)
             wp.copy(b["window"], forces.window)
             self.fixed, mask, accel, window = b["fixed"], b["mask"], b["accel"], b["window"]
+            self.volume, self.mass, self.static = b["volume"], b["mass"], b["static"]
         wp.launch(_gather_columns, dim=mask.shape, device=sim.device, inputs=[forces.mask, self.order, mask])
         self.forces = ForceArrays(n=forces.n, mask=mask, accel=accel, window=window)
-        self.volume, self.mass, self.static = (self.gather(a, name) for a, name in (
-            (sim.volume, "volume"), (sim.mass, "mass"), (sim.static, "static")))
 
-    def gather(self, a: wp.array, name: str | None = None) -> wp.array:
-        """a in sorted order: a new array, or the persistent buffer `name`."""
-        out = wp.empty_like(a) if self.buffers is None or name is None else self.buffers[name]
+    def gather_state(self, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
+                     st: ParticleState) -> tuple[wp.array, wp.array]:
+        """Persistent mode: start state into st (u = 0) and the kept buffers; (base, E) sorted."""
+        b, sim = self.buffers, self.sim
+        wp.launch(_gather_state, dim=sim.n, device=sim.device, inputs=[
+            self.order, x, v, C, F, E, sim.volume, sim.mass, sim.static,
+            b["base"], st.v, st.C, st.F, b["E"], b["volume"], b["mass"], b["static"], st.u])
+        return b["base"], b["E"]
+
+    def gather(self, a: wp.array) -> wp.array:
+        """A new array holding a in sorted order."""
+        out = wp.empty_like(a)
         wp.launch(_gather_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
         return out
 
@@ -330,11 +441,10 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces, persistent=True)
     buf = fr.buffers
-    base = fr.gather(x, "base")
-    sctx = fr.context(base, fr.gather(E, "E"), t0)
+    st = ParticleState(buf["fu"], buf["fv"], buf["fC"], buf["fF"])
+    base, E_sorted = fr.gather_state(x, v, C, F, E, st)
+    sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
-    st = ParticleState(buf["fu"], fr.gather(v, "fv"), fr.gather(C, "fC"), fr.gather(F, "fF"))
-    st.u.zero_()
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
         key = ("forward", substeps, dt, forces.n, sim.binned)
         graph = sim._graphs.get(key)
@@ -345,10 +455,8 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         wp.capture_launch(graph)
     else:
         sim.run_untaped(sctx, substeps, dt, st)
-    x_sorted = buf["gu"]  # free until the backward
-    wp.launch(K.compose_positions, dim=n, device=dev, inputs=[base, st.u, x_sorted])
-    for a, out in ((x_sorted, x_out), (st.v, v_out), (st.C, C_out), (st.F, F_out)):
-        fr.scatter(a, out)
+    wp.launch(_scatter_state, dim=n, device=dev, inputs=[
+        fr.order, base, st.u, st.v, st.C, st.F, x_out, v_out, C_out, F_out])
     return sctx.stats
 
 
@@ -392,30 +500,35 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     adjoints in reverse."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
-    seg = max(1, int(sim.config.segment))
+    seg = sim.segment_length(substeps)
     fr = _SortedFrame(sim, x, forces, persistent=True)
     buf = fr.buffers
-    sctx = fr.context(fr.gather(x, "base"), fr.gather(E, "E"), t0)
+    states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
+    single = seg >= substeps
+    # one segment: the start state goes straight into the pool's first state
+    st0 = states[0] if single else ParticleState(buf["fu"], buf["fv"], buf["fC"], buf["fF"])
+    base, E_sorted = fr.gather_state(x, v, C, F, E, st0)
+    sctx = fr.context(base, E_sorted, t0)
     binned = sim.binned
     lists = sim._lists(binned)
-    starts, ckpts = _checkpoints(sim, sctx, fr.gather(v, "v"), fr.gather(C, "C"), fr.gather(F, "F"),
-                                 t0, dt, substeps, seg)
-    states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
-    gu_sorted = fr.gather(gu, "gu")
-    wp.copy(buf["adj_u"], gu_sorted)
-    buf["adj_E"].zero_()
-    adj = (buf["adj_u"], fr.gather(gv, "gv"), fr.gather(gC, "gC"), fr.gather(gF, "gF"), buf["adj_E"])
+    starts, ckpts = [0], {}
+    if not single:
+        starts, ckpts = _checkpoints(sim, sctx, st0.v, st0.C, st0.F, t0, dt, substeps, seg)
+    gu_sorted = buf["gu"]
+    adj = (buf["adj_u"], buf["gv"], buf["gC"], buf["gF"], buf["adj_E"])
+    wp.launch(_gather_cotangents, dim=n, device=dev, inputs=[fr.order, gu, gv, gC, gF, gu_sorted, *adj])
     # A frame's launches depend only on the segment's start, length and dt (every array is a
     # kept buffer), so on CUDA each segment replays one captured graph: the host issues one
     # launch instead of ~7 per substep, which otherwise bounds the backward.
     use_graph = wp.get_device(dev).is_cuda and sim.cuda_graph
     for k0 in reversed(starts):
         k1 = min(k0 + seg, substeps)
-        ck = ckpts.pop(k0)
-        first = states[0]
-        for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
-            wp.copy(dst, src)
-        del ck
+        if not single:
+            ck = ckpts.pop(k0)
+            first = states[0]
+            for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
+                wp.copy(dst, src)
+            del ck
 
         def segment(k0=k0, k1=k1):
             recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
@@ -431,13 +544,9 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
                 segment()
             graph = sim._graphs[key] = cap.graph
         wp.capture_launch(graph)
-    wp.launch(subtract_vec3, dim=n, device=dev, inputs=[adj[0], gu_sorted, gu_sorted])
-    grads = []
-    for a in (gu_sorted,) + adj[1:]:
-        out = wp.empty_like(a)
-        fr.scatter(a, out)
-        grads.append(out)
-    return tuple(grads)
+    grads = tuple(wp.empty_like(a) for a in (gu,) + adj[1:])
+    wp.launch(_scatter_gradients, dim=n, device=dev, inputs=[fr.order, adj[0], gu_sorted, *adj[1:], *grads])
+    return grads
 
 
 def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
@@ -445,7 +554,7 @@ def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F:
                          gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
     """backward_frame replaying each segment under a wp.Tape (warp's generated adjoints)."""
     dt = frame_dt / substeps
-    seg = max(1, int(sim.config.segment))
+    seg = sim.segment_length(substeps)
     base = wp.clone(x)
     base.requires_grad = True
     E_w = wp.clone(E)

