@@ -44,8 +44,9 @@ def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: b
             for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
 
 
-def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int) -> dict:
-    """Per-kernel GPU time and wall time (us per substep) of backward_frame."""
+def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None) -> dict:
+    """Per-kernel GPU time and wall time (us per substep) of backward_frame, without CUDA
+    graphs (the activity timing needs plain launches)."""
     import time
 
     import numpy as np
@@ -55,6 +56,7 @@ def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, 
 
     x, vol, mass, E, static = make_block(n, res)
     dsim = DiffSim(vol, mass, static, SimConfig(grid_res=res, segment=segment), device=device)
+    dsim.cuda_graph = False
     arr = lambda a, t: wp.array(np.asarray(a, np.float32), dtype=t, device=device)  # noqa: E731
     args = [arr(x, wp.vec3), wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros(n, dtype=wp.mat33, device=device),
             arr(np.tile(np.eye(3), (n, 1, 1)), wp.mat33), arr(E, float), dsim.forces([]), 0.0, 1e-3, substeps,
@@ -90,7 +92,8 @@ def main(argv=None) -> int:
     ap.add_argument("--blocks", default="", help="PARTICLE:CELL block sizes to sweep for the binned "
                     "P2G, comma separated, e.g. 256:256,128:128 (default: the module's)")
     ap.add_argument("--backward", action="store_true", help="profile the differentiable backward instead")
-    ap.add_argument("--segment", type=int, default=16, help="backward: substeps per recomputed segment")
+    ap.add_argument("--segment", type=int, default=None, help="backward: substeps per recomputed segment "
+                    "(default SimConfig's)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     wp.config.quiet = True
