@@ -164,7 +164,13 @@ class DiffSim:
         if self.config.segment is not None:
             return max(1, int(self.config.segment))
         per_substep = self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (1 + 3 + 3) * 4
-        return int(min(substeps, max(1, self.config.segment_budget_mb * 2**20 // per_substep)))
+        budget = self.config.segment_budget_mb
+        if budget is None:
+            budget = 2048.0
+            dev = wp.get_device(self.device)
+            if dev.is_cuda and getattr(dev, "free_memory", None):
+                budget = max(budget, 0.25 * dev.free_memory / 2**20)
+        return int(min(substeps, max(1, budget * 2**20 // per_substep)))
 
     def _lists(self, binned: bool):
         # The fast path's cell lists on CUDA (a run leaves them empty); unbinned, a one-cell

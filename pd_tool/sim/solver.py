@@ -48,7 +48,8 @@ class SimConfig:
             (memory knob: one particle state and one grid per substep of a segment); None =
             as many as fit in `segment_budget_mb` (a whole frame avoids recomputing it twice:
             1.5x faster backward at 100k particles, 64 substeps).
-        segment_budget_mb: memory for the stored substeps when segment is None.
+        segment_budget_mb: memory for the stored substeps when segment is None; None = a
+            quarter of the GPU's free memory on CUDA, 2048 MB on the CPU.
         backward: "adjoint" (hand-written reverse kernels, adjoint.py) or "tape" (warp's
             generated adjoints replayed under a wp.Tape; slower, kept as the reference).
     """
@@ -64,7 +65,7 @@ class SimConfig:
     boundary_pad: int = 3
     min_det_f: float = 1e-2
     segment: int | None = None
-    segment_budget_mb: float = 2048.0
+    segment_budget_mb: float | None = None
     backward: str = "adjoint"
 
     def validate(self) -> None:
