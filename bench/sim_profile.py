@@ -33,13 +33,16 @@ def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: b
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET)
     for _ in range(frames):
         sim.step_frame(1e-3)
-    results = wp.timing_end()
+    return per_kernel(wp.timing_end(), substeps * frames)
+
+
+def per_kernel(results, total_substeps: int) -> dict:
+    """warp timing results summed per kernel name: us per substep and call count, slowest first."""
     per = defaultdict(float)
     calls = defaultdict(int)
     for r in results:
         per[r.name] += r.elapsed
         calls[r.name] += 1
-    total_substeps = substeps * frames
     return {name: {"us_per_substep": 1e3 * t / total_substeps, "calls": calls[name]}
             for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
 
@@ -72,15 +75,7 @@ def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, 
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET | wp.TIMING_MEMCPY)
     for _ in range(frames):
         backward_frame(dsim, *args)
-    results = wp.timing_end()
-    per = defaultdict(float)
-    calls = defaultdict(int)
-    for r in results:
-        per[r.name] += r.elapsed
-        calls[r.name] += 1
-    kernels = {name: {"us_per_substep": 1e3 * t / (frames * substeps), "calls": calls[name]}
-               for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
-    return {"wall_us_per_substep": wall, "kernels": kernels}
+    return {"wall_us_per_substep": wall, "kernels": per_kernel(wp.timing_end(), frames * substeps)}
 
 
 def main(argv=None) -> int:

@@ -39,8 +39,9 @@ from pd_tool.sim.gather import (
     CELLS_PER_PASS,
     PARTICLE_BLOCK,
     CellLists,
-    bspline_at,
+    cell_row_terms,
     g2p_bin,
+    grid_update_clear_bins,
     p2g_cells,
 )
 
@@ -356,30 +357,12 @@ def cell_row_sums_vec(
     nodes: wp.vec3i,
     out: wp.array3d(dtype=wp.vec3),
 ):
-    """gather.cell_row_sums without the mass: sum w_n (q + A dpos_n) of one cell's particles
-    over the nodes (a, b, 0..2) of its stencil, then three vector atomics."""
-    ck = cell % nodes[2]
-    cj = (cell // nodes[2]) % nodes[1]
-    ci = cell // (nodes[1] * nodes[2])
-    s0 = wp.vec3(0.0)
-    s1 = wp.vec3(0.0)
-    s2 = wp.vec3(0.0)
-    cnt = wp.min(lists.counts[cell], CELL_CAPACITY_W)
-    for s in range(cnt):
-        q = lists.slots[cell * CELL_CAPACITY_W + s]
-        fx = lists.pay_fx[q]
-        pq = lists.pay_mv[q]
-        A = lists.pay_A[q]
-        wab = bspline_at(fx[0], a) * bspline_at(fx[1], b)
-        wz = K.bspline_w(fx[2])
-        q0 = wp.vec3(pq[0], pq[1], pq[2]) + A * (wp.vec3(float(a) - fx[0], float(b) - fx[1], -fx[2]) * dx)
-        dq = wp.vec3(A[0, 2], A[1, 2], A[2, 2]) * dx
-        s0 += (wab * wz[0]) * q0
-        s1 += (wab * wz[1]) * (q0 + dq)
-        s2 += (wab * wz[2]) * (q0 + 2.0 * dq)
-    wp.atomic_add(out, ci + a, cj + b, ck, s0)
-    wp.atomic_add(out, ci + a, cj + b, ck + 1, s1)
-    wp.atomic_add(out, ci + a, cj + b, ck + 2, s2)
+    """gather.cell_row_sums without the mass: the vector sums of one cell and row, then
+    three vector atomics."""
+    n, _m, s0, s1, s2 = cell_row_terms(cell, a, b, lists, dx, nodes)
+    wp.atomic_add(out, n[0], n[1], n[2], s0)
+    wp.atomic_add(out, n[0], n[1], n[2] + 1, s1)
+    wp.atomic_add(out, n[0], n[1], n[2] + 2, s2)
 
 
 @wp.kernel(enable_backward=False)
@@ -457,32 +440,6 @@ def grid_adjoint(
     adj_mv[i, j, k] = gmv
 
 
-@wp.kernel(enable_backward=False)
-def grid_update_keep(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
-    grid_v: wp.array3d(dtype=wp.vec3),
-    lists: CellLists,
-):
-    """kernels.grid_update that empties the cell lists for the next binning but keeps the
-    mass and momentum (the adjoint reads them)."""
-    i, j, k = wp.tid()
-    grid_v[i, j, k] = K.node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
-                                      gravity, damping_factor, pad, nodes, use_ground, ground_z)
-    lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
-    if i == 0 and j == 0 and k == 0:
-        lists.n_occupied[0] = 0
-
-
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
@@ -545,7 +502,7 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
         g = grids[i]
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])
-        wp.launch(grid_update_keep, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v, lists])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v, 0, lists])
         if i < count - 1:
             g2p_bin_into(1, i, i + 1)
         else:

@@ -9,7 +9,7 @@ frame-boundary states plus one segment's tape, whatever the number of frames.
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -149,11 +149,10 @@ class DiffSim:
             run_substeps_fused(sctx, n, dt, st, self._grid_cache())
 
     def _context(self, base: wp.array, E: wp.array, order: wp.array, fixed: wp.array,
-                 forces: ForceArrays, t0: float, mat: Materials | None = None) -> SubstepContext:
+                 forces: ForceArrays, t0: float) -> SubstepContext:
         t_frame = wp.array([t0], dtype=float, device=self.device)
         stats = wp.zeros(K.N_STATS, dtype=float, device=self.device)
-        if mat is None:
-            mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
+        mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
         return SubstepContext(geo=self.geo, cfg=self.config, order=order, base=base, mat=mat,
                               fixed=fixed, forces=forces, t_frame=t_frame, stats=stats,
                               device=self.device)
@@ -231,37 +230,22 @@ class DiffSim:
         return ident
 
     def _sort_into(self, base: wp.array, fixed: wp.array) -> wp.array:
-        """_order_fixed into kept arrays: returns the order (a view of a kept array) and
-        marks the Dirichlet nodes in `fixed`."""
+        """Sort the particles by stencil cell at positions `base` (kept sort buffers) and mark
+        the Dirichlet nodes in `fixed`; returns the order, a view of a kept array that the
+        next sort overwrites."""
         keys = getattr(self, "_sort_keys", None)
         if keys is None:
             keys = self._sort_keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
             self._sort_values = wp.zeros(2 * self.n, dtype=int, device=self.device)
             self._zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
         sort_by_cell(self.geo, base, self._zero_u, keys, self._sort_values, self.device)
-        fixed.zero_()
-        wp.launch(K.mark_fixed_nodes, dim=self.n, device=self.device, inputs=[
-            base, self._zero_u, self.static, 1.0 / self.geo.dx, self.geo.nodes_vec, fixed])
+        fixed_nodes(self.geo, base, self._zero_u, self.static, self.device, out=fixed)
         return self._sort_values[: self.n]
 
     def _order_fixed(self, base: wp.array) -> tuple[wp.array, wp.array]:
-        zero_u = wp.zeros(self.n, dtype=wp.vec3, device=self.device)
-        keys = wp.zeros(2 * self.n, dtype=int, device=self.device)
-        values = wp.zeros(2 * self.n, dtype=int, device=self.device)
-        sort_by_cell(self.geo, base, zero_u, keys, values, self.device)
-        return values[: self.n], fixed_nodes(self.geo, base, zero_u, self.static, self.device)
-
-
-@wp.kernel(enable_backward=False)
-def _gather_rows(src: wp.array(dtype=Any), order: wp.array(dtype=int), dst: wp.array(dtype=Any)):
-    t = wp.tid()
-    dst[t] = src[order[t]]
-
-
-@wp.kernel(enable_backward=False)
-def _scatter_rows(src: wp.array(dtype=Any), order: wp.array(dtype=int), dst: wp.array(dtype=Any)):
-    t = wp.tid()
-    dst[order[t]] = src[t]
+        """(order, fixed nodes) in new arrays (the taped path and tests)."""
+        fixed = wp.zeros(self.geo.nodes, dtype=int, device=self.device)
+        return wp.clone(self._sort_into(base, fixed)), fixed
 
 
 @wp.kernel(enable_backward=False)
@@ -355,55 +339,36 @@ class _SortedFrame:
     positions), so that neighbouring threads read neighbouring particles and grid nodes:
     the adjoint kernels read every particle array by index. Inputs are gathered into that
     order, results scattered back; per frame that is a few copies, against every substep's
-    scattered reads without it.
+    scattered reads without it. Every sorted array lives in buffers the DiffSim keeps (the
+    same arrays every frame), which is what lets forward and backward replay captured
+    CUDA graphs."""
 
-    With `persistent`, every sorted array lives in buffers the DiffSim keeps (same arrays
-    every frame), which is what lets the backward replay captured CUDA graphs."""
-
-    def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays, persistent: bool = False) -> None:
+    def __init__(self, sim: "DiffSim", x: wp.array, forces: ForceArrays) -> None:
         self.sim = sim
-        self.buffers = sim._frame_buffers(forces.mask.shape[0]) if persistent else None
-        self.identity = sim._identity()
-        if self.buffers is None:
-            self.order, self.fixed = sim._order_fixed(x)
-            mask, accel, window = wp.empty_like(forces.mask), forces.accel, forces.window
-            self.volume, self.mass, self.static = (self.gather(a) for a in (sim.volume, sim.mass, sim.static))
-        else:
-            b = self.buffers
-            self.order = sim._sort_into(x, b["fixed"])
-            wp.copy(b["accel"], forces.accel)
-            wp.copy(b["window"], forces.window)
-            self.fixed, mask, accel, window = b["fixed"], b["mask"], b["accel"], b["window"]
-            self.volume, self.mass, self.static = b["volume"], b["mass"], b["static"]
-        wp.launch(_gather_columns, dim=mask.shape, device=sim.device, inputs=[forces.mask, self.order, mask])
-        self.forces = ForceArrays(n=forces.n, mask=mask, accel=accel, window=window)
+        b = self.buffers = sim._frame_buffers(forces.mask.shape[0])
+        self.order = sim._sort_into(x, b["fixed"])
+        wp.copy(b["accel"], forces.accel)
+        wp.copy(b["window"], forces.window)
+        wp.launch(_gather_columns, dim=b["mask"].shape, device=sim.device, inputs=[forces.mask, self.order, b["mask"]])
+        self.forces = ForceArrays(n=forces.n, mask=b["mask"], accel=b["accel"], window=b["window"])
 
     def gather_state(self, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
                      st: ParticleState) -> tuple[wp.array, wp.array]:
-        """Persistent mode: start state into st (u = 0) and the kept buffers; (base, E) sorted."""
+        """Start state into st (u = 0) and the kept buffers; returns (base, E) sorted."""
         b, sim = self.buffers, self.sim
         wp.launch(_gather_state, dim=sim.n, device=sim.device, inputs=[
             self.order, x, v, C, F, E, sim.volume, sim.mass, sim.static,
             b["base"], st.v, st.C, st.F, b["E"], b["volume"], b["mass"], b["static"], st.u])
         return b["base"], b["E"]
 
-    def gather(self, a: wp.array) -> wp.array:
-        """A new array holding a in sorted order."""
-        out = wp.empty_like(a)
-        wp.launch(_gather_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
-        return out
-
-    def scatter(self, a: wp.array, out: wp.array) -> None:
-        """out (input order) = a (sorted order)."""
-        wp.launch(_scatter_rows, dim=self.sim.n, device=self.sim.device, inputs=[a, self.order, out])
-
     def context(self, base: wp.array, E: wp.array, t0: float) -> SubstepContext:
-        mat = Materials(E=E, volume=self.volume, mass=self.mass, static=self.static)
-        sctx = self.sim._context(base, E, self.identity, self.fixed, self.forces, t0, mat=mat)
-        if self.buffers is not None:
-            self.buffers["t_frame"].fill_(t0)
-            sctx.t_frame, sctx.stats = self.buffers["t_frame"], self.buffers["stats"]
-        return sctx
+        """The substeps' context over the sorted arrays (identity order, kept clock and stats)."""
+        b, sim = self.buffers, self.sim
+        b["t_frame"].fill_(t0)
+        mat = Materials(E=E, volume=b["volume"], mass=b["mass"], static=b["static"])
+        return SubstepContext(geo=sim.geo, cfg=sim.config, order=sim._identity(), base=base, mat=mat,
+                              fixed=b["fixed"], forces=self.forces, t_frame=b["t_frame"], stats=b["stats"],
+                              device=sim.device)
 
 
 class _FrameFunction(torch.autograd.Function):
@@ -445,7 +410,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     keyed by (substeps, dt, forces): every array they touch is a kept buffer."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
-    fr = _SortedFrame(sim, x, forces, persistent=True)
+    fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     st = ParticleState(buf["fu"], buf["fv"], buf["fC"], buf["fF"])
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
@@ -507,7 +472,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     seg = sim.segment_length(substeps)
-    fr = _SortedFrame(sim, x, forces, persistent=True)
+    fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
     single = seg >= substeps

@@ -160,18 +160,18 @@ def bspline_at(fx: float, a: int) -> float:
 
 
 @wp.func
-def cell_row_sums(
+def cell_row_terms(
     cell: int,
     a: int,
     b: int,
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
 ):
-    """One cell's particles' shares of the three nodes (a, b, 0..2) of its stencil, then
-    3 x 4 atomics."""
+    """One cell's particles' shares of the three nodes (a, b, 0..2) of its stencil: the
+    node index of the first, the masses sum w_n m and the vectors sum w_n (q + A dpos_n)
+    of the payload (mass, q = momentum, A = affine matrix). The adjoint's scatter uses the
+    vector sums alone (adjoint.py)."""
     ck = cell % nodes[2]
     cj = (cell // nodes[2]) % nodes[1]
     ci = cell // (nodes[1] * nodes[2])
@@ -203,12 +203,28 @@ def cell_row_sums(
         mv0 += w0 * q0
         mv1 += w1 * (q0 + dq)
         mv2 += w2 * (q0 + 2.0 * dq)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck, m0)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck + 1, m1)
-    wp.atomic_add(grid_m, ci + a, cj + b, ck + 2, m2)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck, mv0)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck + 1, mv1)
-    wp.atomic_add(grid_mv, ci + a, cj + b, ck + 2, mv2)
+    return wp.vec3i(ci + a, cj + b, ck), wp.vec3(m0, m1, m2), mv0, mv1, mv2
+
+
+@wp.func
+def cell_row_sums(
+    cell: int,
+    a: int,
+    b: int,
+    lists: CellLists,
+    dx: float,
+    nodes: wp.vec3i,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """cell_row_terms of one cell and row, then 3 x 4 atomics."""
+    n, m, mv0, mv1, mv2 = cell_row_terms(cell, a, b, lists, dx, nodes)
+    wp.atomic_add(grid_m, n[0], n[1], n[2], m[0])
+    wp.atomic_add(grid_m, n[0], n[1], n[2] + 1, m[1])
+    wp.atomic_add(grid_m, n[0], n[1], n[2] + 2, m[2])
+    wp.atomic_add(grid_mv, n[0], n[1], n[2], mv0)
+    wp.atomic_add(grid_mv, n[0], n[1], n[2] + 1, mv1)
+    wp.atomic_add(grid_mv, n[0], n[1], n[2] + 2, mv2)
 
 
 @wp.kernel(enable_backward=False)
@@ -256,14 +272,18 @@ def grid_update_clear_bins(
     use_ground: int,
     ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
+    clear_grid: int,
     lists: CellLists,
 ):
-    """kernels.grid_update_and_clear that also empties the cell lists for the next binning."""
+    """The grid update that also empties the cell lists for the next binning and, with
+    clear_grid (the fast path), zeroes mass and momentum for the next P2G; the backward's
+    recompute keeps them (its adjoint reads them)."""
     i, j, k = wp.tid()
     grid_v[i, j, k] = K.node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
                                       gravity, damping_factor, pad, nodes, use_ground, ground_z)
-    grid_m[i, j, k] = 0.0
-    grid_mv[i, j, k] = wp.vec3(0.0)
+    if clear_grid != 0:
+        grid_m[i, j, k] = 0.0
+        grid_mv[i, j, k] = wp.vec3(0.0)
     lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
     if i == 0 and j == 0 and k == 0:
         lists.n_occupied[0] = 0
@@ -305,7 +325,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, lists]
+                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, 1, lists]
     for s in range(n):
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])

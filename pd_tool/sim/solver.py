@@ -308,9 +308,13 @@ def cell_order(geo: GridGeometry, x: np.ndarray) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
-def fixed_nodes(geo: GridGeometry, base: wp.array, u: wp.array, static: wp.array, device) -> wp.array:
-    """[nodes] int array, 1 where a static particle pins the grid velocity to zero."""
-    fixed = wp.zeros(geo.nodes, dtype=int, device=device)
+def fixed_nodes(geo: GridGeometry, base: wp.array, u: wp.array, static: wp.array, device,
+                out: wp.array | None = None) -> wp.array:
+    """[nodes] int array, 1 where a static particle pins the grid velocity to zero (into
+    `out`, zeroed first, when given)."""
+    fixed = wp.zeros(geo.nodes, dtype=int, device=device) if out is None else out
+    if out is not None:
+        fixed.zero_()
     wp.launch(K.mark_fixed_nodes, dim=base.shape[0], device=device,
               inputs=[base, u, static, 1.0 / geo.dx, geo.nodes_vec, fixed])
     return fixed
