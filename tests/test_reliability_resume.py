@@ -39,7 +39,8 @@ def inputs(tmp_path_factory):
     return d, scene, [load_reference_video(d / "video", working_size=24)]
 
 
-def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0):
+def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0,
+         rounds: int = 1):
     from pd_tool.fit.pipeline import FitSettings, run_fit
     from pd_tool.prepare import PrepareOptions
     from pd_tool.synthetic import POT_TOP
@@ -51,35 +52,40 @@ def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool
             raise Interrupt
 
     settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
-                           checkpoint_every=1, seed=seed)
+                           checkpoint_every=1, seed=seed, rounds=rounds)
     return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=settings, progress=progress, resume=resume)
 
 
-@pytest.mark.parametrize("stop_at", [("velocity", 2), ("material", 2)])
-def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, stop_at) -> None:
+@pytest.mark.parametrize("rounds,stop_at", [(1, ("velocity", 2)), (1, ("material", 2)),
+                                            (2, ("velocity 2/2", 2)), (2, ("material 2/2", 1))])
+def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, stop_at) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the promise is for a fixed thread count
     try:
-        full = _fit(inputs, tmp_path / "full.pdmat")
+        full = _fit(inputs, tmp_path / "full.pdmat", rounds=rounds)
         out = tmp_path / "cut.pdmat"
         with pytest.raises(Interrupt):
-            _fit(inputs, out, stop_at=stop_at)
+            _fit(inputs, out, stop_at=stop_at, rounds=rounds)
         ckpt = torch.load(out.with_name(out.name + ".ckpt"), weights_only=False)
-        # the checkpoint of the iteration before the interruption, in the same stage
-        assert (ckpt["stage"], ckpt["iteration"]) == (stop_at[0], stop_at[1] - 1)
+        # the checkpoint of the iteration before the interruption, in the same stage and round
+        stage, _, tag = stop_at[0].partition(" ")
+        assert (ckpt["stage"], ckpt["iteration"], ckpt["round"]) == (stage, stop_at[1] - 1,
+                                                                      int(tag.split("/")[0]) - 1 if tag else 0)
         assert not out.exists()
         if stop_at[0] == "velocity":  # a checkpoint of another fit (another seed) is refused, and kept
             from pd_tool.errors import PdToolError
 
             with pytest.raises(PdToolError, match=r"cut.pdmat.ckpt: the checkpoint belongs to another fit "
                                                   r"\(settings differs\); delete it, or fit without --resume$"):
-                _fit(inputs, out, resume=True, seed=1)
-        resumed = _fit(inputs, out, resume=True)
+                _fit(inputs, out, resume=True, seed=1, rounds=rounds)
+        resumed = _fit(inputs, out, resume=True, rounds=rounds)
     finally:
         torch.set_num_threads(threads)
     assert not out.with_name(out.name + ".ckpt").exists()
     assert resumed.losses == full.losses
     assert resumed.driver_E.tobytes() == full.driver_E.tobytes(), np.abs(resumed.driver_E / full.driver_E - 1).max()
     assert resumed.driver_v0.tobytes() == full.driver_v0.tobytes()
+    # every round's iterations ran once: none repeated or skipped by the resume
+    assert len(resumed.losses["velocity"]) == 2 * rounds and len(resumed.losses["material"]) == 2 * rounds
 

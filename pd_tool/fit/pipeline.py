@@ -43,6 +43,10 @@ class FitSettings:
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
+    # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
+    # v0, and stage 2 then fits E to the biased v0; each later round refits v0 under the
+    # fitted E. The paper does one round.
+    rounds: int = 1
     # Per-driver log-E residual on top of the field. The field's parameters are shared by
     # every point, so the region with the largest gradient (the stem) moves them all; a
     # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
@@ -271,9 +275,9 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
 
 
 def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
-                     opt_v=None, sched_v=None, opt_r=None, sched_r=None) -> None:
+                     opt_v=None, sched_v=None, opt_r=None, sched_r=None, rnd: int = 0) -> None:
     state = {
-        "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it,
+        "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it, "round": rnd,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "losses": losses,
         "torch_rng": torch.get_rng_state(),
@@ -324,41 +328,16 @@ def _check_resume_key(path: Path, ckpt: dict, key: dict) -> None:
                               f"delete it, or fit without --resume")
 
 
-def run_fit(
-    scene: GaussianScene,
-    scene_path: str | Path,
-    videos: list,
-    out: str | Path,
-    *,
-    prepare_options: PrepareOptions | None = None,
-    settings: FitSettings | None = None,
-    progress: ProgressFn | None = None,
-    resume: bool = False,
-) -> FitResult:
-    """Fit and write the material file `out` (.pdmat). A checkpoint `out`.ckpt is kept
-    while fitting (every settings.checkpoint_every iterations) and removed at the end;
-    resume=True continues from it."""
-    from pd_tool.fit.schedule import make_optimizer
-    from pd_tool.material_file import MaterialFile, scene_fingerprint
+def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt_path: Path,
+               losses: dict[str, list[float]], seconds: dict[str, float], progress: ProgressFn | None) -> int:
+    """One round: stage 1 (v0 per video, E frozen at its current value), then stage 2 (E,
+    v0 frozen or refined). `ckpt`: a checkpoint of this round to continue from. Adds the
+    stages' losses and seconds; returns the stage-2 steps skipped for a non-finite gradient."""
+    from functools import partial
 
-    s = (settings or FitSettings()).resolved()
-    out = Path(out)
-    ckpt_path = out.with_name(out.name + ".ckpt")
-    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
-    losses: dict[str, list[float]] = {"velocity": [], "material": []}
-    seconds: dict[str, float] = {}
-    pb.resume_key = _resume_key(pb, scene_path)
-    ckpt = _load_checkpoint(ckpt_path) if resume else None
-    if ckpt is not None:
-        _check_resume_key(ckpt_path, ckpt, pb.resume_key)
-        pb.material.load_state_dict(ckpt["material"])
-        pb.velocities.load_state_dict(ckpt["velocities"])
-        losses = ckpt["losses"]
-        torch.set_rng_state(ckpt["torch_rng"])
-        if "residual" in ckpt:
-            with torch.no_grad():
-                pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
+    from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
 
+    tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
     # ---- stage 1: initial velocity per video, E frozen
     t0 = time.perf_counter()
     start = 0
@@ -376,24 +355,20 @@ def run_fit(
         _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
         losses["velocity"].append(loss)
         if progress:
-            progress("velocity", it + 1, s.velocity_iters, loss)
+            progress("velocity" + tag, it + 1, s.velocity_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
-            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses)
-    seconds["velocity"] = time.perf_counter() - t0
+            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses, rnd=rnd)
+    seconds["velocity"] = seconds.get("velocity", 0.0) + time.perf_counter() - t0
 
     # ---- stage 2: material (v0 frozen, or refined at a lower rate)
     t0 = time.perf_counter()
     with torch.no_grad():
-        v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
+        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
     opt, sched = make_optimizer(pb.material, s.lr_material, max(s.material_iters, 1),
                                 warmup_steps=min(s.warmup, max(s.material_iters, 1)))
     opt_r = sched_r = None
     if s.driver_residual:
         opt_r = torch.optim.Adam([pb.log_e_residual], lr=s.lr_residual)
-        from functools import partial
-
-        from pd_tool.fit.schedule import warmup_linear_decay
-
         sched_r = torch.optim.lr_scheduler.LambdaLR(opt_r, partial(
             warmup_linear_decay, total_steps=max(s.material_iters, 1),
             warmup_steps=min(s.warmup, max(s.material_iters, 1)), final_factor=0.0))
@@ -415,7 +390,8 @@ def run_fit(
     skipped = 0
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
-            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v, opt_r, sched_r)
+            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v, opt_r, sched_r,
+                             rnd=rnd)
         loss = material_iteration(pb, None if s.refine_velocity else v0s)
         if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
             skipped += 1
@@ -425,15 +401,60 @@ def run_fit(
             skipped += 1
         losses["material"].append(loss)
         if progress:
-            progress("material", it + 1, s.material_iters, loss)
+            progress("material" + tag, it + 1, s.material_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v, opt_r, sched_r)
-    seconds["material"] = time.perf_counter() - t0
+            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v, opt_r, sched_r,
+                             rnd=rnd)
+    seconds["material"] = seconds.get("material", 0.0) + time.perf_counter() - t0
+    return skipped
+
+
+def run_fit(
+    scene: GaussianScene,
+    scene_path: str | Path,
+    videos: list,
+    out: str | Path,
+    *,
+    prepare_options: PrepareOptions | None = None,
+    settings: FitSettings | None = None,
+    progress: ProgressFn | None = None,
+    resume: bool = False,
+) -> FitResult:
+    """Fit and write the material file `out` (.pdmat). A checkpoint `out`.ckpt is kept
+    while fitting (every settings.checkpoint_every iterations) and removed at the end;
+    resume=True continues from it."""
+    from pd_tool.material_file import MaterialFile, scene_fingerprint
+
+    s = (settings or FitSettings()).resolved()
+    out = Path(out)
+    ckpt_path = out.with_name(out.name + ".ckpt")
+    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
+    losses: dict[str, list[float]] = {"velocity": [], "material": []}
+    seconds: dict[str, float] = {}
+    pb.resume_key = _resume_key(pb, scene_path)
+    ckpt = _load_checkpoint(ckpt_path) if resume else None
+    if ckpt is not None:
+        _check_resume_key(ckpt_path, ckpt, pb.resume_key)
+        pb.material.load_state_dict(ckpt["material"])
+        pb.velocities.load_state_dict(ckpt["velocities"])
+        losses = ckpt["losses"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        if "residual" in ckpt:
+            with torch.no_grad():
+                pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
+
+    skipped = 0
+    resume_round = int(ckpt.get("round", 0)) if ckpt is not None else 0
+    for rnd in range(s.rounds):
+        if rnd < resume_round:
+            continue
+        skipped += _fit_round(pb, s, rnd, ckpt if rnd == resume_round else None, ckpt_path, losses, seconds,
+                              progress)
+        ckpt = None
 
     # ---- result
     with torch.no_grad():
-        if s.refine_velocity:
-            v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
+        v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
     p = pb.prep
