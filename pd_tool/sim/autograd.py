@@ -9,6 +9,8 @@ frame-boundary states plus one segment's tape, whatever the number of frames.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 from typing import Sequence
 
 import numpy as np
@@ -46,11 +48,33 @@ def _mat33(t: torch.Tensor) -> wp.array:
     return wp.from_torch(t.detach().contiguous(), dtype=wp.mat33)
 
 
-def _stream_scope(device: str):
-    # Launch on torch's current stream so that torch and warp work is ordered on CUDA.
-    if device.startswith("cuda"):
-        return wp.ScopedStream(wp.stream_from_torch(torch.device(device)))
-    return wp.ScopedDevice(device)
+@contextmanager
+def _stream_scope(sim: "DiffSim"):
+    """Where the bridge launches its warp work, ordered with torch's CUDA work.
+
+    Without graphs: torch's current stream. With graphs: the simulator's own stream, which
+    first waits for torch's and which torch's waits for on exit. Torch's default stream is
+    the legacy NULL stream, on which CUDA cannot capture a graph ("unknown stream"). So
+    everything torch must see before the frame is enqueued before entering, and the
+    frame's results are read by torch only after leaving."""
+    dev = wp.get_device(sim.device)
+    if not dev.is_cuda:
+        with wp.ScopedDevice(dev):
+            yield
+        return
+    torch_stream = wp.stream_from_torch(torch.device(sim.device))
+    if not sim.cuda_graph:
+        with wp.ScopedStream(torch_stream):
+            yield
+        return
+    if sim._stream is None:
+        sim._stream = wp.Stream(dev)
+    sim._stream.wait_stream(torch_stream)
+    try:
+        with wp.ScopedStream(sim._stream):
+            yield
+    finally:
+        torch_stream.wait_stream(sim._stream)
 
 
 def initial_state(x: torch.Tensor, v: torch.Tensor | None = None) -> State:
@@ -102,6 +126,7 @@ class DiffSim:
         # Replay the backward's segments as captured CUDA graphs (CUDA only).
         self.cuda_graph = True
         self._graphs: dict = {}
+        self._stream = None  # CUDA stream of graph launches (see _stream_scope)
 
     def forces(self, forces: Sequence[Force]) -> ForceArrays:
         return ForceArrays.build(list(forces), self.n, self.device)
@@ -374,13 +399,14 @@ class _SortedFrame:
 class _FrameFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index):
-        dev = sim.device
         x_out, v_out, C_out, F_out = (torch.empty_like(t) for t in (x, v, C, F))
-        with _stream_scope(dev):
-            stats = forward_frame(sim, _vec3(x), _vec3(v), _mat33(C), _mat33(F),
-                                  wp.from_torch(E.detach().contiguous()), forces, t0, frame_dt, substeps,
-                                  _vec3(x_out), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+        # torch-side copies (contiguous) before the scope: the simulator's stream waits for them
+        args = (_vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()))
+        outs = (_vec3(x_out), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+        with _stream_scope(sim):
+            stats = forward_frame(sim, *args, forces, t0, frame_dt, substeps, *outs)
             stats = stats.numpy().copy()  # one sync per frame for the guard
+        del args, outs
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
@@ -392,11 +418,13 @@ class _FrameFunction(torch.autograd.Function):
         sim: DiffSim = ctx.sim
         gx, gv, gC, gF = (torch.zeros_like(t) if g is None else g.contiguous()
                           for g, t in ((gx, x), (gv, v), (gC, C), (gF, F)))
-        with _stream_scope(sim.device):
-            grads = backward_frame(
-                sim, _vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()),
-                ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, _vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
-            grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
+        args = (_vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()))
+        cot = (_vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
+        with _stream_scope(sim):
+            grads = backward_frame(sim, *args, ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, *cot)
+        # after the scope: torch's stream now waits for the simulator's
+        grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
+        del args, cot
         return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
 
 
