@@ -62,3 +62,6 @@ def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
     assert speed["a"] > 1.3 * speed["b"] > 0.0, speed
     report = json.loads((tmp_path / "fit.report.json").read_text())
     assert report["losses"]["velocity"][-1] < report["losses"]["velocity"][0]
+    # several videos: two rounds by default (stage 1 refitted under the first round's E)
+    assert mf.meta["settings"]["rounds"] == 2
+    assert len(report["losses"]["velocity"]) == 2 * 25 and len(report["losses"]["material"]) == 2 * 2
