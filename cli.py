@@ -508,9 +508,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="draft | default | final or a TOML file: grid, CFL safety, driver ratio, iterations.")
 @click.option("--velocity-iters", type=click.IntRange(min=0), help="Stage 1 iterations. Default: from --quality.")
 @click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
-@click.option("--rounds", type=click.IntRange(min=1),
+@click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Rounds of (stage 1, stage 2); each later round refits the initial velocity under the fitted "
-                   "stiffness. Default: 2 with several videos, else 1.")
+                   "stiffness. 2 helped with two videos of a large scene; see docs/benchmarks.md.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
@@ -526,7 +526,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int | None, working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
+        rounds: int, working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
         no_preview: bool, seed: int, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
@@ -585,7 +585,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         finally:
             if bar is not None:
                 bar.close()
-        side = write_fit_outputs(out.parent, out.stem, splats, result, refs, settings.resolved(len(refs)),
+        side = write_fit_outputs(out.parent, out.stem, splats, result, refs, settings.resolved(),
                                  preview=not no_preview)
         write_record(scene, out, ".")
     import numpy as np

@@ -132,7 +132,7 @@ def main() -> None:
                          "log_space_rel_error": abs(float(np.log(rec) - np.log(REGION_TRUTH_E[name])))
                          / float(np.log(REGION_TRUTH_E[name])),
                          "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
-    s = settings.resolved(len(refs))
+    s = settings.resolved()
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
                cfl_safety=cfl)
     x_true = simulate_positions(scene, prep, drivers, truth_E, **sim)

@@ -75,7 +75,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     mat_path = out / "plant.pdmat"
     result = run_fit(scene, paths["scene"], refs, mat_path, prepare_options=PrepareOptions(static_below=POT_TOP),
                      settings=settings, progress=fit_progress)
-    side = write_fit_outputs(out, mat_path.stem, scene, result, refs, settings.resolved(len(refs)), preview=True)
+    side = write_fit_outputs(out, mat_path.stem, scene, result, refs, settings.resolved(), preview=True)
     write_record(paths["scene"], mat_path, out)
     fit_s = time.perf_counter() - t0
     paths.update(material=mat_path, **{f"fit_{k}": v for k, v in side.items()})

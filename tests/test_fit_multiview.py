@@ -40,7 +40,7 @@ def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
         res = CliRunner().invoke(main, [
             "fit", str(tmp_path / "plant.ply"), str(tmp_path / "a"), str(tmp_path / "b"), "-o",
             str(tmp_path / "fit.pdmat"), "--static-below", str(POT_TOP), "--quality", "draft",
-            "--velocity-iters", "25", "--material-iters", "2", "--working-size", "32", "--no-preview",
+            "--velocity-iters", "25", "--material-iters", "2", "--rounds", "2", "--working-size", "32", "--no-preview",
             "--device", "cpu"], catch_exceptions=False)
     finally:
         torch.set_num_threads(threads)
@@ -62,6 +62,6 @@ def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
     assert speed["a"] > 1.3 * speed["b"] > 0.0, speed
     report = json.loads((tmp_path / "fit.report.json").read_text())
     assert report["losses"]["velocity"][-1] < report["losses"]["velocity"][0]
-    # several videos: two rounds by default (stage 1 refitted under the first round's E)
+    # --rounds 2: stage 1 and stage 2 each ran twice
     assert mf.meta["settings"]["rounds"] == 2
     assert len(report["losses"]["velocity"]) == 2 * 25 and len(report["losses"]["material"]) == 2 * 2

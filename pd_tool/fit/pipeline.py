@@ -45,9 +45,10 @@ class FitSettings:
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
     # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
     # v0, and stage 2 then fits E to the biased v0; each later round refits v0 under the
-    # fitted E. The paper does one round. None: 2 with several videos, else 1 (measured:
-    # docs/benchmarks.md, fit recovery).
-    rounds: int | None = None
+    # fitted E. The paper does one round, and so does the default: in every paired
+    # comparison measured a second round made the new-force motion worse
+    # (docs/benchmarks.md, fit recovery).
+    rounds: int = 1
     # Per-driver log-E residual on top of the field. The field's parameters are shared by
     # every point, so the region with the largest gradient (the stem) moves them all; a
     # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
@@ -77,13 +78,10 @@ class FitSettings:
     device: str = "cpu"
     checkpoint_every: int = 5  # iterations between checkpoints (bounded loss of work on a kill)
 
-    def resolved(self, n_videos: int = 1) -> "FitSettings":
-        """These settings with every default filled in (from the quality preset, and for
-        `rounds` from the number of reference videos)."""
+    def resolved(self) -> "FitSettings":
+        """These settings with every default filled in from the quality preset."""
         q = load_preset("quality", self.quality)
         out = FitSettings(**asdict(self))
-        if out.rounds is None:
-            out.rounds = 2 if n_videos > 1 else 1
         if out.rounds < 1:
             raise ValueError(f"rounds must be at least 1, got {out.rounds}")
         if out.velocity_iters is None:
@@ -432,7 +430,7 @@ def run_fit(
     resume=True continues from it."""
     from pd_tool.material_file import MaterialFile, scene_fingerprint
 
-    s = (settings or FitSettings()).resolved(len(videos))
+    s = (settings or FitSettings()).resolved()
     out = Path(out)
     ckpt_path = out.with_name(out.name + ".ckpt")
     pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
