@@ -10,7 +10,6 @@ frame-boundary states plus one segment's tape, whatever the number of frames.
 from __future__ import annotations
 
 from contextlib import contextmanager
-
 from typing import Sequence
 
 import numpy as np
@@ -406,7 +405,6 @@ class _FrameFunction(torch.autograd.Function):
         with _stream_scope(sim):
             stats = forward_frame(sim, *args, forces, t0, frame_dt, substeps, *outs)
             stats = stats.numpy().copy()  # one sync per frame for the guard
-        del args, outs
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
@@ -424,7 +422,6 @@ class _FrameFunction(torch.autograd.Function):
             grads = backward_frame(sim, *args, ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, *cot)
         # after the scope: torch's stream now waits for the simulator's
         grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
-        del args, cot
         return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
 
 
