@@ -132,6 +132,9 @@ def main() -> None:
                          "log_space_rel_error": abs(float(np.log(rec) - np.log(REGION_TRUTH_E[name])))
                          / float(np.log(REGION_TRUTH_E[name])),
                          "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
+    # the fit's result before the slower new-force runs, so that a run cut short by a time
+    # limit still reports it
+    print(json.dumps({"fit_s": fit_s, "regions": regions}), file=sys.stderr, flush=True)
     s = settings.resolved()
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
                cfl_safety=cfl)
