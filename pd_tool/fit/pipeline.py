@@ -45,8 +45,8 @@ class FitSettings:
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
     # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
     # v0, and stage 2 then fits E to the biased v0; each later round refits v0 under the
-    # fitted E. The paper does one round, and so does the default: in every paired
-    # comparison measured a second round made the new-force motion worse
+    # fitted E. The paper does one round, and so does the default: in four of the five
+    # paired comparisons measured a second round made the new-force motion worse
     # (docs/benchmarks.md, fit recovery).
     rounds: int = 1
     # Per-driver log-E residual on top of the field. The field's parameters are shared by
