@@ -49,6 +49,34 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     return np.stack(out)
 
 
+PUSH_SPEED = 0.6  # m/s at the top of each reference video's initial push
+
+
+def use_true_v0(views: int) -> None:
+    """Make every fit in this process use the videos' true initial velocities (the pushes
+    plant_reference_for_fit gives view k below) instead of its velocity fields. The fit's
+    drivers are the reference's (same preparation and seed), so the formula is exact."""
+    import torch
+
+    from pd_tool.fit.pipeline import FitProblem
+    from pd_tool.reference import push_velocity
+
+    def true_v0(pb, i: int) -> torch.Tensor:
+        if not hasattr(pb, "_true_v0"):
+            x = pb.x_rest.double().cpu().numpy()
+            static = pb.static.cpu().numpy().astype(bool)
+            pb._true_v0 = [torch.tensor(push_velocity(x, static, direction=push_direction(k), speed=PUSH_SPEED),
+                                        dtype=torch.float32, device=pb.device) for k in range(views)]
+        return pb._true_v0[i]
+
+    FitProblem.driver_v0 = true_v0
+
+
+def push_direction(k: int) -> tuple[float, float, float]:
+    """View k's push (simulation axes): along x for even k, along y for odd k."""
+    return (1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -67,6 +95,9 @@ def main() -> None:
     ap.add_argument("--material-iters", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a FitSettings field, e.g. --set refine_velocity=true (repeatable)")
+    ap.add_argument("--oracle-v0", action="store_true",
+                    help="diagnostic: skip stage 1 and give stage 2 the true initial velocity of each video, "
+                         "to tell v0 estimation from E estimation")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -94,6 +125,9 @@ def main() -> None:
     for item in args.set:
         key, _, text = item.partition("=")
         overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
+    if args.oracle_v0:
+        use_true_v0(views=args.views)
+        args.velocity_iters = 0
     settings = FitSettings(quality=args.quality, device=args.device, working_long_side=args.size,
                            velocity_iters=args.velocity_iters, material_iters=args.material_iters, **overrides)
     with tempfile.TemporaryDirectory() as tmp:
@@ -108,7 +142,7 @@ def main() -> None:
                 scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
             video, _, _ = plant_reference_for_fit(
                 tmp / f"video{k}", scene, cam, args.quality, n_frames=args.frames, fps=args.fps,
-                push_direction=(1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0), device=args.device)
+                push_speed=PUSH_SPEED, push_direction=push_direction(k), device=args.device)
             refs.append(load_reference_video(video, working_size=args.size, device=args.device))
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
@@ -151,7 +185,7 @@ def main() -> None:
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
-        "overrides": overrides, "fit_s": fit_s, "regions": regions,
+        "overrides": overrides, "oracle_v0": args.oracle_v0, "fit_s": fit_s, "regions": regions,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),
                       "peak_motion_truth": float(np.linalg.norm(x_true[:, fg] - x_true[0, fg], axis=-1).max() / size)},
