@@ -1,0 +1,38 @@
+"""bench/fit_recovery.py at a tiny scale: its JSON has every region and the new-force
+errors, and --oracle-v0 really hands stage 2 the true push (v0 error ~0, against a v0
+fitted in one stage-1 iteration, which is far off)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["--quality", "draft", "--device", "cpu", "--gaussians", "800", "--size", "32", "--frames", "4", "--seconds", "0.2",
+        "--velocity-iters", "1", "--material-iters", "1"]
+
+
+def _run(tmp_path: Path, *extra: str) -> dict:
+    out = tmp_path / f"rec{len(extra)}.json"
+    p = subprocess.run([sys.executable, str(REPO / "bench" / "fit_recovery.py"), *TINY, *extra, "--json", str(out)],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
+@pytest.mark.slow
+def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
+    fitted = _run(tmp_path)
+    oracle = _run(tmp_path, "--oracle-v0")
+    for rep in (fitted, oracle):
+        assert set(rep["regions"]) == {"stem", "leaf", "flower"}
+        for r in rep["regions"].values():
+            assert r["fitted_pa"] > 0 and r["log_space_rel_error"] >= 0
+        nf = rep["new_force"]
+        assert nf["rms_error_fitted"] >= 0 and nf["rms_error_uniform_baseline"] > 0
+    assert oracle["oracle_v0"] and not fitted["oracle_v0"]
+    assert oracle["v0_rel_error"] < 1e-5
+    assert fitted["v0_rel_error"] > 0.1  # one stage-1 iteration from a zero field is far off
