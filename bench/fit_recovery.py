@@ -52,6 +52,14 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
 PUSH_SPEED = 0.6  # m/s at the top of each reference video's initial push
 
 
+def true_push(x_sim, static, k: int):
+    """View k's true initial velocity [N, 3] m/s at points x_sim (simulation axes, m), as
+    plant_reference_for_fit gives it below."""
+    from pd_tool.reference import push_velocity
+
+    return push_velocity(x_sim, static, direction=push_direction(k), speed=PUSH_SPEED)
+
+
 def use_true_v0(views: int) -> None:
     """Make every fit in this process use the videos' true initial velocities (the pushes
     plant_reference_for_fit gives view k below) instead of its velocity fields. The fit's
@@ -59,14 +67,13 @@ def use_true_v0(views: int) -> None:
     import torch
 
     from pd_tool.fit.pipeline import FitProblem
-    from pd_tool.reference import push_velocity
 
     def true_v0(pb, i: int) -> torch.Tensor:
         if not hasattr(pb, "_true_v0"):
             x = pb.x_rest.double().cpu().numpy()
             static = pb.static.cpu().numpy().astype(bool)
-            pb._true_v0 = [torch.tensor(push_velocity(x, static, direction=push_direction(k), speed=PUSH_SPEED),
-                                        dtype=torch.float32, device=pb.device) for k in range(views)]
+            pb._true_v0 = [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device)
+                           for k in range(views)]
         return pb._true_v0[i]
 
     FitProblem.driver_v0 = true_v0
@@ -112,7 +119,7 @@ def main() -> None:
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
     from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_for_fit, push_velocity
+    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
     from pd_tool.cameras import auto_camera
     from pd_tool.views import scene_camera
@@ -168,8 +175,7 @@ def main() -> None:
                          "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
     # the first video's fitted v0 against its true push, over the moving drivers
     free = ~drivers.static.cpu().numpy().astype(bool)
-    v_true = push_velocity(drivers.positions.double().cpu().numpy(), ~free, direction=push_direction(0),
-                           speed=PUSH_SPEED)[free]
+    v_true = true_push(drivers.positions.double().cpu().numpy(), ~free, 0)[free]
     v0_rel_error = float(np.linalg.norm(res.driver_v0[free] - v_true) / max(np.linalg.norm(v_true), 1e-12))
     # the fit's result before the slower new-force runs, so that a run cut short by a time
     # limit still reports it

@@ -39,6 +39,7 @@ from pd_tool.sim.gather import (
     CELLS_PER_PASS,
     PARTICLE_BLOCK,
     CellLists,
+    cell_lane_row,
     cell_row_terms,
     g2p_bin,
     grid_update_clear_bins,
@@ -374,15 +375,11 @@ def scatter_cells(
     out: wp.array3d(dtype=wp.vec3),
 ):
     """gather.p2g_cells for the grid-velocity cotangent (nine threads per occupied cell)."""
-    t = wp.tid()
-    lane = t // 9
-    o = t - 9 * lane
-    a = o // 3
-    b = o - 3 * a
+    lane_row = cell_lane_row(wp.tid())
     n = lists.n_occupied[0]
-    slot = lane
+    slot = lane_row[0]
     while slot < n:
-        cell_row_sums_vec(lists.occupied[slot], a, b, lists, dx, nodes, out)
+        cell_row_sums_vec(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, out)
         slot += cells_per_pass
 
 

@@ -227,6 +227,16 @@ def cell_row_sums(
     wp.atomic_add(grid_mv, n[0], n[1], n[2] + 2, mv2)
 
 
+@wp.func
+def cell_lane_row(t: int) -> wp.vec3i:
+    """Thread t of a nine-threads-per-cell launch: (cell lane, stencil offsets a, b) of the
+    row of nodes (a, b, 0..2) it owns."""
+    lane = t // 9
+    o = t - 9 * lane
+    a = o // 3
+    return wp.vec3i(lane, a, o - 3 * a)
+
+
 @wp.kernel(enable_backward=False)
 def p2g_cells(
     lists: CellLists,
@@ -246,15 +256,11 @@ def p2g_cells(
     letting only each cell's first particle work, to save the shared occupied-cell
     counter, 44 us.
     """
-    t = wp.tid()
-    lane = t // 9
-    o = t - 9 * lane
-    a = o // 3
-    b = o - 3 * a
+    lane_row = cell_lane_row(wp.tid())
     n = lists.n_occupied[0]
-    slot = lane
+    slot = lane_row[0]
     while slot < n:
-        cell_row_sums(lists.occupied[slot], a, b, lists, dx, nodes, grid_m, grid_mv)
+        cell_row_sums(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, grid_m, grid_mv)
         slot += cells_per_pass
 
 
