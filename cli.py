@@ -510,7 +510,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
 @click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Rounds of (stage 1, stage 2); each later round refits the initial velocity under the fitted "
-                   "stiffness. 2 helped with two videos of a large scene; see docs/benchmarks.md.")
+                   "stiffness. Measured: usually no better than 1; see docs/benchmarks.md.")
+@click.option("--horizon", type=click.IntRange(min=0), default=1, show_default=True,
+              help="Frames each stage-2 loss back-propagates through (the paper's 1; 0 = every frame). 3 brought "
+                   "every region of the recovery benchmark within 10%, at about the same motion error; see "
+                   "docs/benchmarks.md.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
@@ -526,7 +530,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int, working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
+        rounds: int, horizon: int, working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
         no_preview: bool, seed: int, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
@@ -563,7 +567,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                                      device=dev) for v in videos]
         splats = load_splats(scene, device=dev)
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
-                               rounds=rounds, init_E=init_e, nu=nu, density=density, working_long_side=working_size,
+                               rounds=rounds, material_horizon=horizon or None, init_E=init_e, nu=nu, density=density, working_long_side=working_size,
                                background=bg, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
         bar = None

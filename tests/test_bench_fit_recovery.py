@@ -36,3 +36,7 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
     assert oracle["oracle_v0"] and not fitted["oracle_v0"]
     assert oracle["v0_rel_error"] < 1e-5
     assert fitted["v0_rel_error"] > 0.1  # one stage-1 iteration from a zero field is far off
+    # the per-axis split adds up to the whole error
+    for rep in (fitted, oracle):
+        assert len(rep["v0_axis_error"]) == 3
+        assert abs(sum(e * e for e in rep["v0_axis_error"]) ** 0.5 - rep["v0_rel_error"]) < 1e-6 + 1e-6 * rep["v0_rel_error"]

@@ -1,0 +1,47 @@
+"""Stage 2's gradient horizon (FitSettings.material_horizon, `pdtool fit --horizon`): a
+horizon as long as the video is full back-propagation, and a shorter one cuts the graph,
+so its E gradient differs."""
+from __future__ import annotations
+
+import torch
+
+
+def _material_grads(tmp_path, horizons):
+    from pd_tool.fit.pipeline import FitProblem, FitSettings, material_iteration
+    from pd_tool.fit.video import load_reference_video
+    from pd_tool.io import load_splats, save_splats
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.reference import plant_reference_video, push_velocity
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.views import scene_camera
+
+    save_splats(make_plant(500, seed=3), tmp_path / "plant.ply")
+    scene = load_splats(tmp_path / "plant.ply")
+    plant_reference_video(tmp_path / "video", scene, scene_camera(scene, width=24, height=24),
+                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
+                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    refs = [load_reference_video(tmp_path / "video", working_size=24)]
+    pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
+                    FitSettings(quality="draft", working_long_side=24).resolved())
+    x = pb.x_rest.double().numpy()
+    v0 = torch.tensor(push_velocity(x, pb.static.numpy(), speed=0.6), dtype=torch.float32)
+    grads = {}
+    for h in horizons:
+        pb.s.material_horizon = h
+        pb.material.zero_grad(set_to_none=True)
+        material_iteration(pb, [v0])
+        grads[h] = torch.cat([p.grad.flatten() for p in pb.material.parameters()])
+    return grads
+
+
+def test_horizon_as_long_as_the_video_is_full_backprop_and_one_frame_differs(tmp_path) -> None:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        g = _material_grads(tmp_path, [None, 3, 1])  # 4 frames: 3 simulated frames
+    finally:
+        torch.set_num_threads(threads)
+    scale = float(g[None].abs().max())
+    assert scale > 0.0
+    assert torch.allclose(g[3], g[None], rtol=1e-5, atol=1e-6 * scale)
+    assert float((g[1] - g[None]).abs().max()) > 1e-3 * scale
