@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety):
+def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety, substeps=None):
     """Gaussian positions [T, N, 3] (scene units) under a drag at the top for 0.5 s."""
     import numpy as np
     import torch
@@ -33,7 +33,7 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     from pd_tool.sim import MPMSolver, SimConfig
 
     cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
-                    cfl_safety=cfl_safety)
+                    cfl_safety=cfl_safety, substeps=substeps)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
@@ -79,6 +79,38 @@ def use_true_v0(views: int) -> None:
     FitProblem.driver_v0 = true_v0
 
 
+def driver_truth_E(scene, prep, drivers):
+    """Each driver's true E (Pa): that of the region most of its Gaussians belong to."""
+    import numpy as np
+
+    from pd_tool.synthetic import REGION_TRUTH_E, REGIONS
+
+    table = np.array([REGION_TRUTH_E[n] for n in REGIONS])
+    member = drivers.labels.cpu().numpy()[: prep.count]
+    votes = np.zeros((len(drivers.positions), len(REGIONS)))
+    np.add.at(votes, (member, scene.labels[prep.foreground]), 1.0)
+    return table[votes.argmax(axis=1)]
+
+
+def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
+    """The substeps per frame the CFL condition gives the reference under the true E and
+    the push's top speed (what --substeps truth fixes for every simulation)."""
+    import numpy as np
+
+    from pd_tool.prepare import PrepareOptions, prepare_scene
+    from pd_tool.presets import fit_simulation
+    from pd_tool.sim.cfl import cfl_substeps, wave_speed
+    from pd_tool.synthetic import POT_TOP
+
+    grid, cfl, ratio = fit_simulation(quality)
+    prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=grid))
+    drivers = prep.build_drivers(ratio=ratio, seed=0)
+    moving = ~drivers.static.cpu().numpy().astype(bool)
+    rho = (drivers.mass / drivers.volume).cpu().numpy()
+    c = wave_speed(driver_truth_E(scene, prep, drivers)[moving], rho[moving], nu)
+    return cfl_substeps(1.0 / fps, max(prep.domain) / grid, c, PUSH_SPEED, cfl)
+
+
 def push_direction(k: int) -> tuple[float, float, float]:
     """View k's push (simulation axes): along x for even k, along y for odd k."""
     return (1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0)
@@ -105,6 +137,10 @@ def main() -> None:
     ap.add_argument("--oracle-v0", action="store_true",
                     help="diagnostic: skip stage 1 and give stage 2 the true initial velocity of each video, "
                          "to tell v0 estimation from E estimation")
+    ap.add_argument("--substeps", default=None, metavar="N|truth",
+                    help="diagnostic: fix the substeps per frame of every simulation (reference, fit, new-force "
+                         "runs); 'truth': the CFL count of the reference under the true E. Default: each "
+                         "simulation picks its own by CFL, as pdtool does")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -135,12 +171,18 @@ def main() -> None:
     if args.oracle_v0:
         use_true_v0(views=args.views)
         args.velocity_iters = 0
+    substeps = None
+    if args.substeps is not None and args.substeps != "truth":
+        substeps = int(args.substeps)
     settings = FitSettings(quality=args.quality, device=args.device, working_long_side=args.size,
                            velocity_iters=args.velocity_iters, material_iters=args.material_iters, **overrides)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
+        if args.substeps == "truth":
+            substeps = truth_substeps(scene, q, args.fps, settings.nu)
+        settings.substeps = substeps
         h = args.size * 9 // 16 if args.size >= 512 else args.size
         cfl = fit_simulation(q)[1]
         refs = []
@@ -149,7 +191,7 @@ def main() -> None:
                 scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
             video, _, _ = plant_reference_for_fit(
                 tmp / f"video{k}", scene, cam, args.quality, n_frames=args.frames, fps=args.fps,
-                push_speed=PUSH_SPEED, push_direction=push_direction(k), device=args.device)
+                push_speed=PUSH_SPEED, push_direction=push_direction(k), substeps=substeps, device=args.device)
             refs.append(load_reference_video(video, working_size=args.size, device=args.device))
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
@@ -157,11 +199,7 @@ def main() -> None:
         fit_s = time.perf_counter() - t0
     prep, drivers = res.prep, res.drivers
     labels = scene.labels[prep.foreground]
-    table = np.array([REGION_TRUTH_E[n] for n in REGIONS])
-    member = drivers.labels.cpu().numpy()[: prep.count]
-    votes = np.zeros((len(res.driver_E), len(REGIONS)))
-    np.add.at(votes, (member, labels), 1.0)
-    truth_E = table[votes.argmax(axis=1)]
+    truth_E = driver_truth_E(scene, prep, drivers)
     regions = {}
     for i, name in enumerate(REGIONS):
         if name == "pot":
@@ -187,8 +225,9 @@ def main() -> None:
                       "v0_axis_error": v0_axis_error}), file=sys.stderr,
           flush=True)
     s = settings.resolved()
+    # fixed substeps are per frame of the video; the new-force runs step at 30 fps
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
-               cfl_safety=cfl)
+               cfl_safety=cfl, substeps=None if substeps is None else max(1, round(substeps * args.fps / 30.0)))
     x_true = simulate_positions(scene, prep, drivers, truth_E, **sim)
     x_fit = simulate_positions(scene, prep, drivers, res.driver_E, **sim)
     x_base = simulate_positions(scene, prep, drivers, np.full(len(truth_E), s.init_E), **sim)
@@ -202,7 +241,7 @@ def main() -> None:
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
-        "overrides": overrides, "oracle_v0": args.oracle_v0, "fit_s": fit_s, "regions": regions,
+        "overrides": overrides, "oracle_v0": args.oracle_v0, "substeps": substeps, "fit_s": fit_s, "regions": regions,
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),

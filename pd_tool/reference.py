@@ -53,6 +53,7 @@ def simulate_reference(
     nu: float = 0.3,
     damping: float = 0.0,
     cfl_safety: float = 0.5,
+    substeps: int | None = None,
     device: str = "cpu",
     background=(1.0, 1.0, 1.0),
 ) -> np.ndarray:
@@ -62,7 +63,7 @@ def simulate_reference(
     from pd_tool.views import render_image
 
     cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
-                    damping=damping, cfl_safety=cfl_safety)
+                    damping=damping, cfl_safety=cfl_safety, substeps=substeps)
     solver = MPMSolver(drivers.positions.double().cpu().numpy(), drivers.volume.cpu().numpy(),
                        drivers.mass.cpu().numpy(), driver_E, drivers.static.cpu().numpy(), cfg, device=device)
     solver.set_velocity(driver_v0)
@@ -90,6 +91,7 @@ def plant_reference_video(
     push_speed: float = 0.6,
     push_direction: tuple[float, float, float] = (1.0, 0.0, 0.0),
     cfl_safety: float = 0.5,
+    substeps: int | None = None,
     seed: int = 0,
     device: str = "cpu",
 ) -> tuple[Path, ReferenceTruth, PreparedScene]:
@@ -119,7 +121,7 @@ def plant_reference_video(
     d_static = drivers.static.cpu().numpy().astype(bool)
     driver_v0 = push_velocity(d_rest, d_static, direction=push_direction, speed=push_speed)
     frames = simulate_reference(scene, prep, drivers, driver_E, driver_v0, camera, n_frames=n_frames, fps=fps,
-                                nu=nu, cfl_safety=cfl_safety, device=device)
+                                nu=nu, cfl_safety=cfl_safety, substeps=substeps, device=device)
     folder = write_video_folder(out, frames, camera, fps, overwrite=True)
     return folder, ReferenceTruth(driver_E, driver_v0, gaussian_E), prep
 

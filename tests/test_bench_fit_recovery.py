@@ -26,7 +26,7 @@ def _run(tmp_path: Path, *extra: str) -> dict:
 @pytest.mark.slow
 def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
     fitted = _run(tmp_path)
-    oracle = _run(tmp_path, "--oracle-v0")
+    oracle = _run(tmp_path, "--oracle-v0", "--substeps", "60")
     for rep in (fitted, oracle):
         assert set(rep["regions"]) == {"stem", "leaf", "flower"}
         for r in rep["regions"].values():
@@ -34,6 +34,7 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
         nf = rep["new_force"]
         assert nf["rms_error_fitted"] >= 0 and nf["rms_error_uniform_baseline"] > 0
     assert oracle["oracle_v0"] and not fitted["oracle_v0"]
+    assert fitted["substeps"] is None and oracle["substeps"] == 60
     assert oracle["v0_rel_error"] < 1e-5
     assert fitted["v0_rel_error"] > 0.1  # one stage-1 iteration from a zero field is far off
     # the per-axis split adds up to the whole error

@@ -45,3 +45,12 @@ def test_horizon_as_long_as_the_video_is_full_backprop_and_one_frame_differs(tmp
     assert scale > 0.0
     assert torch.allclose(g[3], g[None], rtol=1e-5, atol=1e-6 * scale)
     assert float((g[1] - g[None]).abs().max()) > 1e-3 * scale
+
+
+def test_fixed_substeps_override_the_cfl_choice() -> None:
+    from types import SimpleNamespace
+
+    from pd_tool.fit.pipeline import FitProblem, FitSettings
+
+    pb = SimpleNamespace(s=FitSettings(substeps=7))
+    assert FitProblem.substeps(pb, torch.full((4,), 1e9), torch.zeros(4, 3)) == 7

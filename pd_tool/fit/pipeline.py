@@ -42,6 +42,10 @@ class FitSettings:
     material_iters: int | None = None
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
+    # Substeps per frame; None: chosen each iteration by the CFL condition for the current E.
+    # MPM's numerical damping grows with the substep count, so a fixed count keeps it the
+    # same while E moves (see docs/benchmarks.md, fit recovery).
+    substeps: int | None = None
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
     # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
     # v0, and stage 2 then fits E to the biased v0; each later round refits v0 under the
@@ -188,6 +192,8 @@ class FitProblem:
     def substeps(self, E: torch.Tensor, v0: torch.Tensor) -> int:
         from pd_tool.sim import cfl_substeps_for
 
+        if self.s.substeps is not None:
+            return int(self.s.substeps)
         vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
         return cfl_substeps_for(E, self.sim, self.frame_dt, vmax)
 
