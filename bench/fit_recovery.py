@@ -32,10 +32,16 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     from pd_tool.bake import ForceSpec, force_mask
     from pd_tool.sim import MPMSolver, SimConfig
 
-    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
-                    cfl_safety=cfl_safety, substeps=substeps)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
+    if substeps is not None:  # a floor: a fitted E stiffer than the truth needs more (CFL)
+        from pd_tool.sim.cfl import cfl_substeps, wave_speed
+
+        rho = (drivers.mass / drivers.volume).cpu().numpy()
+        c = wave_speed(np.asarray(driver_E)[~d_static], rho[~d_static], nu)
+        substeps = max(substeps, cfl_substeps(1.0 / fps, max(prep.domain) / max(prep.grid_dims), c, 0.0, cfl_safety))
+    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
+                    cfl_safety=cfl_safety, substeps=substeps)
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
                        device=device)
     spec = ForceSpec(accel=accel, at="top", radius_fraction=0.3, start=0.0, duration=0.5)
@@ -79,24 +85,30 @@ def use_true_v0(views: int) -> None:
     FitProblem.driver_v0 = true_v0
 
 
+def driver_regions(scene, prep, drivers):
+    """Each driver's region (index into synthetic.REGIONS): the one most of its Gaussians belong to."""
+    import numpy as np
+
+    from pd_tool.synthetic import REGIONS
+
+    member = drivers.labels.cpu().numpy()[: prep.count]
+    votes = np.zeros((len(drivers.positions), len(REGIONS)))
+    np.add.at(votes, (member, scene.labels[prep.foreground]), 1.0)
+    return votes.argmax(axis=1)
+
+
 def driver_truth_E(scene, prep, drivers):
-    """Each driver's true E (Pa): that of the region most of its Gaussians belong to."""
+    """Each driver's true E (Pa): that of its region (driver_regions)."""
     import numpy as np
 
     from pd_tool.synthetic import REGION_TRUTH_E, REGIONS
 
-    table = np.array([REGION_TRUTH_E[n] for n in REGIONS])
-    member = drivers.labels.cpu().numpy()[: prep.count]
-    votes = np.zeros((len(drivers.positions), len(REGIONS)))
-    np.add.at(votes, (member, scene.labels[prep.foreground]), 1.0)
-    return table[votes.argmax(axis=1)]
+    return np.array([REGION_TRUTH_E[n] for n in REGIONS])[driver_regions(scene, prep, drivers)]
 
 
 def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
     """The substeps per frame the CFL condition gives the reference under the true E and
     the push's top speed (what --substeps truth fixes for every simulation)."""
-    import numpy as np
-
     from pd_tool.prepare import PrepareOptions, prepare_scene
     from pd_tool.presets import fit_simulation
     from pd_tool.sim.cfl import cfl_substeps, wave_speed
@@ -108,7 +120,7 @@ def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
     moving = ~drivers.static.cpu().numpy().astype(bool)
     rho = (drivers.mass / drivers.volume).cpu().numpy()
     c = wave_speed(driver_truth_E(scene, prep, drivers)[moving], rho[moving], nu)
-    return cfl_substeps(1.0 / fps, max(prep.domain) / grid, c, PUSH_SPEED, cfl)
+    return cfl_substeps(1.0 / fps, max(prep.domain) / max(prep.grid_dims), c, PUSH_SPEED, cfl)
 
 
 def push_direction(k: int) -> tuple[float, float, float]:
@@ -138,9 +150,10 @@ def main() -> None:
                     help="diagnostic: skip stage 1 and give stage 2 the true initial velocity of each video, "
                          "to tell v0 estimation from E estimation")
     ap.add_argument("--substeps", default=None, metavar="N|truth",
-                    help="diagnostic: fix the substeps per frame of every simulation (reference, fit, new-force "
-                         "runs); 'truth': the CFL count of the reference under the true E. Default: each "
-                         "simulation picks its own by CFL, as pdtool does")
+                    help="diagnostic: at least N substeps per frame in every simulation (reference, fit, "
+                         "new-force runs), so that they share one count unless E rises above what N allows; "
+                         "'truth': the CFL count of the reference under the true E. Default: each simulation "
+                         "picks its own by CFL, as pdtool does")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:

@@ -47,10 +47,21 @@ def test_horizon_as_long_as_the_video_is_full_backprop_and_one_frame_differs(tmp
     assert float((g[1] - g[None]).abs().max()) > 1e-3 * scale
 
 
-def test_fixed_substeps_override_the_cfl_choice() -> None:
+def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
     from types import SimpleNamespace
+
+    import numpy as np
 
     from pd_tool.fit.pipeline import FitProblem, FitSettings
 
-    pb = SimpleNamespace(s=FitSettings(substeps=7))
-    assert FitProblem.substeps(pb, torch.full((4,), 1e9), torch.zeros(4, 3)) == 7
+    n = 4
+    sim = SimpleNamespace(_static=np.zeros(n, bool), n=n, _mass=np.ones(n), _vol=np.full(n, 1e-3),
+                          config=SimpleNamespace(nu=0.3, cfl_safety=0.5), geo=SimpleNamespace(dx=0.05))
+    v0 = torch.zeros(n, 3)
+    soft, stiff = torch.full((n,), 1e3), torch.full((n,), 1e9)
+    free = SimpleNamespace(s=FitSettings(), sim=sim, frame_dt=1 / 30)
+    floored = SimpleNamespace(s=FitSettings(substeps=40), sim=sim, frame_dt=1 / 30)
+    cfl_soft, cfl_stiff = FitProblem.substeps(free, soft, v0), FitProblem.substeps(free, stiff, v0)
+    assert cfl_soft < 40 < cfl_stiff
+    assert FitProblem.substeps(floored, soft, v0) == 40  # the floor holds the count while E is soft
+    assert FitProblem.substeps(floored, stiff, v0) == cfl_stiff  # and never undercuts stability

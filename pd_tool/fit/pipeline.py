@@ -42,9 +42,10 @@ class FitSettings:
     material_iters: int | None = None
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
-    # Substeps per frame; None: chosen each iteration by the CFL condition for the current E.
-    # MPM's numerical damping grows with the substep count, so a fixed count keeps it the
-    # same while E moves (see docs/benchmarks.md, fit recovery).
+    # Least substeps per frame; None: as the CFL condition for the current E chooses each
+    # iteration. MPM's numerical damping grows with the substep count, so a floor above the
+    # CFL choice keeps the count, and the damping, fixed while E moves. The CFL count still
+    # wins where E rises above what the floor allows (a fixed count would blow up there).
     substeps: int | None = None
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
     # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
@@ -192,10 +193,8 @@ class FitProblem:
     def substeps(self, E: torch.Tensor, v0: torch.Tensor) -> int:
         from pd_tool.sim import cfl_substeps_for
 
-        if self.s.substeps is not None:
-            return int(self.s.substeps)
         vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
-        return cfl_substeps_for(E, self.sim, self.frame_dt, vmax)
+        return max(cfl_substeps_for(E, self.sim, self.frame_dt, vmax), self.s.substeps or 0)
 
     def initial_state(self, v0: torch.Tensor):
         from pd_tool.sim import initial_state
