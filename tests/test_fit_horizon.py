@@ -7,19 +7,14 @@ import torch
 
 
 def _material_grads(tmp_path, horizons):
+    from _plant import tiny_plant_video
     from pd_tool.fit.pipeline import FitProblem, FitSettings, material_iteration
     from pd_tool.fit.video import load_reference_video
-    from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video, push_velocity
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.reference import push_velocity
+    from pd_tool.synthetic import POT_TOP
 
-    save_splats(make_plant(500, seed=3), tmp_path / "plant.ply")
-    scene = load_splats(tmp_path / "plant.ply")
-    plant_reference_video(tmp_path / "video", scene, scene_camera(scene, width=24, height=24),
-                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
-                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    scene = tiny_plant_video(tmp_path, 500, seed=3, size=24)
     refs = [load_reference_video(tmp_path / "video", working_size=24)]
     pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
                     FitSettings(quality="draft", working_long_side=24).resolved())

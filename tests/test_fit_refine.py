@@ -7,19 +7,13 @@ import torch
 
 
 def test_refine_velocity_moves_v0_with_horizon_one(tmp_path) -> None:
+    from _plant import tiny_plant_video
     from pd_tool.fit.pipeline import FitSettings, run_fit
     from pd_tool.fit.video import load_reference_video
-    from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.synthetic import POT_TOP
 
-    save_splats(make_plant(600, seed=2), tmp_path / "plant.ply")
-    scene = load_splats(tmp_path / "plant.ply")
-    plant_reference_video(tmp_path / "video", scene, scene_camera(scene, width=24, height=24),
-                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
-                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    scene = tiny_plant_video(tmp_path, 600, seed=2, size=24)
     refs = [load_reference_video(tmp_path / "video", working_size=24)]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -45,18 +45,10 @@ BAKE_OUTPUTS = ("out.usd", "out.mp4")
 @pytest.fixture(scope="module")
 def plant_dir(tmp_path_factory) -> Path:
     """An 800-Gaussian plant and a 4-frame 32x32 reference video of it."""
-    from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from _plant import tiny_plant_video
 
     d = tmp_path_factory.mktemp("plant")
-    save_splats(make_plant(800, seed=0), d / "plant.ply")
-    scene = load_splats(d / "plant.ply")
-    cam = scene_camera(scene, width=32, height=32)
-    plant_reference_video(d / "video", scene, cam, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
-                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    tiny_plant_video(d, 800, seed=0, size=32)
     return d
 
 

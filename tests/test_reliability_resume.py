@@ -23,19 +23,11 @@ class Interrupt(Exception):
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
+    from _plant import tiny_plant_video
     from pd_tool.fit.video import load_reference_video
-    from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
 
     d = tmp_path_factory.mktemp("resume")
-    save_splats(make_plant(600, seed=1), d / "plant.ply")
-    scene = load_splats(d / "plant.ply")
-    plant_reference_video(d / "video", scene, scene_camera(scene, width=24, height=24),
-                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
-                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=4, cfl_safety=0.6)
+    scene = tiny_plant_video(d, 600, seed=1, size=24)
     return d, scene, [load_reference_video(d / "video", working_size=24)]
 
 

@@ -1,0 +1,23 @@
+"""A tiny synthetic plant and its reference video, for the fit tests: the plant's
+regions at their true E (synthetic.REGION_TRUTH_E) with the default push, simulated on
+a 24-cell fit grid with one driver per ten Gaussians."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def tiny_plant_video(folder: Path, gaussians: int, seed: int, size: int, n_frames: int = 4):
+    """Write folder/plant.ply and the reference video folder/video (size x size px, frame
+    0 at rest); returns the scene as loaded back from the .ply."""
+    from pd_tool.io import load_splats, save_splats
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.reference import plant_reference_video
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.views import scene_camera
+
+    save_splats(make_plant(gaussians, seed=seed), folder / "plant.ply")
+    scene = load_splats(folder / "plant.ply")
+    plant_reference_video(folder / "video", scene, scene_camera(scene, width=size, height=size),
+                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
+                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=n_frames, cfl_safety=0.6)
+    return scene
