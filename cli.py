@@ -530,8 +530,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int, horizon: int, working_size: int, init_e: float, nu: float, density: float, background: str, resume: bool,
-        no_preview: bool, seed: int, device: str, **prep_kw) -> None:
+        rounds: int, horizon: int, working_size: int, init_e: float, nu: float, density: float, background: str,
+        resume: bool, no_preview: bool, seed: int, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
     Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
@@ -567,8 +567,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                                      device=dev) for v in videos]
         splats = load_splats(scene, device=dev)
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
-                               rounds=rounds, material_horizon=horizon or None, init_E=init_e, nu=nu, density=density, working_long_side=working_size,
-                               background=bg, seed=seed, device=dev)
+                               rounds=rounds, material_horizon=horizon or None, init_E=init_e, nu=nu, density=density,
+                               working_long_side=working_size, background=bg, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
         bar = None
         stage_now = [""]

@@ -57,7 +57,8 @@ def simulate_reference(
     device: str = "cpu",
     background=(1.0, 1.0, 1.0),
 ) -> np.ndarray:
-    """Simulate and render `n_frames` frames (frame 0 = rest): uint8 [T, H, W, 3]."""
+    """Simulate and render `n_frames` frames (frame 0 = rest): uint8 [T, H, W, 3].
+    substeps: per frame, or None for the CFL choice."""
     from pd_tool.animate import GaussianAnimator
     from pd_tool.sim import MPMSolver, SimConfig
     from pd_tool.views import render_image
