@@ -375,8 +375,9 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
               help="Animation length, s.  [default: 2]")
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Animation length in frames instead of --seconds.")
 @click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True, help="Frames per second.")
-@click.option("--quality", default="default", show_default=True,
-              help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio.")
+@click.option("--quality", default=None,
+              help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio. Default: "
+                   "with a fitted material, the fit's own (its E is calibrated to them); with --preset, default.")
 @click.option("--format", "fmt", type=click.Choice(["instancer", "splat", "both"]), default="both", show_default=True,
               help="instancer: UsdGeom.PointInstancer of spheres (every DCC); splat: UsdVol 3D Gaussian splat "
                    "schema (usd 26.03+); both.")
@@ -397,7 +398,7 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
 def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: str,
          interaction: str | None, at_point: str | None, radius: float | None, force_box: str | None,
          start: float | None, duration: float | None, seconds: float | None, frames: int | None, fps: float,
-         quality: str, fmt: str, preview: Path | None, frames_out: Path | None, camera: Path | None,
+         quality: str | None, fmt: str, preview: Path | None, frames_out: Path | None, camera: Path | None,
          view: str | None, gravity: bool, substeps: int | None, seed: int, device: str, **prep_kw) -> None:
     """Simulate the object under a force and write an animated USD to OUT.
 
@@ -455,7 +456,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                 raise InputError("no scene: pass --scene FILE.ply (with --preset NAME or --material FILE)")
         if mat_file is not None:
             mat_file.check_scene(scene, material)
-        load_preset("quality", quality)
+        if quality is not None:
+            load_preset("quality", quality)
         base = PrepareOptions.from_dict(mat_file.prepare) if mat_file is not None else None
         opts = build_prepare_options(base, **prep_kw)
         overrides = dict(at=at, radius=radius, start=start, duration=duration,

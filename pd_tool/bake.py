@@ -70,7 +70,11 @@ class BakeSettings:
 
     seconds: float = 2.0
     fps: float = 30.0
-    quality: str | Path = "default"
+    # Quality preset (grid, CFL safety, driver ratio). None: with a fitted material, simulate
+    # as the fit did (its E is calibrated to that grid and driver count: at the plant's scale
+    # a 16-cell grid moves the true E about as far from its 32-cell motion as the uniform
+    # baseline is; docs/benchmarks.md); with a preset material, "default".
+    quality: str | Path | None = None
     fmt: str = "both"  # instancer | splat | both
     device: str = "cpu"
     gravity: bool = False  # the scan is already in equilibrium under gravity
@@ -174,11 +178,11 @@ def bake(
 
     t_start = time.perf_counter()
     settings = settings or BakeSettings()
-    quality = load_preset("quality", settings.quality)
-    opts = prepare_options or PrepareOptions()
-    opts.grid_res = int(quality["grid_res"])
     if material is None and material_file is None:
         raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
+    opts = prepare_options or PrepareOptions()
+    grid, cfl_safety, quality_ratio, seed, sim_note = _discretisation(settings, material_file)
+    opts.grid_res = grid
     if material is None:
         nu, damping = material_file.nu, material_file.damping
         opts.density_kg_m3 = material_file.density
@@ -191,7 +195,7 @@ def bake(
     n_frames = settings.frames
 
     # ---- driving particles
-    ratio = settings.driver_ratio if settings.driver_ratio is not None else float(quality["driver_ratio"])
+    ratio = settings.driver_ratio if settings.driver_ratio is not None else quality_ratio
     # refuse now, before drivers and simulator, when the run cannot fit in memory
     from pd_tool.memory import PREVIEW_PIXELS, check_memory, estimate_bake_memory
 
@@ -200,9 +204,9 @@ def bake(
     check_memory(estimate_bake_memory(
         n_gaussians=scene.count, n_simulated=len(prep.positions_sim), driver_ratio=ratio, grid_dims=prep.grid_dims,
         frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
-        what="bake", quality=str(settings.quality), driver_ratio=ratio, device=dev,
+        what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
         resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by --quality")
-    drivers = prep.build_drivers(ratio=ratio, seed=settings.seed)
+    drivers = prep.build_drivers(ratio=ratio, seed=seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
     if material_file is not None:
@@ -214,7 +218,7 @@ def bake(
     cfg = SimConfig(
         grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu,
         gravity=(0.0, 0.0, -9.81) if settings.gravity else (0.0, 0.0, 0.0), damping=damping,
-        substeps=settings.substeps, cfl_safety=float(quality["cfl_safety"]),
+        substeps=settings.substeps, cfl_safety=cfl_safety,
     )
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
     mask = force_mask(prep, d_rest, d_static, force)
@@ -310,7 +314,7 @@ def bake(
         out=out, frames=n_frames, simulated_frames=simulated, substeps_per_frame=substeps,
         gaussians=scene.count, drivers=len(d_rest), seconds_elapsed=time.perf_counter() - t_start,
         bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
-        report=list(prep.report), timings=timings,
+        report=list(prep.report) + ([sim_note] if sim_note else []), timings=timings,
     )
     if simulated < n_frames - 1:
         result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
@@ -325,3 +329,23 @@ def bake(
         write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True)
         result.report.append(f"frames {frames_dir}/ ({len(preview_images)} PNG + camera.json)")
     return result
+
+
+def _discretisation(settings: BakeSettings, material_file) -> tuple[int, float, float, int, str | None]:
+    """(grid cells along the longest side, CFL safety, driver ratio, driver seed, a note for
+    the report) of a bake: the fit's for a fitted material unless a quality is named, else
+    the quality preset's."""
+    fit = material_file.fit_simulation() if material_file is not None else None
+    if settings.quality is None and fit is not None:
+        default = load_preset("quality", "default")
+        cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else float(default["cfl_safety"])
+        note = (f"simulating as the fit did: {fit['grid_res']}-cell grid, {fit['driver_ratio']:g} driving particles "
+                f"per Gaussian, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
+        return fit["grid_res"], cfl, fit["driver_ratio"], fit["driver_seed"], note
+    q = load_preset("quality", settings.quality or "default")
+    note = None
+    if fit is not None and (int(q["grid_res"]) != fit["grid_res"] or float(q["driver_ratio"]) != fit["driver_ratio"]):
+        note = (f"note: the material was fitted on a {fit['grid_res']}-cell grid with {fit['driver_ratio']:g} driving "
+                f"particles per Gaussian; --quality {settings.quality} simulates on {int(q['grid_res'])} cells with "
+                f"{float(q['driver_ratio']):g}, which moves differently (leave --quality out to match the fit)")
+    return int(q["grid_res"]), float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, note

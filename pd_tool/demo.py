@@ -85,7 +85,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     usd = out / "poke.usd"
     mf = MaterialFile.load(mat_path)
     bres = bake(scene, usd, force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material_file=mf,
-                settings=BakeSettings(seconds=2.0, fps=30, quality=quality, fmt="both", device=device),
+                settings=BakeSettings(seconds=2.0, fps=30, fmt="both", device=device),  # as the fit simulated
                 prepare_options=PrepareOptions.from_dict(mf.prepare), preview=out / "poke.mp4",
                 progress=bake_progress)
     bake_s = time.perf_counter() - t0

@@ -170,6 +170,26 @@ class MaterialFile:
                                     "(a bake must prepare the scene as the fit did)")
         return p
 
+    def fit_simulation(self) -> dict[str, Any] | None:
+        """How the fit simulated: grid_res (cells along the longest side), driver_ratio,
+        driver_seed and cfl_safety (None in files written before it was recorded); None
+        when the header does not say (a hand-made file). A bake that simulates the same way
+        moves as the fit's model did: the fitted E is calibrated to that discretisation."""
+        sim = self.meta.get("simulation")
+        drivers = self.meta.get("drivers")
+        grid = (self.meta.get("prepare") or {}).get("grid_res")
+        try:
+            if isinstance(sim, dict):
+                return {"grid_res": int(sim["grid_res"]), "driver_ratio": float(sim["driver_ratio"]),
+                        "driver_seed": int(sim["driver_seed"]), "cfl_safety": float(sim["cfl_safety"])}
+            if isinstance(drivers, dict) and grid is not None:
+                return {"grid_res": int(grid), "driver_ratio": float(drivers["ratio"]),
+                        "driver_seed": int(drivers.get("seed", 0)), "cfl_safety": None}
+        except (KeyError, TypeError, ValueError):
+            raise MaterialFileError("material file header has malformed 'simulation' settings; run `pdtool fit` "
+                                    "again") from None
+        return None
+
     def E_at(self, points_scene: np.ndarray) -> np.ndarray:
         """Young's modulus [M] (Pa) at points [M, 3] in scene units: the value of the
         nearest fitted driver, so a bake may use another grid or driver ratio than the fit."""

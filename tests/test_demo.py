@@ -60,9 +60,21 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     old = os.getcwd()
     os.chdir(demo_dir)
     try:
-        res = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
-                                        "--device", "cpu", "again.usd"], catch_exceptions=False)
+        res = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--device", "cpu", "again.usd"],
+                                 catch_exceptions=False)
+        coarse = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
+                                           "--device", "cpu", "coarse.usd"], catch_exceptions=False)
     finally:
         os.chdir(old)
     assert res.exit_code == 0, res.output
     assert (demo_dir / "again.usd").is_file()
+    # without --quality the bake simulates on the fit's grid with the fit's drivers, one to one
+    from pd_tool.material_file import MaterialFile
+
+    mf = MaterialFile.load(demo_dir / "plant.pdmat")
+    sim = mf.fit_simulation()
+    assert f"{sim['grid_res']}-cell grid" in res.output and "as the fit did" in res.output
+    assert f"driven by {len(mf.driver_E):,} particles" in res.output
+    # a named quality with another grid still bakes, and says that it moves differently
+    assert coarse.exit_code == 0, coarse.output
+    assert "moves differently" in coarse.output

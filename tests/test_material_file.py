@@ -68,3 +68,19 @@ def test_record(tmp_path: Path) -> None:
     mat.unlink()
     with pytest.raises(MaterialFileError, match="is gone"):
         read_record(tmp_path)
+
+
+def test_fit_simulation_from_the_header(tmp_path: Path) -> None:
+    scene = tmp_path / "s.ply"
+    scene.write_bytes(b"ply\nfake")
+    m = _material(scene)
+    assert m.fit_simulation() is None  # a hand-made file says nothing: bake uses its quality preset
+    # files from before "simulation" was recorded: grid and drivers from their own entries
+    m.meta.update(prepare={"grid_res": 24}, drivers={"count": 40, "ratio": 0.1, "seed": 3})
+    assert m.fit_simulation() == {"grid_res": 24, "driver_ratio": 0.1, "driver_seed": 3, "cfl_safety": None}
+    m.meta["simulation"] = {"grid_res": 32, "driver_ratio": 0.25, "driver_seed": 0, "cfl_safety": 0.4}
+    back = MaterialFile.load(m.save(tmp_path / "m.pdmat"))
+    assert back.fit_simulation() == {"grid_res": 32, "driver_ratio": 0.25, "driver_seed": 0, "cfl_safety": 0.4}
+    back.meta["simulation"] = {"grid_res": "many"}
+    with pytest.raises(MaterialFileError, match="malformed 'simulation'"):
+        back.fit_simulation()
