@@ -181,7 +181,7 @@ def bake(
     if material is None and material_file is None:
         raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
     opts = prepare_options or PrepareOptions()
-    grid, cfl_safety, quality_ratio, seed, sim_note = _discretisation(settings, material_file)
+    grid, cfl_safety, quality_ratio, seed, follows_fit, sim_note = _discretisation(settings, material_file)
     opts.grid_res = grid
     if material is None:
         nu, damping = material_file.nu, material_file.damping
@@ -205,7 +205,8 @@ def bake(
         n_gaussians=scene.count, n_simulated=len(prep.positions_sim), driver_ratio=ratio, grid_dims=prep.grid_dims,
         frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
         what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
-        resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by --quality")
+        resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by "
+                   f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
     drivers = prep.build_drivers(ratio=ratio, seed=seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
@@ -331,21 +332,21 @@ def bake(
     return result
 
 
-def _discretisation(settings: BakeSettings, material_file) -> tuple[int, float, float, int, str | None]:
-    """(grid cells along the longest side, CFL safety, driver ratio, driver seed, a note for
-    the report) of a bake: the fit's for a fitted material unless a quality is named, else
-    the quality preset's."""
+def _discretisation(settings: BakeSettings, material_file) -> tuple[int, float, float, int, bool, str | None]:
+    """(grid cells along the longest side, CFL safety, driver ratio, driver seed, whether
+    these are the fit's, a note for the report) of a bake: the fit's for a fitted material
+    unless a quality is named, else the quality preset's."""
     fit = material_file.fit_simulation() if material_file is not None else None
     if settings.quality is None and fit is not None:
         default = load_preset("quality", "default")
         cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else float(default["cfl_safety"])
         note = (f"simulating as the fit did: {fit['grid_res']}-cell grid, {fit['driver_ratio']:g} driving particles "
                 f"per Gaussian, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
-        return fit["grid_res"], cfl, fit["driver_ratio"], fit["driver_seed"], note
+        return fit["grid_res"], cfl, fit["driver_ratio"], fit["driver_seed"], True, note
     q = load_preset("quality", settings.quality or "default")
     note = None
     if fit is not None and (int(q["grid_res"]) != fit["grid_res"] or float(q["driver_ratio"]) != fit["driver_ratio"]):
         note = (f"note: the material was fitted on a {fit['grid_res']}-cell grid with {fit['driver_ratio']:g} driving "
                 f"particles per Gaussian; --quality {settings.quality} simulates on {int(q['grid_res'])} cells with "
                 f"{float(q['driver_ratio']):g}, which moves differently (leave --quality out to match the fit)")
-    return int(q["grid_res"]), float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, note
+    return int(q["grid_res"]), float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, False, note
