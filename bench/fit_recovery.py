@@ -32,16 +32,11 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     from pd_tool.bake import ForceSpec, force_mask
     from pd_tool.sim import MPMSolver, SimConfig
 
+    # substeps is a floor: a fitted E stiffer than the truth needs more (CFL)
+    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
+                    cfl_safety=cfl_safety, min_substeps=substeps)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
-    if substeps is not None:  # a floor: a fitted E stiffer than the truth needs more (CFL)
-        from pd_tool.sim.cfl import cfl_substeps, wave_speed
-
-        rho = (drivers.mass / drivers.volume).cpu().numpy()
-        c = wave_speed(np.asarray(driver_E)[~d_static], rho[~d_static], nu)
-        substeps = max(substeps, cfl_substeps(1.0 / fps, max(prep.domain) / max(prep.grid_dims), c, 0.0, cfl_safety))
-    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
-                    cfl_safety=cfl_safety, substeps=substeps)
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
                        device=device)
     spec = ForceSpec(accel=accel, at="top", radius_fraction=0.3, start=0.0, duration=0.5)

@@ -48,14 +48,21 @@ def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
     import numpy as np
 
     from pd_tool.fit.pipeline import FitProblem, FitSettings
+    from pd_tool.sim import SimConfig
 
     n = 4
-    sim = SimpleNamespace(_static=np.zeros(n, bool), n=n, _mass=np.ones(n), _vol=np.full(n, 1e-3),
-                          config=SimpleNamespace(nu=0.3, cfl_safety=0.5), geo=SimpleNamespace(dx=0.05))
+
+    def problem(settings: FitSettings) -> SimpleNamespace:
+        # what FitProblem.substeps reads of a FitProblem: its DiffSim, built with
+        # SimConfig(min_substeps=settings.substeps) as FitProblem.__init__ does
+        sim = SimpleNamespace(_static=np.zeros(n, bool), n=n, _mass=np.ones(n), _vol=np.full(n, 1e-3),
+                              config=SimConfig(nu=0.3, cfl_safety=0.5, min_substeps=settings.substeps),
+                              geo=SimpleNamespace(dx=0.05))
+        return SimpleNamespace(s=settings, sim=sim, frame_dt=1 / 30)
+
     v0 = torch.zeros(n, 3)
     soft, stiff = torch.full((n,), 1e3), torch.full((n,), 1e9)
-    free = SimpleNamespace(s=FitSettings(), sim=sim, frame_dt=1 / 30)
-    floored = SimpleNamespace(s=FitSettings(substeps=40), sim=sim, frame_dt=1 / 30)
+    free, floored = problem(FitSettings()), problem(FitSettings(substeps=40))
     cfl_soft, cfl_stiff = FitProblem.substeps(free, soft, v0), FitProblem.substeps(free, stiff, v0)
     assert cfl_soft < 40 < cfl_stiff
     assert FitProblem.substeps(floored, soft, v0) == 40  # the floor holds the count while E is soft

@@ -226,6 +226,12 @@ def test_cfl_substeps_and_fixed(device):
     assert sim.substeps_per_frame(1 / 30) == cfl_substeps(1 / 30, dx, c, 200.0 + 5000.0 / 30, 0.4)
     fixed = MPMSolver(x, vol, vol * 1000, E, static, SimConfig(grid_res=16, substeps=7), device=device)
     assert fixed.substeps_per_frame(1 / 30) == 7
+    # min_substeps: a floor under the CFL choice, never a cap on it
+    n_cfl = math.ceil((1 / 30) / (0.4 * dx / c))
+    for floor, want in ((n_cfl + 5, n_cfl + 5), (max(1, n_cfl - 3), n_cfl)):
+        floored = MPMSolver(x, vol, vol * 1000, E, static, SimConfig(grid_res=16, cfl_safety=0.4, min_substeps=floor),
+                            device=device)
+        assert floored.substeps_per_frame(1 / 30) == want
 
 
 def test_walls_keep_particles_in_grid(device):

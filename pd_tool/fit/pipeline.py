@@ -167,7 +167,7 @@ class FitProblem:
         from pd_tool.sim import DiffSim, SimConfig
 
         cfg = SimConfig(grid_res=max(p.grid_dims), domain=p.domain, nu=settings.nu, gravity=(0.0, 0.0, 0.0),
-                        damping=settings.damping, cfl_safety=self.cfl_safety)
+                        damping=settings.damping, cfl_safety=self.cfl_safety, min_substeps=settings.substeps)
         self.sim = DiffSim(self.volume.cpu().numpy(), self.mass.cpu().numpy(), self.static.cpu().numpy(), cfg,
                            device=str(self.device))
 
@@ -194,7 +194,7 @@ class FitProblem:
         from pd_tool.sim import cfl_substeps_for
 
         vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
-        return max(cfl_substeps_for(E, self.sim, self.frame_dt, vmax), self.s.substeps or 0)
+        return cfl_substeps_for(E, self.sim, self.frame_dt, vmax)
 
     def initial_state(self, v0: torch.Tensor):
         from pd_tool.sim import initial_state

@@ -40,6 +40,9 @@ class SimConfig:
         gravity: m/s^2; (0, 0, 0) switches it off.
         damping: grid velocity damping rate, 1/s (v *= exp(-damping dt) per substep).
         substeps: substeps per frame; None = chosen by the CFL condition.
+        min_substeps: with substeps None, the least the CFL choice may give (None: no floor).
+            MPM's numerical damping grows with the substep count, so a floor holds the count,
+            and the damping, while E changes below what it allows (the fit's diagnostics).
         cfl_safety: CFL number: dt <= cfl_safety * dx / (wave speed + max speed).
         ground_z: optional ground plane height in metres (nodes below stop falling).
         boundary_pad: wall thickness in nodes (free-slip walls).
@@ -60,6 +63,7 @@ class SimConfig:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     damping: float = 0.0
     substeps: int | None = None
+    min_substeps: int | None = None
     cfl_safety: float = 0.5
     ground_z: float | None = None
     boundary_pad: int = 3
@@ -79,6 +83,8 @@ class SimConfig:
             raise SimConfigError(f"SimConfig.cfl_safety={self.cfl_safety}: must be in (0, 1]")
         if self.substeps is not None and self.substeps < 1:
             raise SimConfigError(f"SimConfig.substeps={self.substeps}: must be >= 1 or None (CFL)")
+        if self.min_substeps is not None and self.min_substeps < 1:
+            raise SimConfigError(f"SimConfig.min_substeps={self.min_substeps}: must be >= 1 or None")
         if self.boundary_pad < 1:
             raise SimConfigError(f"SimConfig.boundary_pad={self.boundary_pad}: must be >= 1")
         if self.segment is not None and self.segment < 1:
@@ -455,7 +461,7 @@ class MPMSolver:
         boost = sum(float(np.linalg.norm(f.accel)) * frame_dt for f in self._forces
                     if f.t_start < self.time + frame_dt and f.t_end > self.time)
         n = cfl_substeps(frame_dt, self.geo.dx, self._c, self._vmax + boost, self.config.cfl_safety)
-        self._substeps = max(n, self._substeps or 0)
+        self._substeps = max(n, self._substeps or 0, self.config.min_substeps or 0)
         return self._substeps
 
     def _context(self) -> SubstepContext:
