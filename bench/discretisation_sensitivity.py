@@ -59,7 +59,8 @@ def main() -> None:
 def grid_part(args, scene) -> dict:
     import numpy as np
 
-    from fit_recovery import driver_truth_E, simulate_positions
+    from fit_recovery import simulate_positions
+    from pd_tool.synthetic import driver_truth_E
     from pd_tool.prepare import PrepareOptions, prepare_scene
     from pd_tool.synthetic import POT_TOP
 
@@ -90,7 +91,8 @@ def grid_part(args, scene) -> dict:
 def substep_part(args, scene) -> dict:
     import numpy as np
 
-    from fit_recovery import PUSH_SPEED, driver_regions, driver_truth_E, push_direction
+    from fit_recovery import PUSH_SPEED, push_direction
+    from pd_tool.synthetic import driver_regions, driver_truth_E
     from pd_tool.prepare import PrepareOptions, prepare_scene
     from pd_tool.reference import push_velocity
     from pd_tool.sim import MPMSolver, SimConfig

@@ -80,34 +80,13 @@ def use_true_v0(views: int) -> None:
     FitProblem.driver_v0 = true_v0
 
 
-def driver_regions(scene, prep, drivers):
-    """Each driver's region (index into synthetic.REGIONS): the one most of its Gaussians belong to."""
-    import numpy as np
-
-    from pd_tool.synthetic import REGIONS
-
-    member = drivers.labels.cpu().numpy()[: prep.count]
-    votes = np.zeros((len(drivers.positions), len(REGIONS)))
-    np.add.at(votes, (member, scene.labels[prep.foreground]), 1.0)
-    return votes.argmax(axis=1)
-
-
-def driver_truth_E(scene, prep, drivers):
-    """Each driver's true E (Pa): that of its region (driver_regions)."""
-    import numpy as np
-
-    from pd_tool.synthetic import REGION_TRUTH_E, REGIONS
-
-    return np.array([REGION_TRUTH_E[n] for n in REGIONS])[driver_regions(scene, prep, drivers)]
-
-
 def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
     """The substeps per frame the CFL condition gives the reference under the true E and
     the push's top speed (what --substeps truth fixes for every simulation)."""
     from pd_tool.prepare import PrepareOptions, prepare_scene
     from pd_tool.presets import fit_simulation
     from pd_tool.sim.cfl import cfl_substeps, wave_speed
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.synthetic import POT_TOP, driver_truth_E
 
     grid, cfl, ratio = fit_simulation(quality)
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=grid))
@@ -116,6 +95,30 @@ def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
     rho = (drivers.mass / drivers.volume).cpu().numpy()
     c = wave_speed(driver_truth_E(scene, prep, drivers)[moving], rho[moving], nu)
     return cfl_substeps(1.0 / fps, max(prep.domain) / max(prep.grid_dims), c, PUSH_SPEED, cfl)
+
+
+def objective_at(scene, refs, settings, res, views: int) -> dict:
+    """The fit's loss (mean over every frame of every video) at the fitted E and v0s, at the
+    truth, and with one of the two swapped: a fit whose loss is above the truth's stopped
+    short of the objective's minimum; one below it found a different minimum."""
+    import torch
+
+    from pd_tool.fit.pipeline import FitProblem, sequence_loss
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.synthetic import POT_TOP, driver_truth_E
+
+    pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP), settings.resolved())
+    assert len(pb.x_rest) == len(res.driver_E), "the loss check must see the fit's drivers"
+    f32 = dict(dtype=torch.float32, device=pb.device)
+    x = pb.x_rest.double().cpu().numpy()
+    static = pb.static.cpu().numpy().astype(bool)
+    E = {"fitted": torch.tensor(res.driver_E, **f32),
+         "truth": torch.tensor(driver_truth_E(scene, pb.prep, pb.drivers), **f32)}
+    v0 = {"fitted": [torch.tensor(v, **f32) for v in res.driver_v0s],
+          "truth": [torch.tensor(true_push(x, static, k), **f32) for k in range(views)]}
+    with torch.no_grad():
+        return {f"E_{e}/v0_{v}": float(sequence_loss(pb, E[e], v0[v], None))
+                for e in ("fitted", "truth") for v in ("fitted", "truth")}
 
 
 def push_direction(k: int) -> tuple[float, float, float]:
@@ -164,7 +167,7 @@ def main() -> None:
     from pd_tool.prepare import PrepareOptions
     from pd_tool.presets import fit_simulation, load_preset
     from pd_tool.reference import plant_reference_for_fit
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_truth_E, make_plant
     from pd_tool.cameras import auto_camera
     from pd_tool.views import scene_camera
 
@@ -227,10 +230,11 @@ def main() -> None:
     # along its line of sight, so that component is the least constrained
     v0_axis_error = (np.linalg.norm(res.driver_v0[free] - v_true, axis=0)
                      / max(np.linalg.norm(v_true), 1e-12)).tolist()
+    objective = objective_at(scene, refs, settings, res, args.views)
     # the fit's result before the slower new-force runs, so that a run cut short by a time
     # limit still reports it
     print(json.dumps({"fit_s": fit_s, "regions": regions, "v0_rel_error": v0_rel_error,
-                      "v0_axis_error": v0_axis_error}), file=sys.stderr,
+                      "v0_axis_error": v0_axis_error, "objective": objective}), file=sys.stderr,
           flush=True)
     s = settings.resolved()
     # fixed substeps are per frame of the video; the new-force runs step at 30 fps
@@ -250,7 +254,7 @@ def main() -> None:
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
         "overrides": overrides, "oracle_v0": args.oracle_v0, "substeps": substeps, "fit_s": fit_s, "regions": regions,
-        "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error,
+        "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),
                       "peak_motion_truth": float(np.linalg.norm(x_true[:, fg] - x_true[0, fg], axis=-1).max() / size)},

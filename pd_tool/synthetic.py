@@ -121,3 +121,17 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
         source_format="synthetic", labels=labels, label_names=REGIONS,
     )
 
+
+
+def driver_regions(scene: GaussianScene, prep, drivers) -> np.ndarray:
+    """Each driver's region (index into REGIONS): the one most of its Gaussians belong to.
+    scene: the plant (its .labels); prep, drivers: a PreparedScene and its drivers."""
+    member = drivers.labels.cpu().numpy()[: prep.count]
+    votes = np.zeros((len(drivers.positions), len(REGIONS)))
+    np.add.at(votes, (member, scene.labels[prep.foreground]), 1.0)
+    return votes.argmax(axis=1)
+
+
+def driver_truth_E(scene: GaussianScene, prep, drivers) -> np.ndarray:
+    """Each driver's true E (Pa): that of its region (driver_regions)."""
+    return np.array([REGION_TRUTH_E[n] for n in REGIONS])[driver_regions(scene, prep, drivers)]

@@ -41,3 +41,9 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
     for rep in (fitted, oracle):
         assert len(rep["v0_axis_error"]) == 3
         assert abs(sum(e * e for e in rep["v0_axis_error"]) ** 0.5 - rep["v0_rel_error"]) < 1e-6 + 1e-6 * rep["v0_rel_error"]
+    # the objective at the fitted and true E and v0: the oracle's v0 is the truth's, so
+    # swapping in the true v0 changes nothing there
+    o = oracle["objective"]
+    assert o["E_fitted/v0_fitted"] == o["E_fitted/v0_truth"] and o["E_truth/v0_fitted"] == o["E_truth/v0_truth"]
+    f = fitted["objective"]
+    assert f["E_truth/v0_truth"] < f["E_truth/v0_fitted"]  # a v0 far off costs loss at the true E

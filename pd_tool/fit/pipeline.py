@@ -110,6 +110,7 @@ class FitResult:
     drivers: Any
     report: list[str] = field(default_factory=list)
     skipped_steps: int = 0  # material-stage optimiser steps skipped for a non-finite gradient
+    driver_v0s: list[np.ndarray] = field(default_factory=list)  # [Q, 3] m/s per video, in video order
 
 
 ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
@@ -256,27 +257,33 @@ def velocity_iteration(pb: FitProblem) -> float:
     return total / max(n, 1)
 
 
+def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], horizon: int | None) -> torch.Tensor:
+    """Mean frame loss over every frame of every video, simulated from rest with driver E
+    (Pa) and each video's initial velocity v0s[i] (m/s); the graph is cut every `horizon`
+    frames (None: never), which truncates the gradient as stage 2 does."""
+    total = torch.zeros((), device=pb.device)
+    count = 0
+    for i, video in enumerate(pb.videos):
+        sub = pb.substeps(E, v0s[i])
+        state = pb.initial_state(v0s[i])
+        for k in range(1, video.num_frames):
+            # Cut the graph every h frames, but never before the first frame: its loss must
+            # still reach v0 when stage 2 refines it (a cut at k = 1 left v0 without gradient).
+            if horizon is not None and k > 1 and (k - 1) % horizon == 0:
+                state = tuple(t.detach() for t in state)
+            state = pb.step(state, E, sub, k)
+            total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
+            count += 1
+    return total / max(count, 1)
+
+
 def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
     """One stage-2 iteration over every frame of every video. v0s: the frozen initial
     velocities, or None to take them (with gradients) from the velocity fields."""
     E = pb.driver_E()
     if v0s is None:
         v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
-    total = torch.zeros((), device=pb.device)
-    count = 0
-    for i, video in enumerate(pb.videos):
-        sub = pb.substeps(E, v0s[i])
-        state = pb.initial_state(v0s[i])
-        h = pb.s.material_horizon
-        for k in range(1, video.num_frames):
-            # Cut the graph every h frames, but never before the first frame: its loss must
-            # still reach v0 when stage 2 refines it (a cut at k = 1 left v0 without gradient).
-            if h is not None and k > 1 and (k - 1) % h == 0:
-                state = tuple(t.detach() for t in state)
-            state = pb.step(state, E, sub, k)
-            total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
-            count += 1
-    loss = total / max(count, 1)
+    loss = sequence_loss(pb, E, v0s, pb.s.material_horizon)
     reg = pb.s.tv_weight * pb.material.tv()
     if pb.s.driver_residual:
         reg = reg + pb.residual_penalty()
@@ -501,4 +508,5 @@ def run_fit(
         ckpt_path.unlink()
     return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
                      gaussian_E=driver_E[labels], losses=losses,
-                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped)
+                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped,
+                     driver_v0s=[v.double().cpu().numpy() for v in v0s])
