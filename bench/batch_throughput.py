@@ -71,7 +71,7 @@ def main() -> None:
     runs = [("ray", 0)] if a.ray else [("local", int(w)) for w in a.workers.split(",")]
     rows = []
     for kind, w in runs:
-        d = root / (f"ray" if kind == "ray" else f"w{w}")
+        d = root / ("ray" if kind == "ray" else f"w{w}")
         d.mkdir(exist_ok=True)
         (d / "jobs.toml").write_text(jobs_toml(a.device, "../plant.ply", a.frames))
         jobs = load_jobs(d / "jobs.toml")

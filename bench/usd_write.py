@@ -37,7 +37,6 @@ def _rss_peak_mb() -> float:
 def run_one(points: int, frames: int, fmt: str, flush_mb: float, device: str,
             validate: bool, out_dir: str, close_validate: bool = True,
             threaded: bool = False, sim_ms: float = 0.0) -> dict:
-    import numpy as np
     import torch
 
     from usd_export import UsdBakeWriter, validate_usd
