@@ -45,7 +45,7 @@ def main() -> None:
             pb = FitProblem(sc, refs, PrepareOptions(static_below=POT_TOP), s)
             v0 = torch.as_tensor(push_velocity(pb.x_rest.double().cpu().numpy(), pb.static.cpu().numpy(), speed=0.6),
                                  dtype=torch.float32, device=dev)
-            loss = material_iteration(pb, [v0])
+            loss = material_iteration(pb, [v0], pb.s.material_horizon)
             g_res = pb.log_e_residual.grad
             g_field = [q.grad for q in pb.material.parameters() if q.grad is not None]
             row = {

@@ -22,9 +22,8 @@ def _material_grads(tmp_path, horizons):
     v0 = torch.tensor(push_velocity(x, pb.static.numpy(), speed=0.6), dtype=torch.float32)
     grads = {}
     for h in horizons:
-        pb.s.material_horizon = h
         pb.material.zero_grad(set_to_none=True)
-        material_iteration(pb, [v0])
+        material_iteration(pb, [v0], h)
         grads[h] = torch.cat([p.grad.flatten() for p in pb.material.parameters()])
     return grads
 
@@ -67,3 +66,33 @@ def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
     assert cfl_soft < 40 < cfl_stiff
     assert FitProblem.substeps(floored, soft, v0) == 40  # the floor holds the count while E is soft
     assert FitProblem.substeps(floored, stiff, v0) == cfl_stiff  # and never undercuts stability
+
+
+def test_polish_iterations_back_propagate_through_every_frame(tmp_path) -> None:
+    """polish_iters = N: the last N stage-2 iterations use the full horizon. With N equal
+    to every iteration the fit is the full-horizon fit exactly; with N = 0 it is not."""
+    import numpy as np
+
+    from _plant import tiny_plant_video
+    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.video import load_reference_video
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.synthetic import POT_TOP
+
+    scene = tiny_plant_video(tmp_path, 500, seed=3, size=24)
+    refs = [load_reference_video(tmp_path / "video", working_size=24)]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        def fitted_E(name, **kw):
+            s = FitSettings(quality="draft", working_long_side=24, velocity_iters=1, material_iters=2, **kw)
+            return run_fit(scene, tmp_path / "plant.ply", refs, tmp_path / f"{name}.pdmat",
+                           prepare_options=PrepareOptions(static_below=POT_TOP), settings=s).driver_E
+
+        full = fitted_E("full", material_horizon=None)
+        polished = fitted_E("polished", material_horizon=1, polish_iters=2)
+        one = fitted_E("one", material_horizon=1)
+    finally:
+        torch.set_num_threads(threads)
+    np.testing.assert_array_equal(polished, full)
+    assert np.abs(np.log(one / full)).max() > 1e-4

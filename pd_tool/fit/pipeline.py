@@ -42,6 +42,11 @@ class FitSettings:
     material_iters: int | None = None
     stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
     material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
+    # The last this many stage-2 iterations back-propagate through every frame. A truncated
+    # gradient stops where it vanishes, not where the loss is least: E that acts through
+    # the whole motion (a stiff stem sets its frequency, hence the phase of later frames)
+    # is under-counted by it. Counted within material_iters.
+    polish_iters: int = 0
     # Least substeps per frame; None: as the CFL condition for the current E chooses each
     # iteration. MPM's numerical damping grows with the substep count, so a floor above the
     # CFL choice keeps the count, and the damping, fixed while E moves. The CFL count still
@@ -89,6 +94,8 @@ class FitSettings:
         out = FitSettings(**asdict(self))
         if out.rounds < 1:
             raise ValueError(f"rounds must be at least 1, got {out.rounds}")
+        if out.polish_iters < 0:
+            raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
         if out.velocity_iters is None:
             out.velocity_iters = int(q["fit_velocity_iters"])
         if out.material_iters is None:
@@ -277,13 +284,14 @@ def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], hori
     return total / max(count, 1)
 
 
-def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None) -> float:
+def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None, horizon: int | None = 1) -> float:
     """One stage-2 iteration over every frame of every video. v0s: the frozen initial
-    velocities, or None to take them (with gradients) from the velocity fields."""
+    velocities, or None to take them (with gradients) from the velocity fields; horizon:
+    frames the gradient reaches back (None: all)."""
     E = pb.driver_E()
     if v0s is None:
         v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
-    loss = sequence_loss(pb, E, v0s, pb.s.material_horizon)
+    loss = sequence_loss(pb, E, v0s, horizon)
     reg = pb.s.tv_weight * pb.material.tv()
     if pb.s.driver_residual:
         reg = reg + pb.residual_penalty()
@@ -409,7 +417,8 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
         if it == 0 and start == 0:
             _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v, opt_r, sched_r,
                              rnd=rnd)
-        loss = material_iteration(pb, None if s.refine_velocity else v0s)
+        horizon = None if it >= s.material_iters - s.polish_iters else s.material_horizon
+        loss = material_iteration(pb, None if s.refine_velocity else v0s, horizon)
         if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
             skipped += 1
         if opt_v is not None:
