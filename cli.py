@@ -517,6 +517,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="Frames each stage-2 loss back-propagates through (the paper's 1; 0 = every frame). 3 brought "
                    "every region of the recovery benchmark within 10%, at about the same motion error; see "
                    "docs/benchmarks.md.")
+@click.option("--polish", type=click.IntRange(min=0), default=0, show_default=True,
+              help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
+                   "that the one-frame horizon stops short of (slower per iteration; see docs/fitting.md).")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
@@ -532,7 +535,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int, horizon: int, working_size: int, init_e: float, nu: float, density: float, background: str,
+        rounds: int, horizon: int, polish: int, working_size: int, init_e: float, nu: float, density: float, background: str,
         resume: bool, no_preview: bool, seed: int, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
@@ -569,7 +572,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                                      device=dev) for v in videos]
         splats = load_splats(scene, device=dev)
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
-                               rounds=rounds, material_horizon=horizon or None, init_E=init_e, nu=nu, density=density,
+                               rounds=rounds, material_horizon=horizon or None, polish_iters=polish, init_E=init_e,
+                               nu=nu, density=density,
                                working_long_side=working_size, background=bg, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
         bar = None
