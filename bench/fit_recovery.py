@@ -71,13 +71,41 @@ def use_true_v0(views: int) -> None:
 
     def true_v0(pb, i: int) -> torch.Tensor:
         if not hasattr(pb, "_true_v0"):
-            x = pb.x_rest.double().cpu().numpy()
-            static = pb.static.cpu().numpy().astype(bool)
-            pb._true_v0 = [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device)
-                           for k in range(views)]
+            pb._true_v0 = true_pushes(pb, views)
         return pb._true_v0[i]
 
     FitProblem.driver_v0 = true_v0
+
+
+def true_pushes(pb, views: int) -> list:
+    """Every view's true initial velocity at a FitProblem's drivers: [Q, 3] m/s tensors."""
+    import torch
+
+    x = pb.x_rest.double().cpu().numpy()
+    static = pb.static.cpu().numpy().astype(bool)
+    return [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device) for k in range(views)]
+
+
+def plant_references(folder, scene, *, views: int, size: int, quality, frames: int, fps: float,
+                     substeps: int | None, device: str) -> list:
+    """The benchmark's reference videos, loaded: view k pushed along push_direction(k) and
+    seen from 45 + 90 k degrees azimuth (view 0 from the scene camera), `size` px on the
+    long side (16:9 from 512 px up), written under `folder`."""
+    from pd_tool.cameras import auto_camera
+    from pd_tool.fit.video import load_reference_video
+    from pd_tool.reference import plant_reference_for_fit
+    from pd_tool.views import scene_camera
+
+    h = size * 9 // 16 if size >= 512 else size
+    refs = []
+    for k in range(views):
+        cam = scene_camera(scene, width=size, height=h) if k == 0 else auto_camera(
+            scene.positions.detach().cpu().numpy(), size, h, azimuth_deg=45.0 + 90.0 * k)
+        video, _, _ = plant_reference_for_fit(
+            Path(folder) / f"video{k}", scene, cam, quality, n_frames=frames, fps=fps,
+            push_speed=PUSH_SPEED, push_direction=push_direction(k), substeps=substeps, device=device)
+        refs.append(load_reference_video(video, working_size=size, device=device))
+    return refs
 
 
 def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
@@ -110,12 +138,9 @@ def objective_at(scene, refs, settings, res, views: int) -> dict:
     pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP), settings.resolved())
     assert len(pb.x_rest) == len(res.driver_E), "the loss check must see the fit's drivers"
     f32 = dict(dtype=torch.float32, device=pb.device)
-    x = pb.x_rest.double().cpu().numpy()
-    static = pb.static.cpu().numpy().astype(bool)
     E = {"fitted": torch.tensor(res.driver_E, **f32),
          "truth": torch.tensor(driver_truth_E(scene, pb.prep, pb.drivers), **f32)}
-    v0 = {"fitted": [torch.tensor(v, **f32) for v in res.driver_v0s],
-          "truth": [torch.tensor(true_push(x, static, k), **f32) for k in range(views)]}
+    v0 = {"fitted": [torch.tensor(v, **f32) for v in res.driver_v0s], "truth": true_pushes(pb, views)}
     with torch.no_grad():
         return {f"E_{e}/v0_{v}": float(sequence_loss(pb, E[e], v0[v], None))
                 for e in ("fitted", "truth") for v in ("fitted", "truth")}
@@ -162,14 +187,10 @@ def main() -> None:
 
     from pd_tool.device import init_warp_quietly
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
     from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_truth_E, make_plant
-    from pd_tool.cameras import auto_camera
-    from pd_tool.views import scene_camera
 
     init_warp_quietly()
     if args.device == "cpu":
@@ -194,16 +215,9 @@ def main() -> None:
         if args.substeps == "truth":
             substeps = truth_substeps(scene, q, args.fps, settings.nu)
         settings.substeps = substeps
-        h = args.size * 9 // 16 if args.size >= 512 else args.size
         cfl = fit_simulation(q)[1]
-        refs = []
-        for k in range(args.views):
-            cam = scene_camera(scene, width=args.size, height=h) if k == 0 else auto_camera(
-                scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
-            video, _, _ = plant_reference_for_fit(
-                tmp / f"video{k}", scene, cam, args.quality, n_frames=args.frames, fps=args.fps,
-                push_speed=PUSH_SPEED, push_direction=push_direction(k), substeps=substeps, device=args.device)
-            refs.append(load_reference_video(video, working_size=args.size, device=args.device))
+        refs = plant_references(tmp, scene, views=args.views, size=args.size, quality=args.quality,
+                                frames=args.frames, fps=args.fps, substeps=substeps, device=args.device)
         t0 = time.perf_counter()
         res = run_fit(scene, path, refs, tmp / "plant.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
                       settings=settings)

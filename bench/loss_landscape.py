@@ -48,16 +48,12 @@ def main() -> None:
 
     import torch
 
-    from fit_recovery import PUSH_SPEED, push_direction, true_push
-    from pd_tool.cameras import auto_camera
+    from fit_recovery import plant_references, true_pushes
     from pd_tool.device import init_warp_quietly
     from pd_tool.fit.pipeline import FitProblem, FitSettings, sequence_loss
-    from pd_tool.fit.video import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_for_fit
     from pd_tool.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E, make_plant
-    from pd_tool.views import scene_camera
 
     init_warp_quietly()
     if args.device == "cpu":
@@ -68,21 +64,12 @@ def main() -> None:
         tmp = Path(tmp)
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
-        h = args.size * 9 // 16 if args.size >= 512 else args.size
-        refs = []
-        for k in range(args.views):
-            cam = scene_camera(scene, width=args.size, height=h) if k == 0 else auto_camera(
-                scene.positions.detach().cpu().numpy(), args.size, h, azimuth_deg=45.0 + 90.0 * k)
-            video, _, _ = plant_reference_for_fit(
-                tmp / f"video{k}", scene, cam, args.quality, n_frames=args.frames, fps=30.0,
-                push_speed=PUSH_SPEED, push_direction=push_direction(k), device=args.device)
-            refs.append(load_reference_video(video, working_size=args.size, device=args.device))
+        refs = plant_references(tmp, scene, views=args.views, size=args.size, quality=args.quality,
+                                frames=args.frames, fps=30.0, substeps=None, device=args.device)
         pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP), settings)
     region = driver_regions(scene, pb.prep, pb.drivers)
     truth = torch.tensor(driver_truth_E(scene, pb.prep, pb.drivers), dtype=torch.float32, device=pb.device)
-    x = pb.x_rest.double().cpu().numpy()
-    static = pb.static.cpu().numpy().astype(bool)
-    v0s = [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device) for k in range(args.views)]
+    v0s = true_pushes(pb, args.views)
     target = REGIONS.index(args.region)
     in_region = torch.tensor(region == target, device=pb.device)
     truth_sub = [pb.substeps(truth, v) for v in v0s]
