@@ -519,7 +519,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "docs/benchmarks.md.")
 @click.option("--polish", type=click.IntRange(min=0), default=0, show_default=True,
               help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
-                   "that the one-frame horizon stops short of (slower per iteration; see docs/fitting.md).")
+                   "that the one-frame horizon stops short of. A lower loss moved the recovery benchmark "
+                   "better with one video and worse with two; see docs/fitting.md.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
