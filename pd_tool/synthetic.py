@@ -122,7 +122,6 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
     )
 
 
-
 def driver_regions(scene: GaussianScene, prep, drivers) -> np.ndarray:
     """Each driver's region (index into REGIONS): the one most of its Gaussians belong to.
     scene: the plant (its .labels); prep, drivers: a PreparedScene and its drivers."""

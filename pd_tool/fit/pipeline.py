@@ -45,7 +45,8 @@ class FitSettings:
     # The last this many stage-2 iterations back-propagate through every frame. A truncated
     # gradient stops where it vanishes, not where the loss is least: E that acts through
     # the whole motion (a stiff stem sets its frequency, hence the phase of later frames)
-    # is under-counted by it. Counted within material_iters.
+    # is under-counted by it. Counted within material_iters. A lower loss has not always
+    # meant a better fit (docs/fitting.md), so 0 by default.
     polish_iters: int = 0
     # Least substeps per frame; None: as the CFL condition for the current E chooses each
     # iteration. MPM's numerical damping grows with the substep count, so a floor above the
@@ -274,8 +275,8 @@ def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], hori
         sub = pb.substeps(E, v0s[i])
         state = pb.initial_state(v0s[i])
         for k in range(1, video.num_frames):
-            # Cut the graph every h frames, but never before the first frame: its loss must
-            # still reach v0 when stage 2 refines it (a cut at k = 1 left v0 without gradient).
+            # Cut the graph every `horizon` frames, but never before the first frame: its loss
+            # must still reach v0 when stage 2 refines it (a cut at k = 1 left v0 without gradient).
             if horizon is not None and k > 1 and (k - 1) % horizon == 0:
                 state = tuple(t.detach() for t in state)
             state = pb.step(state, E, sub, k)
@@ -284,7 +285,7 @@ def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], hori
     return total / max(count, 1)
 
 
-def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None, horizon: int | None = 1) -> float:
+def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None, horizon: int | None) -> float:
     """One stage-2 iteration over every frame of every video. v0s: the frozen initial
     velocities, or None to take them (with gradients) from the velocity fields; horizon:
     frames the gradient reaches back (None: all)."""
