@@ -60,9 +60,8 @@ def grid_part(args, scene) -> dict:
     import numpy as np
 
     from fit_recovery import simulate_positions
-    from pd_tool.synthetic import driver_truth_E
     from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.synthetic import POT_TOP, driver_truth_E
 
     runs, baseline = {}, None
     for grid, ratio in ((32, 0.1), (16, 0.5), (16, 0.1), (32, 0.5), (24, 0.1)):
@@ -92,11 +91,10 @@ def substep_part(args, scene) -> dict:
     import numpy as np
 
     from fit_recovery import PUSH_SPEED, push_direction
-    from pd_tool.synthetic import driver_regions, driver_truth_E
     from pd_tool.prepare import PrepareOptions, prepare_scene
     from pd_tool.reference import push_velocity
     from pd_tool.sim import MPMSolver, SimConfig
-    from pd_tool.synthetic import POT_TOP, REGIONS
+    from pd_tool.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E
 
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=args.grid))
     drivers = prep.build_drivers(ratio=args.ratio, seed=0)

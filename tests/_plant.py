@@ -21,3 +21,23 @@ def tiny_plant_video(folder: Path, gaussians: int, seed: int, size: int, n_frame
                           prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
                           region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=n_frames, cfl_safety=0.6)
     return scene
+
+
+def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_frames: int = 4):
+    """tiny_plant_video, then the draft-quality FitProblem over it and the video's true
+    initial velocity at its drivers ([Q, 3] m/s; the fit's drivers are the video's).
+    Returns (scene, problem, v0)."""
+    import torch
+
+    from pd_tool.fit.pipeline import FitProblem, FitSettings
+    from pd_tool.fit.video import load_reference_video
+    from pd_tool.prepare import PrepareOptions
+    from pd_tool.reference import push_velocity
+    from pd_tool.synthetic import POT_TOP
+
+    scene = tiny_plant_video(folder, gaussians, seed=seed, size=size, n_frames=n_frames)
+    refs = [load_reference_video(folder / "video", working_size=size)]
+    pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
+                    FitSettings(quality="draft", working_long_side=size).resolved())
+    v0 = torch.tensor(push_velocity(pb.x_rest.double().numpy(), pb.static.numpy(), speed=0.6), dtype=torch.float32)
+    return scene, pb, v0

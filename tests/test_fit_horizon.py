@@ -7,19 +7,10 @@ import torch
 
 
 def _material_grads(tmp_path, horizons):
-    from _plant import tiny_plant_video
-    from pd_tool.fit.pipeline import FitProblem, FitSettings, material_iteration
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import push_velocity
-    from pd_tool.synthetic import POT_TOP
+    from _plant import tiny_plant_problem
+    from pd_tool.fit.pipeline import material_iteration
 
-    scene = tiny_plant_video(tmp_path, 500, seed=3, size=24)
-    refs = [load_reference_video(tmp_path / "video", working_size=24)]
-    pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
-                    FitSettings(quality="draft", working_long_side=24).resolved())
-    x = pb.x_rest.double().numpy()
-    v0 = torch.tensor(push_velocity(x, pb.static.numpy(), speed=0.6), dtype=torch.float32)
+    _, pb, v0 = tiny_plant_problem(tmp_path, 500, seed=3, size=24)
     grads = {}
     for h in horizons:
         pb.material.zero_grad(set_to_none=True)

@@ -10,21 +10,12 @@ import torch
 
 @pytest.fixture(scope="module")
 def plant_problem(tmp_path_factory):
-    from _plant import tiny_plant_video
-    from pd_tool.fit.pipeline import FitProblem, FitSettings
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import push_velocity
-    from pd_tool.synthetic import POT_TOP, driver_regions, driver_truth_E
+    from _plant import tiny_plant_problem
+    from pd_tool.synthetic import driver_regions, driver_truth_E
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    tmp = tmp_path_factory.mktemp("objective")
-    scene = tiny_plant_video(tmp, 1500, seed=5, size=48, n_frames=6)
-    refs = [load_reference_video(tmp / "video", working_size=48)]
-    pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
-                    FitSettings(quality="draft", working_long_side=48).resolved())
-    v0 = torch.tensor(push_velocity(pb.x_rest.double().numpy(), pb.static.numpy(), speed=0.6), dtype=torch.float32)
+    scene, pb, v0 = tiny_plant_problem(tmp_path_factory.mktemp("objective"), 1500, seed=5, size=48, n_frames=6)
     region = torch.as_tensor(driver_regions(scene, pb.prep, pb.drivers))
     truth = torch.tensor(driver_truth_E(scene, pb.prep, pb.drivers), dtype=torch.float32)
     yield pb, v0, region, truth
