@@ -11,7 +11,7 @@ import warp as wp
 from pd_tool.sim import DiffSim, Force, SimConfig
 from pd_tool.sim import gather
 from pd_tool.sim.adjoint import stress_vjp
-from pd_tool.sim.kernels import kirchhoff_stress, lame
+from pd_tool.sim.kernels import kirchhoff_stress, lame, polar_rotation
 
 TOL = 1e-4  # both are float32 sums of the same terms in different orders
 
@@ -96,7 +96,7 @@ def test_stress_vjp_matches_torch_autograd():
     def vjp(F: wp.array(dtype=wp.mat33), E: wp.array(dtype=float), G: wp.array(dtype=wp.mat33),
             gF: wp.array(dtype=wp.mat33), gE: wp.array(dtype=float), tau: wp.array(dtype=wp.mat33)):
         p = wp.tid()
-        a, b = stress_vjp(F[p], E[p], 0.3, G[p])
+        a, b = stress_vjp(F[p], polar_rotation(F[p]), E[p], 0.3, G[p])
         gF[p] = a
         gE[p] = b
         lm = lame(E[p], 0.3)

@@ -44,6 +44,7 @@ from pd_tool.sim.gather import (
     g2p_bin,
     grid_update_clear_bins,
     p2g_cells,
+    red_add_vec4,
 )
 
 
@@ -61,15 +62,15 @@ def cofactor(F: wp.mat33) -> wp.mat33:
 
 
 @wp.func
-def stress_vjp(F: wp.mat33, E: float, nu: float, G: wp.mat33):
-    """Cotangents (dL/dF, dL/dE) of the fixed-corotated Kirchhoff stress, given G = dL/dtau.
+def stress_vjp(F: wp.mat33, R: wp.mat33, E: float, nu: float, G: wp.mat33):
+    """Cotangents (dL/dF, dL/dE) of the fixed-corotated Kirchhoff stress, given G = dL/dtau
+    and R = K.polar_rotation(F).
 
     tau = 2 mu (F F^T - R F^T) + lam (J^2 - J) I.
     """
     lm = K.lame(E, nu)
     mu = lm[0]
     lam = lm[1]
-    R = K.polar_rotation(F)
     J = wp.determinant(F)
     Gt = wp.transpose(G)
     trG = wp.trace(G)
@@ -89,9 +90,9 @@ def scatter_direct(
     q: wp.vec3,
     A: wp.mat33,
     dx: float,
-    out: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
 ):
-    """out_n += w_n (q + A dpos_n) over the 27 stencil nodes, with atomics."""
+    """out_n += w_n (q + A dpos_n) over the 27 stencil nodes (the vec4s' w unused), with atomics."""
     wx = K.bspline_w(fx[0])
     wy = K.bspline_w(fx[1])
     wz = K.bspline_w(fx[2])
@@ -100,7 +101,8 @@ def scatter_direct(
             for k in range(3):
                 w = wx[i] * wy[j] * wz[k]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                wp.atomic_add(out, b[0] + i, b[1] + j, b[2] + k, w * (q + A * dpos))
+                r = w * (q + A * dpos)
+                red_add_vec4(out, b[0] + i, b[1] + j, b[2] + k, wp.vec4(r[0], r[1], r[2], 0.0))
 
 
 @wp.func
@@ -122,7 +124,7 @@ def g2p_adjoint_particle(
     adj_C: wp.array(dtype=wp.mat33),
     adj_F: wp.array(dtype=wp.mat33),
     lists: CellLists,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """Adjoint of G2P for particle p: adj_* hold the cotangents of the substep's output state
     and are overwritten with the partial cotangents of its input u and F (the P2G adjoint
@@ -188,8 +190,7 @@ def p2g_adjoint_particle(
     dt: float,
     nodes: wp.vec3i,
     a_ext: wp.vec3,
-    adj_m: wp.array3d(dtype=float),
-    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_mmv: wp.array3d(dtype=wp.vec4),
     adj_u: wp.array(dtype=wp.vec3),
     adj_v: wp.array(dtype=wp.vec3),
     adj_C: wp.array(dtype=wp.mat33),
@@ -206,7 +207,8 @@ def p2g_adjoint_particle(
     m = mass[p]
     kv = 4.0 * inv_dx * inv_dx * dt * volume[p]
     lm = K.lame(Ep, nu)
-    A = m * C[p] - kv * K.kirchhoff_stress(Fp, lm[0], lm[1])
+    R = K.polar_rotation(Fp)
+    A = m * C[p] - kv * K.kirchhoff_stress_polar(Fp, R, lm[0], lm[1])
     mvp = m * (v[p] + a_ext * dt)
     b = K.stencil_base(x, inv_dx, nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
@@ -224,14 +226,15 @@ def p2g_adjoint_particle(
             for k in range(3):
                 w = wx[i] * wy[j] * wz[k]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                gn = adj_mv[b[0] + i, b[1] + j, b[2] + k]
+                gq = adj_mmv[b[0] + i, b[1] + j, b[2] + k]
+                gn = wp.vec3(gq[0], gq[1], gq[2])
                 g_mv += w * gn
                 gA += w * wp.outer(gn, dpos)
-                gw = wp.dot(gn, mvp + A * dpos) + adj_m[b[0] + i, b[1] + j, b[2] + k] * m
+                gw = wp.dot(gn, mvp + A * dpos) + gq[3] * m
                 gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
     adj_v[p] = m * g_mv
     adj_C[p] = m * gA
-    gF, gE = stress_vjp(Fp, Ep, nu, -kv * gA)
+    gF, gE = stress_vjp(Fp, R, Ep, nu, -kv * gA)
     adj_F[p] = adj_F[p] + gF
     adj_E[p] = adj_E[p] + gE
     adj_u[p] = adj_u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
@@ -256,7 +259,7 @@ def g2p_adjoint(
     adj_C: wp.array(dtype=wp.mat33),
     adj_F: wp.array(dtype=wp.mat33),
     lists: CellLists,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """g2p_adjoint_particle for every particle (the last substep of a segment)."""
     p = order[wp.tid()]
@@ -285,8 +288,7 @@ def p2g_adjoint(
     force_mask: wp.array2d(dtype=float),
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
-    adj_m: wp.array3d(dtype=float),
-    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_mmv: wp.array3d(dtype=wp.vec4),
     adj_u: wp.array(dtype=wp.vec3),
     adj_v: wp.array(dtype=wp.vec3),
     adj_C: wp.array(dtype=wp.mat33),
@@ -296,7 +298,7 @@ def p2g_adjoint(
     """p2g_adjoint_particle for every particle (the first substep of a segment)."""
     p = order[wp.tid()]
     a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_m, adj_mv,
+    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_mmv,
                          adj_u, adj_v, adj_C, adj_F, adj_E)
 
 
@@ -325,8 +327,7 @@ def p2g_g2p_adjoint(
     force_mask: wp.array2d(dtype=float),
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
-    adj_m: wp.array3d(dtype=float),
-    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_mmv: wp.array3d(dtype=wp.vec4),
     adj_u: wp.array(dtype=wp.vec3),
     adj_v: wp.array(dtype=wp.vec3),
     adj_C: wp.array(dtype=wp.mat33),
@@ -334,7 +335,7 @@ def p2g_g2p_adjoint(
     adj_E: wp.array(dtype=float),
     binned: int,
     lists: CellLists,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """The P2G adjoint of substep s (state u, v, C, F) fused with the G2P adjoint of substep
     s - 1 (state u_prev, F_prev, its grid velocity grid_v_prev): each thread owns its
@@ -342,7 +343,7 @@ def p2g_g2p_adjoint(
     read and written once instead of twice."""
     p = order[wp.tid()]
     a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_m, adj_mv,
+    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_mmv,
                          adj_u, adj_v, adj_C, adj_F, adj_E)
     g2p_adjoint_particle(p, binned, base, u_prev, F_prev, v, C, is_static, grid_v_prev, dx, dt, nodes,
                          adj_u, adj_v, adj_C, adj_F, lists, adj_grid_v)
@@ -356,14 +357,14 @@ def cell_row_sums_vec(
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
-    out: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
 ):
     """gather.cell_row_sums without the mass: the vector sums of one cell and row, then
-    three vector atomics."""
+    three reductions (the vec4s' w unused: one 128-bit reduction beats three 32-bit ones)."""
     n, _m, s0, s1, s2 = cell_row_terms(cell, a, b, lists, dx, nodes)
-    wp.atomic_add(out, n[0], n[1], n[2], s0)
-    wp.atomic_add(out, n[0], n[1], n[2] + 1, s1)
-    wp.atomic_add(out, n[0], n[1], n[2] + 2, s2)
+    red_add_vec4(out, n[0], n[1], n[2], wp.vec4(s0[0], s0[1], s0[2], 0.0))
+    red_add_vec4(out, n[0], n[1], n[2] + 1, wp.vec4(s1[0], s1[1], s1[2], 0.0))
+    red_add_vec4(out, n[0], n[1], n[2] + 2, wp.vec4(s2[0], s2[1], s2[2], 0.0))
 
 
 @wp.kernel(enable_backward=False)
@@ -372,7 +373,7 @@ def scatter_cells(
     dx: float,
     nodes: wp.vec3i,
     cells_per_pass: int,
-    out: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
 ):
     """gather.p2g_cells for the grid-velocity cotangent (nine threads per occupied cell)."""
     lane_row = cell_lane_row(wp.tid())
@@ -385,8 +386,7 @@ def scatter_cells(
 
 @wp.kernel(enable_backward=False)
 def grid_adjoint(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     fixed: wp.array3d(dtype=int),
     dx: float,
     dt: float,
@@ -396,28 +396,39 @@ def grid_adjoint(
     nodes: wp.vec3i,
     use_ground: int,
     ground_z: float,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
-    adj_m: wp.array3d(dtype=float),
-    adj_mv: wp.array3d(dtype=wp.vec3),
+    adj_grid_v: wp.array3d(dtype=wp.vec4),
+    adj_mmv: wp.array3d(dtype=wp.vec4),
     binned: int,
     lists: CellLists,
 ):
     """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and the stored
-    mass and momentum (the next recompute's P2G adds into them: this saves two memsets per
-    substep) and, when binned, clears the cell lists for the next substep's scatter."""
+    momentum and mass (the next recompute's P2G adds into them: this saves a memset per
+    substep) and, when binned, clears the cell lists for the next substep's scatter.
+
+    A node no particle reached holds an all-zero vec4, and its grid-velocity cotangent is
+    zero too (the cotangent scatter carries the same B-spline weights as the P2G; a weight
+    so small that w m underflows leaves at most a denormal behind): it reads nothing more
+    and writes nothing. Its adj_mmv keeps an older, finite value, which the P2G adjoint
+    only ever multiplies by a zero weight and weight derivative (a particle's stencil
+    nodes all get mass, except where a B-spline factor and its derivative are both 0).
+    Most nodes are empty and the stored grids are cold in the cache, so this cut the kernel
+    from 20.2 to 11.3 us at 100k / 64^3 and from 163 to 36 us at 300k / 128^3 (H200,
+    docs/gpu-runs/try_vec4_red_*_h200.json)."""
     i, j, k = wp.tid()
-    g = adj_grid_v[i, j, k]
-    adj_grid_v[i, j, k] = wp.vec3(0.0)
-    m = grid_m[i, j, k]
-    mv = grid_mv[i, j, k]
-    grid_m[i, j, k] = 0.0
-    grid_mv[i, j, k] = wp.vec3(0.0)
     if binned != 0:
         lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
         if i == 0 and j == 0 and k == 0:
             lists.n_occupied[0] = 0
-    gm = float(0.0)
-    gmv = wp.vec3(0.0)
+    q = grid_mmv[i, j, k]
+    m = q[3]
+    if m == 0.0 and q[0] == 0.0 and q[1] == 0.0 and q[2] == 0.0:
+        return
+    g4 = adj_grid_v[i, j, k]
+    adj_grid_v[i, j, k] = wp.vec4(0.0)
+    grid_mmv[i, j, k] = wp.vec4(0.0)
+    g = wp.vec3(g4[0], g4[1], g4[2])
+    mv = wp.vec3(q[0], q[1], q[2])
+    out = wp.vec4(0.0)
     if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
         vel = (mv / m + dt * gravity) * damping_factor
         # each boundary condition zeroes one component by the sign of that component only
@@ -432,9 +443,8 @@ def grid_adjoint(
                 g = wp.vec3(g[0], g[1], 0.0)
         gq = g * damping_factor  # cotangent of mv / m
         gmv = gq / m
-        gm = -wp.dot(gq, mv) / (m * m)
-    adj_m[i, j, k] = gm
-    adj_mv[i, j, k] = gmv
+        out = wp.vec4(gmv[0], gmv[1], gmv[2], -wp.dot(gq, mv) / (m * m))
+    adj_mmv[i, j, k] = out
 
 
 # --------------------------------------------------------------------------------------
@@ -479,8 +489,8 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
             wp.launch(K.p2g, dim=n, device=dev, inputs=[
                 ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
                 float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
-                *_force_args(ctx), g.m, g.mv])
-            wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v])
+                *_force_args(ctx), g.mmv])
+            wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[g.mmv] + bc + [g.v])
             g2p_into(i)
         return
 
@@ -491,15 +501,15 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
             do_g2p, ctx.base, s_in.u, s_in.F, s_out.u, s_out.v, s_out.C, s_out.F, mat.E, mat.volume, mat.mass,
             mat.static, grids[i_in].v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
             geo.edge_lo, geo.edge_hi, ctx.t_frame, float((k0 + i_out) * dt), *_force_args(ctx), lists,
-            grids[i_out].m, grids[i_out].mv, ctx.stats])
+            grids[i_out].mmv, ctx.stats])
 
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     g2p_bin_into(0, 0, 0)
     for i in range(count):
         g = grids[i]
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[g.m, g.mv] + bc + [g.v, 0, lists])
+                  inputs=[lists, float(geo.dx), nodes, per_pass, g.mmv])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[g.mmv] + bc + [g.v, 0, lists])
         if i < count - 1:
             g2p_bin_into(1, i, i + 1)
         else:
@@ -512,14 +522,15 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     adj (u, v, C, F cotangents of the segment's last state, plus E's running sum) becomes the
     cotangents of states[0], in place.
 
-    adj_grid = (adj_grid_v, adj_m, adj_mv): adj_grid_v must be zero on entry and is left
-    zero; so are the grids' mass and momentum on exit (ready for the next recompute). binned: the grid-velocity cotangent goes through the cell lists (CUDA) instead of
-    atomics; unbinned, `lists` may be any (unused) set."""
+    adj_grid = (adj_grid_v, adj_mmv), vec4 arrays (adj_grid_v's w unused): adj_grid_v must
+    be zero on entry and is left zero; so are the grids' momentum and mass on exit (ready
+    for the next recompute). binned: the grid-velocity cotangent goes through the cell lists
+    (CUDA) instead of atomics; unbinned, `lists` may be any (unused) set."""
     geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
     nodes = geo.nodes_vec
     n = states[0].u.shape[0]
     adj_u, adj_v, adj_C, adj_F, adj_E = adj
-    adj_gv, adj_m, adj_mv = adj_grid
+    adj_gv, adj_mmv = adj_grid
     bc = _grid_bc_args(ctx, dt)
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     count = len(grids)
@@ -533,9 +544,9 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
             wp.launch(scatter_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                       inputs=[lists, float(geo.dx), nodes, per_pass, adj_gv])
         wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
-                  inputs=[g.m, g.mv] + bc + [adj_gv, adj_m, adj_mv, int(binned), lists])
+                  inputs=[g.mmv] + bc + [adj_gv, adj_mmv, int(binned), lists])
         common = [float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
-                  *_force_args(ctx), adj_m, adj_mv, adj_u, adj_v, adj_C, adj_F, adj_E]
+                  *_force_args(ctx), adj_mmv, adj_u, adj_v, adj_C, adj_F, adj_E]
         if i > 0:
             prev = states[i - 1]
             wp.launch(p2g_g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[

@@ -186,7 +186,7 @@ class DiffSim:
         many as fit in config.segment_budget_mb, at most the frame."""
         if self.config.segment is not None:
             return max(1, int(self.config.segment))
-        per_substep = self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (1 + 3 + 3) * 4
+        per_substep = self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
         budget = self.config.segment_budget_mb
         if budget is None:
             budget = 2048.0
@@ -218,7 +218,7 @@ class DiffSim:
             pool = self._adj_pool = (
                 [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
                 [GridArrays.alloc(self.geo, self.device) for _ in range(count)],
-                (z(wp.vec3), z(float), z(wp.vec3)))
+                (z(wp.vec4), z(wp.vec4)))
         return pool
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
@@ -590,7 +590,7 @@ def _arrays(states: list[ParticleState], grids: list[GridArrays]):
     for st in states:
         yield from (st.u, st.v, st.C, st.F)
     for g in grids:
-        yield from (g.m, g.mv, g.v)
+        yield from (g.mmv, g.v)
 
 
 def simulate_frame(state: State, E: torch.Tensor, static, volume, mass, config: SimConfig,

@@ -10,9 +10,10 @@ of a 100k-particle substep on an H200). Here:
    affine matrix: the stress is evaluated once per particle) and a slot in the list of its
    stencil cell. The first particle of a cell appends the cell to the occupied cells.
 2. `p2g_cells` (9 threads per occupied cell, each owning a row of 3 stencil nodes): sum
-   the contributions of the cell's particles to those nodes, then one atomic per node and
-   component. Atomics drop by the particles per cell (about 8), and the threads of a cell
-   read the same payload (L1 broadcasts) and write different nodes.
+   the contributions of the cell's particles to those nodes, then one reduction per node
+   (`red_add_vec4`: momentum and mass in one 128-bit `red` on sm_90+). Atomics drop by the
+   particles per cell (about 8), and the threads of a cell read the same payload (L1
+   broadcasts) and write different nodes.
 3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid, the cell
    counters and the occupied-cell count for the next substep.
 
@@ -40,6 +41,30 @@ CELL_BLOCK = 256
 # Occupied cells summed per pass of the per-cell kernel: it is launched for this many (or
 # every possible) cells and loops, instead of one idle thread group per possible cell.
 CELLS_PER_PASS = 16384
+
+
+# One 128-bit reduction instead of four 32-bit atomics. Hopper (sm_90) has vector `red`
+# for f32; warp's atomic_add on a vec4 issues one atomic per component. H200, 100k
+# particles / 64^3: the cell sums take 14.4 us instead of 26.7, the adjoint's cotangent
+# scatter 14.1 instead of 22.3 (bench/try_vec4_red.py at 72a21c2,
+# docs/gpu-runs/try_vec4_red_100k_h200.json). The address is converted to a global one
+# because vector `red` exists only for the global space. Older GPUs and the CPU add per
+# component. No adjoint: only untaped kernels use it.
+_RED_ADD_VEC4 = """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+    wp::vec4* p = wp::address(arr, i, j, k);
+    asm volatile("{ .reg .u64 ga; cvta.to.global.u64 ga, %0; red.global.add.v4.f32 [ga], {%1, %2, %3, %4}; }"
+                 :: "l"(p), "f"(value[0]), "f"(value[1]), "f"(value[2]), "f"(value[3]) : "memory");
+#else
+    wp::atomic_add(wp::address(arr, i, j, k), value);
+#endif
+"""
+
+
+@wp.func_native(_RED_ADD_VEC4)
+def red_add_vec4(arr: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int, value: wp.vec4):
+    """arr[i, j, k] += value, atomically, with no result (untaped kernels only)."""
+    ...
 
 
 @wp.struct
@@ -77,8 +102,7 @@ def bin_particle(
     dt: float,
     nodes: wp.vec3i,
     lists: CellLists,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
     """Write particle p's P2G payload and put it in its cell's list (or scatter on overflow)."""
     inv_dx = 1.0 / dx
@@ -97,7 +121,7 @@ def bin_particle(
         lists.slots[cell * CELL_CAPACITY_W + slot] = p
     else:
         # Overflow: the atomic scatter, added to the same grid as the binned sums.
-        K.p2g_scatter(x, v, C, F, E, vol, m, a_ext, nu, dx, dt, nodes, grid_m, grid_mv)
+        K.p2g_scatter(x, v, C, F, E, vol, m, a_ext, nu, dx, dt, nodes, grid_mmv)
 
 
 @wp.kernel(enable_backward=False)
@@ -129,8 +153,7 @@ def g2p_bin(
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
     lists: CellLists,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     stats: wp.array(dtype=float),
 ):
     """G2P of this substep from (u_in, F_in) into (u, v, C, F) (unless do_g2p is 0: the run's
@@ -143,7 +166,7 @@ def g2p_bin(
                      u, v, C, F, stats)
     a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, lists, grid_m, grid_mv)
+                 nodes, lists, grid_mmv)
 
 
 @wp.func
@@ -214,17 +237,13 @@ def cell_row_sums(
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """cell_row_terms of one cell and row, then 3 x 4 atomics."""
+    """cell_row_terms of one cell and row, then three (momentum, mass) reductions."""
     n, m, mv0, mv1, mv2 = cell_row_terms(cell, a, b, lists, dx, nodes)
-    wp.atomic_add(grid_m, n[0], n[1], n[2], m[0])
-    wp.atomic_add(grid_m, n[0], n[1], n[2] + 1, m[1])
-    wp.atomic_add(grid_m, n[0], n[1], n[2] + 2, m[2])
-    wp.atomic_add(grid_mv, n[0], n[1], n[2], mv0)
-    wp.atomic_add(grid_mv, n[0], n[1], n[2] + 1, mv1)
-    wp.atomic_add(grid_mv, n[0], n[1], n[2] + 2, mv2)
+    red_add_vec4(grid_mmv, n[0], n[1], n[2], wp.vec4(mv0[0], mv0[1], mv0[2], m[0]))
+    red_add_vec4(grid_mmv, n[0], n[1], n[2] + 1, wp.vec4(mv1[0], mv1[1], mv1[2], m[1]))
+    red_add_vec4(grid_mmv, n[0], n[1], n[2] + 2, wp.vec4(mv2[0], mv2[1], mv2[2], m[2]))
 
 
 @wp.func
@@ -243,8 +262,7 @@ def p2g_cells(
     dx: float,
     nodes: wp.vec3i,
     cells_per_pass: int,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
     """Thread (cell lane, stencil offsets a, b): for the occupied cells lane, lane +
     cells_per_pass, ... (the count is known only on the device), that cell's shares of the
@@ -260,14 +278,13 @@ def p2g_cells(
     n = lists.n_occupied[0]
     slot = lane_row[0]
     while slot < n:
-        cell_row_sums(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, grid_m, grid_mv)
+        cell_row_sums(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, grid_mmv)
         slot += cells_per_pass
 
 
 @wp.kernel(enable_backward=False)
 def grid_update_clear_bins(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     fixed: wp.array3d(dtype=int),
     dx: float,
     dt: float,
@@ -285,11 +302,10 @@ def grid_update_clear_bins(
     clear_grid (the fast path), zeroes mass and momentum for the next P2G; the backward's
     recompute keeps them (its adjoint reads them)."""
     i, j, k = wp.tid()
-    grid_v[i, j, k] = K.node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+    grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
                                       gravity, damping_factor, pad, nodes, use_ground, ground_z)
     if clear_grid != 0:
-        grid_m[i, j, k] = 0.0
-        grid_mv[i, j, k] = wp.vec3(0.0)
+        grid_mmv[i, j, k] = wp.vec4(0.0)
     lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
     if i == 0 and j == 0 and k == 0:
         lists.n_occupied[0] = 0
@@ -316,8 +332,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
     geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
     nodes = geo.nodes_vec
     count = st.u.shape[0]
-    g.m.zero_()
-    g.mv.zero_()
+    g.mmv.zero_()
     lists.counts.zero_()
     lists.n_occupied.zero_()
 
@@ -325,16 +340,16 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
         wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
             do_g2p, ctx.base, st.u, st.F, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
             float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
-            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, g.m, g.mv, ctx.stats])
+            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, g.mmv, ctx.stats])
 
     bin_particles(0, 0.0)
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
-    grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
+    grid_args = [g.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
                  float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, 1, lists]
     for s in range(n):
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, g.m, g.mv])
+                  inputs=[lists, float(geo.dx), nodes, per_pass, g.mmv])
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
         if s < n - 1:
             bin_particles(1, (s + 1) * dt)

@@ -89,7 +89,13 @@ def adj_polar_rotation(F: wp.mat33, adj_ret: wp.mat33):
 @wp.func
 def kirchhoff_stress(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
     """Fixed-corotated Kirchhoff stress tau = 2 mu (F - R) F^T + lam (J - 1) J I, in Pa."""
-    R = polar_rotation(F)
+    return kirchhoff_stress_polar(F, polar_rotation(F), mu, lam)
+
+
+@wp.func
+def kirchhoff_stress_polar(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """kirchhoff_stress given R = polar_rotation(F), for callers that need R again (the
+    hand-written P2G adjoint: one polar decomposition per particle instead of two)."""
     J = wp.determinant(F)
     return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
 
@@ -202,10 +208,10 @@ def p2g_scatter(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """Scatter one particle's mass and MLS momentum to its 27 nodes."""
+    """Scatter one particle's MLS momentum (kg m/s) and mass (kg) to its 27 nodes, as
+    (momentum, mass) vec4s."""
     inv_dx = 1.0 / dx
     b = stencil_base(x, inv_dx, nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
@@ -222,8 +228,8 @@ def p2g_scatter(
             for k in range(3):
                 w = wij * wz[k]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                wp.atomic_add(grid_m, b[0] + i, b[1] + j, b[2] + k, w * m)
-                wp.atomic_add(grid_mv, b[0] + i, b[1] + j, b[2] + k, w * (mv + affine * dpos))
+                q = w * (mv + affine * dpos)
+                wp.atomic_add(grid_mmv, b[0] + i, b[1] + j, b[2] + k, wp.vec4(q[0], q[1], q[2], w * m))
 
 
 @wp.kernel
@@ -247,8 +253,7 @@ def p2g(
     force_mask: wp.array2d(dtype=float),
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
     """Particle to grid: mass (kg) and momentum (kg m/s) with the MLS stress impulse.
 
@@ -257,13 +262,12 @@ def p2g(
     p = order[wp.tid()]
     a_ext = external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
     p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
-                grid_m, grid_mv)
+                grid_mmv)
 
 
 @wp.func
 def node_velocity(
-    m: float,
-    mv: wp.vec3,
+    mmv: wp.vec4,
     is_fixed: int,
     i: int,
     j: int,
@@ -277,14 +281,15 @@ def node_velocity(
     use_ground: int,
     ground_z: float,
 ) -> wp.vec3:
-    """Velocity of one node (m/s) from its mass and momentum, with every boundary condition.
+    """Velocity of one node (m/s) from its (momentum, mass), with every boundary condition.
 
     Nodes lighter than MIN_NODE_MASS count as empty: a particle at the edge of a node's
     B-spline support gives it a mass of order 1e-18 kg, and the adjoint of mv / m,
     -mv / m^2, overflows float32 there (seen as NaN gradients on CUDA)."""
     vel = wp.vec3(0.0)
+    m = mmv[3]
     if m > MIN_NODE_MASS:
-        vel = (mv / m + dt * gravity) * damping_factor
+        vel = (wp.vec3(mmv[0], mmv[1], mmv[2]) / m + dt * gravity) * damping_factor
         if i < pad and vel[0] < 0.0:
             vel = wp.vec3(0.0, vel[1], vel[2])
         if i >= nodes[0] - pad and vel[0] > 0.0:
@@ -307,8 +312,7 @@ def node_velocity(
 
 @wp.kernel
 def grid_update(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     fixed: wp.array3d(dtype=int),
     dx: float,
     dt: float,
@@ -327,14 +331,13 @@ def grid_update(
     their downward velocity. Dirichlet: fixed nodes get zero velocity.
     """
     i, j, k = wp.tid()
-    grid_v[i, j, k] = node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
                                     gravity, damping_factor, pad, nodes, use_ground, ground_z)
 
 
 @wp.kernel(enable_backward=False)
 def grid_update_and_clear(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     fixed: wp.array3d(dtype=int),
     dx: float,
     dt: float,
@@ -348,10 +351,9 @@ def grid_update_and_clear(
 ):
     """grid_update that also zeroes mass and momentum for the next P2G (fast path only)."""
     i, j, k = wp.tid()
-    grid_v[i, j, k] = node_velocity(grid_m[i, j, k], grid_mv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
+    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
                                     gravity, damping_factor, pad, nodes, use_ground, ground_z)
-    grid_m[i, j, k] = 0.0
-    grid_mv[i, j, k] = wp.vec3(0.0)
+    grid_mmv[i, j, k] = wp.vec4(0.0)
 
 
 @wp.func
@@ -474,8 +476,7 @@ def g2p_p2g(
     force_mask: wp.array2d(dtype=float),
     force_accel: wp.array(dtype=wp.vec3),
     force_window: wp.array(dtype=wp.vec2),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mmv: wp.array3d(dtype=wp.vec4),
     stats: wp.array(dtype=float),
 ):
     """Fast path only: G2P of this substep, in place, fused with the P2G of the next one.
@@ -487,7 +488,7 @@ def g2p_p2g(
                u, v, C, F, stats)
     a_ext = external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
     p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
-                grid_m, grid_mv)
+                grid_mmv)
 
 
 @wp.kernel(enable_backward=False)

@@ -175,16 +175,17 @@ class ForceArrays:
 
 @dataclass
 class GridArrays:
-    m: wp.array
-    mv: wp.array
+    """mmv: momentum (kg m/s) and mass (kg) per node, one vec4 so that a CUDA P2G adds both
+    with one 128-bit reduction (gather.red_add_vec4); v: node velocity (m/s)."""
+
+    mmv: wp.array
     v: wp.array
 
     @classmethod
     def alloc(cls, geo: GridGeometry, device, requires_grad: bool = False) -> "GridArrays":
         s = geo.nodes
         return cls(
-            m=wp.zeros(s, dtype=float, device=device, requires_grad=requires_grad),
-            mv=wp.zeros(s, dtype=wp.vec3, device=device, requires_grad=requires_grad),
+            mmv=wp.zeros(s, dtype=wp.vec4, device=device, requires_grad=requires_grad),
             v=wp.zeros(s, dtype=wp.vec3, device=device, requires_grad=requires_grad),
         )
 
@@ -248,15 +249,14 @@ def launch_substep(ctx: SubstepContext, dt: float, t_offset: float,
     geo, cfg, dev = ctx.geo, ctx.cfg, ctx.device
     n = s_in.u.shape[0]
     nodes = geo.nodes_vec
-    grid.m.zero_()
-    grid.mv.zero_()
+    grid.mmv.zero_()
     wp.launch(K.p2g, dim=n, device=dev, inputs=[
         ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, ctx.mat.E, ctx.mat.volume, ctx.mat.mass,
         float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
-        ctx.forces.n, ctx.forces.mask, ctx.forces.accel, ctx.forces.window, grid.m, grid.mv])
+        ctx.forces.n, ctx.forces.mask, ctx.forces.accel, ctx.forces.window, grid.mmv])
     damping_factor = math.exp(-cfg.damping * dt)
     wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[
-        grid.m, grid.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
+        grid.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
         float(damping_factor), int(geo.pad), nodes, int(cfg.ground_z is not None),
         float(cfg.ground_z if cfg.ground_z is not None else 0.0), grid.v])
     wp.launch(K.g2p, dim=n, device=dev, inputs=[
@@ -275,13 +275,12 @@ def run_substeps_fused(ctx: SubstepContext, n: int, dt: float, st: ParticleState
     geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
     nodes = geo.nodes_vec
     count = st.u.shape[0]
-    g.m.zero_()
-    g.mv.zero_()
+    g.mmv.zero_()
     wp.launch(K.p2g, dim=count, device=dev, inputs=[
         ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
         float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel,
-        fa.window, g.m, g.mv])
-    grid_args = [g.m, g.mv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
+        fa.window, g.mmv])
+    grid_args = [g.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
                  float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
                  float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v]
     for s in range(n):
@@ -291,7 +290,7 @@ def run_substeps_fused(ctx: SubstepContext, n: int, dt: float, st: ParticleState
                 ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
                 mat.static, g.v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
                 geo.edge_lo, geo.edge_hi, ctx.t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
-                fa.window, g.m, g.mv, ctx.stats])
+                fa.window, g.mmv, ctx.stats])
         else:
             wp.launch(K.g2p, dim=count, device=dev, inputs=[
                 ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,
