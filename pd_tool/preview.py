@@ -23,6 +23,10 @@ class PreviewError(PdToolError):
     """A preview path has an unsupported extension, or frames are unusable."""
 
 
+class PreviewEncoderMissing(PreviewError):
+    """An .mp4 was asked for, but imageio has no ffmpeg plugin (imageio-ffmpeg)."""
+
+
 def _atomic(path: Path):
     """Write beside `path`, then rename into place (pd_tool.atomic)."""
     from pd_tool.atomic import atomic_output
@@ -70,11 +74,16 @@ def write_preview(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: fl
                     a = _as_frame(f, i, shape)
                     shape = a.shape
                     if writer is None:
-                        writer = iio2.get_writer(
-                            tmp, format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
-                            quality=MP4_QUALITY, pixelformat="yuv420p", macro_block_size=1,
-                            ffmpeg_log_level="error",
-                        )
+                        try:
+                            writer = iio2.get_writer(
+                                tmp, format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
+                                quality=MP4_QUALITY, pixelformat="yuv420p", macro_block_size=1,
+                                ffmpeg_log_level="error",
+                            )
+                        except ImportError as e:  # imageio without its ffmpeg plugin
+                            raise PreviewEncoderMissing(
+                                f"{path}: .mp4 previews need the imageio-ffmpeg package "
+                                "(pip install imageio-ffmpeg); or write a .gif preview") from e
                     writer.append_data(_even(a))
                     n += 1
             finally:
@@ -97,6 +106,16 @@ def write_preview(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: fl
         if n == 0:
             raise PreviewError(f"{path}: no frames to write")
     return path
+
+
+def write_preview_any(frames: list[np.ndarray], path: str | os.PathLike, fps: float = 30.0) -> Path:
+    """write_preview to path (.mp4), or beside it as .gif when no mp4 encoder is installed:
+    for previews that come with a longer job (a fit), which should not fail at its last
+    step over a missing video codec. Returns the path written."""
+    try:
+        return write_preview(frames, path, fps)
+    except PreviewEncoderMissing:
+        return write_preview(frames, Path(path).with_suffix(".gif"), fps)
 
 
 def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:

@@ -73,3 +73,22 @@ def test_render_animation_preview(shared_data, tmp_path):
     # The object is there (not a blank white frame) and it moves between frames.
     assert (got[0][..., :3] < 200).any(axis=-1).mean() > 0.02
     assert np.abs(got[0].astype(int) - got[3].astype(int)).max() > 50
+
+
+def test_missing_mp4_encoder_is_named_and_a_fit_preview_falls_back_to_gif(tmp_path, monkeypatch):
+    """imageio without imageio-ffmpeg (seen on a machine with a partial install): an .mp4
+    preview fails with one clear line naming the package and leaves no file; the fit's
+    preview (write_preview_any) writes a .gif beside it instead of failing the fit."""
+    from pd_tool.preview import PreviewEncoderMissing, write_preview_any
+
+    def no_ffmpeg(*args, **kwargs):
+        raise ImportError("The `FFMPEG` plugin is not installed.")
+
+    monkeypatch.setattr(iio, "get_writer", no_ffmpeg)
+    with pytest.raises(PreviewEncoderMissing, match="imageio-ffmpeg"):
+        write_preview(frames(), tmp_path / "a.mp4")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    got = write_preview_any(frames(), tmp_path / "fit.preview.mp4", fps=10)
+    assert got == tmp_path / "fit.preview.gif"
+    assert len(iio.mimread(got)) == 6
+    assert not (tmp_path / "fit.preview.mp4").exists()

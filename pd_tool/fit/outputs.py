@@ -50,7 +50,7 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
     """Write every side output of a fit into out_dir; returns their paths by kind."""
     from pd_tool.io import save_ply
     from pd_tool.plots import line_plot
-    from pd_tool.preview import save_png, write_preview
+    from pd_tool.preview import save_png, write_preview_any
     from pd_tool.reference import simulate_reference
     from pd_tool.views import render_image
 
@@ -75,8 +75,8 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
                                  n_frames=videos[0].num_frames, fps=videos[0].fps, nu=settings.nu,
                                  damping=settings.damping, device=settings.device, background=settings.background)
         ref = (videos[0].frames.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-        paths["preview"] = write_preview([np.concatenate([a, b], axis=1) for a, b in zip(ref, sim)],
-                                         out_dir / f"{stem}.preview.mp4", videos[0].fps)
+        paths["preview"] = write_preview_any([np.concatenate([a, b], axis=1) for a, b in zip(ref, sim)],
+                                             out_dir / f"{stem}.preview.mp4", videos[0].fps)
     report = {
         "material": str(result.material_path),
         "losses": L,
