@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def run_cli(args: list[str], cwd: Path) -> float:
@@ -49,11 +50,13 @@ def main() -> int:
     from pd_tool.synthetic import POT_TOP, make_plant
     from pd_tool.views import scene_camera
 
+    from fit_recovery import reference_height
+
     out = Path(a.out or tempfile.mkdtemp(prefix="pdtool-e2e-"))
     out.mkdir(parents=True, exist_ok=True)
     scene_path = save_splats(make_plant(a.gaussians, seed=0), out / "plant.ply")
     scene = load_splats(scene_path, device=a.device)
-    h = a.size * 9 // 16 if a.size >= 512 else a.size
+    h = reference_height(a.size)
     t0 = time.perf_counter()
     plant_reference_for_fit(out / "video", scene, scene_camera(scene, width=a.size, height=h), a.quality,
                             n_frames=a.frames, device=a.device)

@@ -86,6 +86,12 @@ def true_pushes(pb, views: int) -> list:
     return [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device) for k in range(views)]
 
 
+def reference_height(size: int) -> int:
+    """Height (px) of the benchmark's reference frames `size` px wide: 16:9 from 512 px
+    up, square below (the small CPU runs)."""
+    return size * 9 // 16 if size >= 512 else size
+
+
 def plant_references(folder, scene, *, views: int, size: int, quality, frames: int, fps: float,
                      substeps: int | None, device: str) -> list:
     """The benchmark's reference videos, loaded: view k pushed along push_direction(k) and
@@ -96,7 +102,7 @@ def plant_references(folder, scene, *, views: int, size: int, quality, frames: i
     from pd_tool.reference import plant_reference_for_fit
     from pd_tool.views import scene_camera
 
-    h = size * 9 // 16 if size >= 512 else size
+    h = reference_height(size)
     refs = []
     for k in range(views):
         cam = scene_camera(scene, width=size, height=h) if k == 0 else auto_camera(
