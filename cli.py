@@ -515,8 +515,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "stiffness. Measured: usually no better than 1; see docs/benchmarks.md.")
 @click.option("--horizon", type=click.IntRange(min=0), default=1, show_default=True,
               help="Frames each stage-2 loss back-propagates through (the paper's 1; 0 = every frame). 3 brought "
-                   "every region of the recovery benchmark within 10%, at about the same motion error; see "
-                   "docs/benchmarks.md.")
+                   "every region of the recovery benchmark within 10%, with the motion under a new force as good "
+                   "with one video and worse with two; see docs/benchmarks.md.")
 @click.option("--polish", type=click.IntRange(min=0), default=0, show_default=True,
               help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
                    "that the one-frame horizon stops short of. A lower loss moved the recovery benchmark "
