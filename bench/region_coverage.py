@@ -19,8 +19,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-SH_C0 = 0.28209479177387814  # colour = 0.5 + SH_C0 * sh_dc
-
 
 def region_coverage(n: int, width: int, height: int, device: str) -> dict[str, float]:
     """Pixels (fractional, occlusion included) each region of an n-Gaussian plant covers in
@@ -29,6 +27,7 @@ def region_coverage(n: int, width: int, height: int, device: str) -> dict[str, f
     import torch
 
     from pd_tool.render.api import render
+    from pd_tool.scene import rgb_to_sh
     from pd_tool.synthetic import REGIONS, make_plant
     from pd_tool.views import scene_camera
 
@@ -38,7 +37,7 @@ def region_coverage(n: int, width: int, height: int, device: str) -> dict[str, f
     out = {}
     for i, name in enumerate(REGIONS):
         colour = torch.from_numpy((labels == i).astype(np.float32)).to(scene.positions.device)
-        sh = ((colour - 0.5) / SH_C0)[:, None, None].expand(-1, 1, 3).contiguous()
+        sh = rgb_to_sh(colour[:, None, None].expand(-1, 1, 3)).contiguous()
         img = render(scene.positions, scene.quats, scene.scales, scene.opacities, sh, cam).rgb
         out[name] = float(img[..., 0].sum())
     return out
