@@ -231,17 +231,21 @@ def main() -> None:
     prep, drivers = res.prep, res.drivers
     labels = scene.labels[prep.foreground]
     truth_E = driver_truth_E(scene, prep, drivers)
-    regions = {}
-    for i, name in enumerate(REGIONS):
-        if name == "pot":
-            continue  # static: never seen moving
-        rec = float(np.median(res.gaussian_E[labels == i]))
-        regions[name] = {"truth_pa": REGION_TRUTH_E[name], "fitted_pa": rec,
-                         "abs_ln_error": abs(float(np.log(rec / REGION_TRUTH_E[name]))),
-                         # the "relative error in log space": |ln E_fit - ln E| / ln E
-                         "log_space_rel_error": abs(float(np.log(rec) - np.log(REGION_TRUTH_E[name])))
-                         / float(np.log(REGION_TRUTH_E[name])),
-                         "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
+    def region_errors(gaussian_E):
+        regions = {}
+        for i, name in enumerate(REGIONS):
+            if name == "pot":
+                continue  # static: never seen moving
+            rec = float(np.median(gaussian_E[labels == i]))
+            regions[name] = {"truth_pa": REGION_TRUTH_E[name], "fitted_pa": rec,
+                             "abs_ln_error": abs(float(np.log(rec / REGION_TRUTH_E[name]))),
+                             # the "relative error in log space": |ln E_fit - ln E| / ln E
+                             "log_space_rel_error": abs(float(np.log(rec) - np.log(REGION_TRUTH_E[name])))
+                             / float(np.log(REGION_TRUTH_E[name])),
+                             "rel_error": rec / REGION_TRUTH_E[name] - 1.0}
+        return regions
+
+    regions = region_errors(res.gaussian_E)
     # the first video's fitted v0 against its true push, over the moving drivers
     free = ~drivers.static.cpu().numpy().astype(bool)
     v_true = true_push(drivers.positions.double().cpu().numpy(), ~free, 0)[free]
@@ -281,6 +285,13 @@ def main() -> None:
     }
     out["new_force"]["baseline_over_fitted"] = out["new_force"]["rms_error_uniform_baseline"] / max(
         out["new_force"]["rms_error_fitted"], 1e-12)
+    if res.driver_E_uncalibrated is not None:
+        # the same fit before its calibration stage: a paired comparison
+        gl = drivers.labels.cpu().numpy()[: prep.count]
+        rms_before = rms(simulate_positions(scene, prep, drivers, res.driver_E_uncalibrated, **sim))
+        out["calibration"] = {**res.calibration, "before": {
+            "regions": region_errors(res.driver_E_uncalibrated[gl]), "rms_error_fitted": rms_before,
+            "baseline_over_fitted": out["new_force"]["rms_error_uniform_baseline"] / max(rms_before, 1e-12)}}
     print(json.dumps(out, indent=2))
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))

@@ -6,6 +6,10 @@ reference videos. PhysDreamer's two stages:
 2. material: v0 frozen; optimise the shared E field over all frames, each frame simulated
    from the detached state of the previous one (a one-frame gradient horizon).
 
+Then, optionally (`calibrate_iters`), a calibration of a few whole-clip numbers: one log-E
+offset per stiffness cluster of the fitted field and one speed gain per video, fitted with
+the exact gradient through every frame (see `calibrate`).
+
 Each iteration: fields -> per-driver E, v0 -> differentiable MPM (warp, checkpointed) ->
 rigid interpolation to every Gaussian -> differentiable rasteriser -> lambda L1 + (1 -
 lambda) D-SSIM against the reference frame -> gradients into the fields.
@@ -63,6 +67,12 @@ class FitSettings:
     # Per-driver log-E residual on top of the field. The field's parameters are shared by
     # every point, so the region with the largest gradient (the stem) moves them all; a
     # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
+    # Stage 3, calibration: iterations of the exact whole-clip gradient over a few numbers
+    # only, one log-E offset per stiffness cluster and one log speed gain per video (see
+    # `calibrate`). 0: off.
+    calibrate_iters: int = 0
+    calibrate_clusters: int = 4  # stiffness clusters of the fitted field (1-D k-means on log E)
+    lr_calibrate: float = 0.05  # Adam step, in log units (nats) of E and of v0's speed
     driver_residual: bool = True
     lr_residual: float = 0.15
     residual_smoothness: float = 1e-3  # weight of the mean squared residual difference between neighbouring drivers
@@ -97,6 +107,12 @@ class FitSettings:
             raise ValueError(f"rounds must be at least 1, got {out.rounds}")
         if out.polish_iters < 0:
             raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
+        if out.calibrate_iters < 0:
+            raise ValueError(f"calibrate_iters must be at least 0, got {out.calibrate_iters}")
+        if out.calibrate_clusters < 1:
+            raise ValueError(f"calibrate_clusters must be at least 1, got {out.calibrate_clusters}")
+        if out.calibrate_iters and not out.driver_residual:
+            raise ValueError("calibration folds its offsets into the per-driver residuals; keep driver_residual on")
         if out.velocity_iters is None:
             out.velocity_iters = int(q["fit_velocity_iters"])
         if out.material_iters is None:
@@ -119,6 +135,9 @@ class FitResult:
     report: list[str] = field(default_factory=list)
     skipped_steps: int = 0  # material-stage optimiser steps skipped for a non-finite gradient
     driver_v0s: list[np.ndarray] = field(default_factory=list)  # [Q, 3] m/s per video, in video order
+    # E per driver (Pa) before calibration, when the fit calibrated (diagnostics; not saved)
+    driver_E_uncalibrated: np.ndarray | None = None
+    calibration: dict[str, Any] | None = None  # the offsets, gains and losses calibration chose
 
 
 ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
@@ -300,6 +319,90 @@ def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None, horizon: 
     return float(loss.detach())  # float() of a tensor that requires grad warns on stderr
 
 
+def stiffness_clusters(log_e: torch.Tensor, k: int, iters: int = 50) -> torch.Tensor:
+    """Labels [Q] in [0, k) of a 1-D k-means on log E (nats). The centres start evenly
+    spaced between the 1st and 99th percentiles: deterministic, and (unlike quantiles, which
+    put most centres in the most populous stiffness) one per level of a field with a few
+    distinct levels."""
+    k = max(1, min(k, len(log_e)))
+    x = log_e.detach().double()
+    lo, hi = torch.quantile(x, torch.tensor([0.01, 0.99], dtype=torch.float64, device=x.device)).tolist()
+    centres = lo + (hi - lo) * (torch.arange(k, dtype=torch.float64, device=x.device) + 0.5) / k
+    labels = torch.zeros(len(x), dtype=torch.long, device=x.device)
+    for _ in range(iters):
+        labels = (x[:, None] - centres[None, :]).abs().argmin(1)
+        new = centres.clone()
+        for c in range(k):
+            sel = labels == c
+            if sel.any():  # an empty cluster keeps its centre
+                new[c] = x[sel].mean()
+        if torch.equal(new, centres):
+            break
+        centres = new
+    return labels
+
+
+def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None) -> dict[str, Any]:
+    """Stage 3: fit a few whole-clip numbers with the exact gradient through every frame.
+
+    The one-frame horizon of stage 2 under-counts what acts through the whole motion (a
+    stem's stiffness sets the phase of every later frame), and stage 1 fits v0 under the
+    starting E, which leaves it about 10% too slow when that E is too soft
+    (bench/stage1_v0.py). Full back-propagation over the per-driver field finds other
+    minima (docs/benchmarks.md); over a handful of numbers it cannot bend the field's shape
+    to v0's error. The numbers: a log-E offset per stiffness cluster of the fitted field
+    (`calibrate_clusters`, 1-D k-means on log E over the moving drivers) and a log speed
+    gain per video. Adam, `calibrate_iters` steps of `lr_calibrate` nats; the parameters
+    with the least loss seen are kept (the start among them, so the whole-clip loss never
+    rises), folded into the per-driver residuals and the velocity fields' scales.
+    Returns the offsets, gains and losses.
+    """
+    with torch.no_grad():
+        E0 = pb.driver_E().detach()
+        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
+    moving = ~pb.static
+    labels = torch.full((len(E0),), s.calibrate_clusters, dtype=torch.long, device=pb.device)  # static: no offset
+    if moving.any():
+        labels[moving] = stiffness_clusters(torch.log(E0[moving]), s.calibrate_clusters)
+    offsets = torch.zeros(s.calibrate_clusters, device=pb.device, requires_grad=True)
+    gains = torch.zeros(len(pb.videos), device=pb.device, requires_grad=True)
+    opt = torch.optim.Adam([offsets, gains], lr=s.lr_calibrate)
+    lo, hi = pb.material.log_e_min, pb.material.log_e_max
+    history: list[float] = []
+    best = (math.inf, None, None)
+    for it in range(s.calibrate_iters):
+        delta = torch.cat([offsets, offsets.new_zeros(1)])[labels]
+        # stay inside the field's bounds smoothly, as driver_E does
+        log_e = torch.log(E0) + delta
+        log_e = lo + (hi - lo) * torch.sigmoid(torch.logit(((log_e - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)))
+        loss = sequence_loss(pb, torch.exp(log_e), [v * torch.exp(g) for v, g in zip(v0s, gains)], None)
+        value = float(loss.detach())
+        history.append(value)
+        if math.isfinite(value) and value < best[0]:
+            best = (value, offsets.detach().clone(), gains.detach().clone())
+        if progress:
+            progress("calibrate", it + 1, s.calibrate_iters, value)
+        if it + 1 == s.calibrate_iters:
+            break  # the last loss is only measured: a step after it would go unchecked
+        loss.backward()
+        if torch.isfinite(offsets.grad).all() and torch.isfinite(gains.grad).all():
+            opt.step()
+        opt.zero_grad(set_to_none=True)
+    if best[1] is None:
+        return {"offsets": [0.0] * s.calibrate_clusters, "gains": [1.0] * len(pb.videos), "losses": history}
+    _, off, gain = best
+    with torch.no_grad():
+        # fold the offsets into the residuals: driver_E = squash(field + residual)
+        target = torch.log(E0) + torch.cat([off, off.new_zeros(1)])[labels]
+        u_new = ((target - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
+        u_field = ((pb.material(pb.x_norm) - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
+        pb.log_e_residual.copy_(torch.logit(u_new) - torch.logit(u_field))
+        for i, g in enumerate(gain.tolist()):
+            pb.velocities[i].scale *= math.exp(g)
+    return {"offsets": off.tolist(), "gains": [math.exp(g) for g in gain.tolist()], "losses": history,
+            "cluster_sizes": torch.bincount(labels, minlength=s.calibrate_clusters + 1)[:-1].tolist()}
+
+
 def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
                      opt_v=None, sched_v=None, opt_r=None, sched_r=None, rnd: int = 0) -> None:
     state = {
@@ -479,6 +582,16 @@ def run_fit(
                               progress)
         ckpt = None
 
+    E_uncalibrated = None
+    calibration = None
+    if s.calibrate_iters > 0:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            E_uncalibrated = pb.driver_E().double().cpu().numpy()
+        calibration = calibrate(pb, s, progress)
+        losses["calibrate"] = calibration["losses"]
+        seconds["calibrate"] = time.perf_counter() - t0
+
     # ---- result
     with torch.no_grad():
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
@@ -504,6 +617,8 @@ def run_fit(
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
             "skipped_material_steps": skipped,
+            "calibration": None if calibration is None else {
+                k: calibration[k] for k in ("offsets", "gains", "cluster_sizes") if k in calibration},
         },
         "fields": {"material": pb.material.config(),
                    **{f"velocity{i}": v.config() for i, v in enumerate(pb.velocities)}},
@@ -519,4 +634,5 @@ def run_fit(
     return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
                      gaussian_E=driver_E[labels], losses=losses,
                      seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped,
-                     driver_v0s=[v.double().cpu().numpy() for v in v0s])
+                     driver_v0s=[v.double().cpu().numpy() for v in v0s],
+                     driver_E_uncalibrated=E_uncalibrated, calibration=calibration)
