@@ -512,7 +512,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
 @click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Rounds of (stage 1, stage 2); each later round refits the initial velocity under the fitted "
-                   "stiffness. Measured: usually no better than 1; see docs/benchmarks.md.")
+                   "stiffness. With two videos, 2 brought every region of the recovery benchmark within 10% "
+                   "on every seed, and moved worse under a new force than 1; see docs/benchmarks.md.")
 @click.option("--horizon", type=click.IntRange(min=0), default=1, show_default=True,
               help="Frames each stage-2 loss back-propagates through (the paper's 1; 0 = every frame). 3 brought "
                    "every region of the recovery benchmark within 10%, with the motion under a new force as good "
