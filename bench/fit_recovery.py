@@ -77,27 +77,6 @@ def use_true_v0(views: int) -> None:
     FitProblem.driver_v0 = true_v0
 
 
-def use_quantile_cfl(q: float) -> None:
-    """Make every fit in this process choose its substeps by CFL from the q-quantile of the
-    moving drivers' wave speed instead of the fastest one, so that a few outlying stiff
-    drivers do not set the count (and MPM's numerical damping) for the whole plant. The
-    reference and the new-force runs keep the maximum, as pdtool does."""
-    import numpy as np
-
-    from pd_tool.fit.pipeline import FitProblem
-    from pd_tool.sim.cfl import cfl_substeps, lame_np
-
-    def substeps(pb, E, v0) -> int:
-        sim = pb.sim
-        moving = ~sim._static if sim._static.any() and not sim._static.all() else np.ones(sim.n, bool)
-        mu, lam = lame_np(E.detach().double().cpu().numpy()[moving], sim.config.nu)
-        c = float(np.sqrt(np.quantile((lam + 2.0 * mu) / (sim._mass / sim._vol)[moving], q)))
-        vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
-        return max(cfl_substeps(pb.frame_dt, sim.geo.dx, c, vmax, sim.config.cfl_safety), sim.config.min_substeps or 0)
-
-    FitProblem.substeps = substeps
-
-
 def true_pushes(pb, views: int) -> list:
     """Every view's true initial velocity at a FitProblem's drivers: [Q, 3] m/s tensors."""
     import torch
@@ -207,9 +186,6 @@ def main() -> None:
                          "new-force runs), so that they share one count unless E rises above what N allows; "
                          "'truth': the CFL count of the reference under the true E. Default: each simulation "
                          "picks its own by CFL, as pdtool does")
-    ap.add_argument("--cfl-quantile", type=float, default=None, metavar="Q",
-                    help="diagnostic: the fit (only) takes its CFL substeps from the Q-quantile of the drivers' "
-                         "wave speed instead of the fastest")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -233,8 +209,6 @@ def main() -> None:
     for item in args.set:
         key, _, text = item.partition("=")
         overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
-    if args.cfl_quantile is not None:
-        use_quantile_cfl(args.cfl_quantile)
     if args.oracle_v0:
         use_true_v0(views=args.views)
         args.velocity_iters = 0
@@ -306,7 +280,7 @@ def main() -> None:
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
-        "overrides": overrides, "oracle_v0": args.oracle_v0, "cfl_quantile": args.cfl_quantile, "substeps": substeps,
+        "overrides": overrides, "oracle_v0": args.oracle_v0, "substeps": substeps,
         "fit_s": fit_s, "regions": regions,
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,

@@ -268,6 +268,26 @@ def test_cfl_substeps_for_uses_stiffest_moving_particle():
     assert cfl_substeps_for(E, sim, 1 / 30) == cfl_substeps(1 / 30, sim.geo.dx, c, 0.0, 0.3)
 
 
+def test_cfl_quantile_lets_a_few_stiff_particles_not_set_the_count():
+    from pd_tool.sim import cfl_substeps_for
+    from pd_tool.sim.cfl import cfl_substeps, wave_speed
+
+    x, static, vol, rng = scene(seed=6)
+    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=8, cfl_safety=0.3), device="cpu")
+    moving = np.nonzero(~static)[0]
+    assert len(moving) >= 20
+    E = torch.full((len(x),), 1e5)
+    E[moving[0]] = 4e7  # one outlier among the moving particles
+    soft = cfl_substeps(1 / 30, sim.geo.dx, wave_speed(np.array([1e5]), np.array([1000.0]), 0.3), 0.0, 0.3)
+    stiff = cfl_substeps(1 / 30, sim.geo.dx, wave_speed(np.array([4e7]), np.array([1000.0]), 0.3), 0.0, 0.3)
+    assert stiff > soft
+    assert cfl_substeps_for(E, sim, 1 / 30) == stiff  # the default: the fastest particle
+    assert cfl_substeps_for(E, sim, 1 / 30, quantile=1.0) == stiff
+    assert cfl_substeps_for(E, sim, 1 / 30, quantile=0.9) == soft  # the outlier is above the 90th percentile
+    # a quantile is monotone: never more substeps than the maximum's
+    assert soft <= cfl_substeps_for(E, sim, 1 / 30, quantile=0.999) <= stiff
+
+
 def test_bridge_on_cuda_with_graphs_matches_plain_launches_and_cpu():
     """The torch bridge on CUDA: torch runs on its legacy default stream, on which CUDA
     cannot capture a graph, so the captured path runs on the simulator's own stream,
@@ -296,3 +316,12 @@ def test_bridge_on_cuda_with_graphs_matches_plain_launches_and_cpu():
         assert rel_err(a, b) < 1e-5
     for a, b in zip(results["graph"], results["cpu"]):
         assert rel_err(a, b) < 1e-3
+
+
+def test_fit_settings_refuse_a_cfl_quantile_outside_0_1() -> None:
+    from pd_tool.fit.pipeline import FitSettings
+
+    for q in (0.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="cfl_quantile"):
+            FitSettings(quality="draft", cfl_quantile=q).resolved()
+    assert FitSettings(quality="draft", cfl_quantile=0.99).resolved().cfl_quantile == 0.99
