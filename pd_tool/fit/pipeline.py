@@ -213,9 +213,20 @@ class FitProblem:
         log_e = self.material(self.x_norm)
         if self.s.driver_residual:
             lo, hi = self.material.log_e_min, self.material.log_e_max
-            u = ((log_e - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
-            log_e = lo + (hi - lo) * torch.sigmoid(torch.logit(u) + self.log_e_residual)
+            log_e = lo + (hi - lo) * torch.sigmoid(torch.logit(self._unit(log_e)) + self.log_e_residual)
         return torch.exp(log_e)
+
+    def _unit(self, log_e: torch.Tensor) -> torch.Tensor:
+        """log E (nats) as a fraction of the field's bounds, kept off 0 and 1 (logit finite)."""
+        lo, hi = self.material.log_e_min, self.material.log_e_max
+        return ((log_e - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
+
+    @torch.no_grad()
+    def set_driver_log_E(self, log_e: torch.Tensor) -> None:
+        """Set the residuals so that driver_E() returns exp(log_e) (log_e [Q] in nats, inside
+        the field's bounds): the inverse of driver_E's squash, for a stage that fits E per
+        driver outside the field (calibrate). Needs driver_residual."""
+        self.log_e_residual.copy_(torch.logit(self._unit(log_e)) - torch.logit(self._unit(self.material(self.x_norm))))
 
     def residual_penalty(self) -> torch.Tensor:
         r = self.log_e_residual
@@ -398,14 +409,9 @@ def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None
     if best[1] is None:
         return {"offsets": [0.0] * s.calibrate_clusters, "gains": [1.0] * len(pb.videos), "losses": history}
     _, off, gain = best
-    with torch.no_grad():
-        # fold the offsets into the residuals: driver_E = squash(field + residual)
-        target = torch.log(E0) + torch.cat([off, off.new_zeros(1)])[labels]
-        u_new = ((target - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
-        u_field = ((pb.material(pb.x_norm) - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
-        pb.log_e_residual.copy_(torch.logit(u_new) - torch.logit(u_field))
-        for i, g in enumerate(gain.tolist()):
-            pb.velocities[i].scale *= math.exp(g)
+    pb.set_driver_log_E(torch.log(E0) + torch.cat([off, off.new_zeros(1)])[labels])
+    for i, g in enumerate(gain.tolist()):
+        pb.velocities[i].scale *= math.exp(g)
     return {"offsets": off.tolist(), "gains": [math.exp(g) for g in gain.tolist()], "losses": history,
             "cluster_sizes": torch.bincount(labels, minlength=s.calibrate_clusters + 1)[:-1].tolist()}
 
