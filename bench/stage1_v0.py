@@ -16,7 +16,6 @@ import argparse
 import json
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -41,8 +40,7 @@ def main() -> None:
 
     from bench.fit_recovery import plant_references, true_pushes
     from pd_tool.device import init_warp_quietly
-    from pd_tool.fit.pipeline import FitProblem, FitSettings, _clip_and_step, velocity_iteration
-    from pd_tool.fit.schedule import make_optimizer
+    from pd_tool.fit.pipeline import FitProblem, FitSettings, _fit_round
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
     from pd_tool.synthetic import POT_TOP, driver_truth_E, make_plant
@@ -64,23 +62,20 @@ def main() -> None:
         for e_kind in args.E.split(","):
             for frames1 in (int(f) for f in args.frames1.split(",")):
                 for iters in (int(i) for i in args.iters.split(",")):
+                    # stage 1 alone: the fit's own round with no stage-2 iterations
                     s = FitSettings(quality=args.quality, device=args.device, working_long_side=args.size,
-                                    stage1_frames=frames1, velocity_iters=iters, **overrides).resolved()
+                                    stage1_frames=frames1, velocity_iters=iters, material_iters=0,
+                                    **overrides).resolved()
                     pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP), s)
                     if e_kind == "truth":
                         truth = torch.tensor(driver_truth_E(scene, pb.prep, pb.drivers), dtype=torch.float32,
                                              device=pb.device)
                         pb.driver_E = lambda truth=truth: truth
-                    opt, sched = make_optimizer(list(pb.velocities), s.lr_velocity, iters,
-                                                warmup_steps=min(s.warmup, iters))
-                    t0 = time.perf_counter()
-                    losses = []
-                    for _ in range(iters):
-                        losses.append(velocity_iteration(pb))
-                        _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
+                    losses, seconds = {"velocity": [], "material": []}, {}
+                    _fit_round(pb, s, 0, None, tmp / "stage1.ckpt", losses, seconds, None)
                     free = ~pb.static.cpu().numpy()
-                    row = {"E": e_kind, "frames1": frames1, "iters": iters, "seconds": time.perf_counter() - t0,
-                           "loss_first": losses[0], "loss_last": losses[-1], "views": []}
+                    row = {"E": e_kind, "frames1": frames1, "iters": iters, "seconds": seconds["velocity"],
+                           "loss_first": losses["velocity"][0], "loss_last": losses["velocity"][-1], "views": []}
                     for i, vt in enumerate(true_pushes(pb, args.views)):
                         with torch.no_grad():
                             vf = pb.driver_v0(i).double().cpu().numpy()[free]
