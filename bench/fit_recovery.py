@@ -281,7 +281,7 @@ def main() -> None:
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
         "overrides": overrides, "oracle_v0": args.oracle_v0, "substeps": substeps,
-        "fit_s": fit_s, "regions": regions,
+        "fit_s": fit_s, "regions": regions, "stage1_levels": res.losses.get("stage1_level"),
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),

@@ -74,8 +74,11 @@ def main() -> None:
                     losses, seconds = {"velocity": [], "material": []}, {}
                     _fit_round(pb, s, 0, None, tmp / "stage1.ckpt", losses, seconds, None)
                     free = ~pb.static.cpu().numpy()
+                    with torch.no_grad():  # after stage 1: moves only with stage1_level
+                        e_after = float(pb.driver_E()[pb.static.logical_not()].median())
                     row = {"E": e_kind, "frames1": frames1, "iters": iters, "seconds": seconds["velocity"],
-                           "loss_first": losses["velocity"][0], "loss_last": losses["velocity"][-1], "views": []}
+                           "loss_first": losses["velocity"][0], "loss_last": losses["velocity"][-1],
+                           "E_median_after_Pa": e_after, "views": []}
                     for i, vt in enumerate(true_pushes(pb, args.views)):
                         with torch.no_grad():
                             vf = pb.driver_v0(i).double().cpu().numpy()[free]

@@ -69,3 +69,62 @@ def test_calibration_needs_the_residuals() -> None:
         FitSettings(quality="draft", calibrate_iters=3, driver_residual=False).resolved()
     with pytest.raises(ValueError, match="calibrate_clusters"):
         FitSettings(quality="draft", calibrate_clusters=0).resolved()
+
+
+def _stage1_loss(pb, level: float) -> float:
+    """velocity_iteration's loss with the level set to `level` (nats); leaves no gradients."""
+    from pd_tool.fit.pipeline import velocity_iteration
+
+    with torch.no_grad():
+        pb.log_e_level.fill_(level)
+    value = velocity_iteration(pb)
+    for p in [pb.log_e_level, *pb.velocities.parameters()]:
+        p.grad = None
+    return value
+
+
+def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
+    """FitSettings.stage1_level: stage 1 fits one shared log-E offset with v0; its gradient
+    through the three frames against central differences of the same loss."""
+    from _plant import tiny_plant_problem
+    from pd_tool.fit.pipeline import velocity_iteration
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _, pb, _ = tiny_plant_problem(tmp_path, 500, seed=3, size=24)
+        pb.s.stage1_level = True
+        with torch.no_grad():  # a push along x, so that E changes the frames
+            pb.velocities[0].net.last_layer.bias.copy_(torch.tensor([0.4, 0.0, 0.0]))
+            pb.log_e_level.fill_(0.2)
+            # a fixed substep count, safe above the finite difference's largest E: the CFL
+            # count steps with E, which the difference would see and the gradient does not
+            sub = pb.substeps(pb.driver_E() * math.exp(0.3), pb.driver_v0(0))
+        pb.substeps = lambda E, v0: sub
+        velocity_iteration(pb)
+        grad = float(pb.log_e_level.grad)
+        h = 0.05
+        fd = (_stage1_loss(pb, 0.2 + h) - _stage1_loss(pb, 0.2 - h)) / (2 * h)
+    finally:
+        torch.set_num_threads(threads)
+    assert abs(fd) > 1e-5  # E is visible in the first frames
+    assert grad == pytest.approx(fd, rel=0.05)
+
+
+def test_stage1_level_folds_into_the_residuals_exactly(tmp_path) -> None:
+    from _plant import tiny_plant_problem
+    from pd_tool.fit.pipeline import FitSettings, fold_level
+
+    _, pb, _ = tiny_plant_problem(tmp_path, 300, seed=1, size=16)
+    pb.s.stage1_level = True
+    with torch.no_grad():
+        pb.log_e_residual.copy_(0.3 * torch.randn(len(pb.log_e_residual), generator=torch.Generator().manual_seed(0)))
+        E0 = pb.driver_E().clone()
+        pb.log_e_level.fill_(0.7)
+    fold_level(pb)
+    with torch.no_grad():
+        E1 = pb.driver_E()
+    assert float(pb.log_e_level.detach()) == 0.0
+    assert torch.allclose(torch.log(E1), torch.log(E0) + 0.7, atol=1e-4)
+    with pytest.raises(ValueError, match="residual"):
+        FitSettings(quality="draft", stage1_level=True, driver_residual=False).resolved()

@@ -32,7 +32,7 @@ def inputs(tmp_path_factory):
 
 
 def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0,
-         rounds: int = 1):
+         rounds: int = 1, level: bool = False):
     from pd_tool.fit.pipeline import FitSettings, run_fit
     from pd_tool.prepare import PrepareOptions
     from pd_tool.synthetic import POT_TOP
@@ -44,21 +44,22 @@ def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool
             raise Interrupt
 
     settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
-                           checkpoint_every=1, seed=seed, rounds=rounds)
+                           checkpoint_every=1, seed=seed, rounds=rounds, stage1_level=level)
     return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=settings, progress=progress, resume=resume)
 
 
-@pytest.mark.parametrize("rounds,stop_at", [(1, ("velocity", 2)), (1, ("material", 2)),
-                                            (2, ("velocity 2/2", 2)), (2, ("material 2/2", 1))])
-def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, stop_at) -> None:
+@pytest.mark.parametrize("rounds,stop_at,level", [(1, ("velocity", 2), False), (1, ("material", 2), False),
+                                                  (2, ("velocity 2/2", 2), False), (2, ("material 2/2", 1), False),
+                                                  (1, ("velocity", 2), True), (2, ("material 2/2", 1), True)])
+def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, stop_at, level: bool) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the promise is for a fixed thread count
     try:
-        full = _fit(inputs, tmp_path / "full.pdmat", rounds=rounds)
+        full = _fit(inputs, tmp_path / "full.pdmat", rounds=rounds, level=level)
         out = tmp_path / "cut.pdmat"
         with pytest.raises(Interrupt):
-            _fit(inputs, out, stop_at=stop_at, rounds=rounds)
+            _fit(inputs, out, stop_at=stop_at, rounds=rounds, level=level)
         ckpt = torch.load(out.with_name(out.name + ".ckpt"), weights_only=False)
         # the checkpoint of the iteration before the interruption, in the same stage and round
         stage, _, tag = stop_at[0].partition(" ")
@@ -70,12 +71,14 @@ def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, 
 
             with pytest.raises(PdToolError, match=r"cut.pdmat.ckpt: the checkpoint belongs to another fit "
                                                   r"\(settings differs\); delete it, or fit without --resume$"):
-                _fit(inputs, out, resume=True, seed=1, rounds=rounds)
-        resumed = _fit(inputs, out, resume=True, rounds=rounds)
+                _fit(inputs, out, resume=True, seed=1, rounds=rounds, level=level)
+        resumed = _fit(inputs, out, resume=True, rounds=rounds, level=level)
     finally:
         torch.set_num_threads(threads)
     assert not out.with_name(out.name + ".ckpt").exists()
     assert resumed.losses == full.losses
+    if level:  # the level moved, and the resumed fit folded the same one
+        assert all(abs(v) > 0 for v in full.losses["stage1_level"])
     assert resumed.driver_E.tobytes() == full.driver_E.tobytes(), np.abs(resumed.driver_E / full.driver_E - 1).max()
     assert resumed.driver_v0.tobytes() == full.driver_v0.tobytes()
     # every round's iterations ran once: none repeated or skipped by the resume

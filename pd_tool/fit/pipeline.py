@@ -69,6 +69,14 @@ class FitSettings:
     # a second round brought every region within 10% on five seeds, and made the new-force
     # motion worse on every seed compared (docs/benchmarks.md, fit recovery).
     rounds: int = 1
+    # Stage 1 also fits one log-E offset shared by every driver (a level, not a field). Stage
+    # 1 fits v0 under the starting E; when that E is too soft, a slower push matches the
+    # first frames (v0 7-11% slow at 100k, bench/stage1_v0.py) and stage 2 then softens the
+    # stem to match it. One number cannot take on the field's shape, unlike the whole field
+    # (1.33x against 3.49x at the quick scale, docs/benchmarks.md). Folded into the
+    # per-driver residuals when stage 1 ends.
+    stage1_level: bool = False
+    lr_level: float = 0.05  # Adam step of the level, nats of E
     # Stage 3, calibration: iterations of the exact whole-clip gradient over a few numbers
     # only, one log-E offset per stiffness cluster and one log speed gain per video (see
     # `calibrate`). 0: off.
@@ -118,6 +126,8 @@ class FitSettings:
             raise ValueError(f"calibrate_iters must be at least 0, got {out.calibrate_iters}")
         if out.calibrate_clusters < 1:
             raise ValueError(f"calibrate_clusters must be at least 1, got {out.calibrate_clusters}")
+        if out.stage1_level and not out.driver_residual:
+            raise ValueError("stage1_level folds its offset into the per-driver residuals; keep driver_residual on")
         if out.calibrate_iters and not out.driver_residual:
             raise ValueError("calibration folds its offsets into the per-driver residuals; keep driver_residual on")
         if out.velocity_iters is None:
@@ -193,6 +203,7 @@ class FitProblem:
         self.material = MaterialField(settings.material_resolution, math.log(settings.E_min), math.log(settings.E_max),
                                       math.log(settings.init_E)).to(self.device)
         self.log_e_residual = torch.nn.Parameter(torch.zeros(len(self.x_rest), device=self.device))
+        self.log_e_level = torch.nn.Parameter(torch.zeros((), device=self.device))  # stage 1's level (nats)
         from pd_tool.drivers import nearest_drivers
 
         # each driver's nearest other drivers, for the residual's smoothness term
@@ -283,11 +294,13 @@ def _clip_and_step(params, opt, sched, clip: float) -> bool:
 
 
 def velocity_iteration(pb: FitProblem) -> float:
-    """One stage-1 iteration over every video; returns the mean frame loss."""
-    E = pb.driver_E().detach()
+    """One stage-1 iteration over every video; returns the mean frame loss. E is frozen,
+    up to a shared factor exp(log_e_level) when settings.stage1_level is on."""
+    E_frozen = pb.driver_E().detach()
     total = 0.0
     n = 0
     for i, video in enumerate(pb.videos):
+        E = E_frozen * torch.exp(pb.log_e_level) if pb.s.stage1_level else E_frozen
         v0 = pb.driver_v0(i)
         sub = pb.substeps(E, v0)
         state = pb.initial_state(v0)
@@ -300,6 +313,17 @@ def velocity_iteration(pb: FitProblem) -> float:
         total += float(loss.detach()) / frames
         n += 1
     return total / max(n, 1)
+
+
+@torch.no_grad()
+def fold_level(pb: FitProblem) -> float:
+    """Move stage 1's shared log-E offset into the per-driver residuals (driver_E() is
+    unchanged by the move) and zero it: stage 2 starts from the rescaled field. Returns the
+    offset, nats."""
+    level = float(pb.log_e_level)
+    pb.set_driver_log_E(torch.log(pb.driver_E()) + pb.log_e_level)
+    pb.log_e_level.zero_()
+    return level
 
 
 def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], horizon: int | None) -> torch.Tensor:
@@ -417,7 +441,8 @@ def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None
 
 
 def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
-                     opt_v=None, sched_v=None, opt_r=None, sched_r=None, rnd: int = 0) -> None:
+                     opt_v=None, sched_v=None, opt_r=None, sched_r=None, rnd: int = 0,
+                     opt_l=None, sched_l=None) -> None:
     state = {
         "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it, "round": rnd,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
@@ -425,11 +450,14 @@ def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched
         "torch_rng": torch.get_rng_state(),
     }
     state["residual"] = pb.log_e_residual.detach().cpu().clone()
+    state["level"] = pb.log_e_level.detach().cpu().clone()
     state["problem"] = getattr(pb, "resume_key", None)
     if opt_v is not None:
         state["optimizer_v"], state["scheduler_v"] = opt_v.state_dict(), sched_v.state_dict()
     if opt_r is not None:
         state["optimizer_r"], state["scheduler_r"] = opt_r.state_dict(), sched_r.state_dict()
+    if opt_l is not None:
+        state["optimizer_l"], state["scheduler_l"] = opt_l.state_dict(), sched_l.state_dict()
     with atomic_output(path) as tmp:
         torch.save(state, tmp)
 
@@ -485,21 +513,35 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
     start = 0
     opt, sched = make_optimizer(list(pb.velocities), s.lr_velocity, max(s.velocity_iters, 1),
                                 warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
+    opt_l = sched_l = None
+    if s.stage1_level:
+        opt_l = torch.optim.Adam([pb.log_e_level], lr=s.lr_level)
+        sched_l = torch.optim.lr_scheduler.LambdaLR(opt_l, partial(
+            warmup_linear_decay, total_steps=max(s.velocity_iters, 1),
+            warmup_steps=min(s.warmup, max(s.velocity_iters, 1)), final_factor=0.0))
     if ckpt is not None:
         if ckpt["stage"] == "velocity":
             opt.load_state_dict(ckpt["optimizer"])
             sched.load_state_dict(ckpt["scheduler"])
+            if opt_l is not None and "optimizer_l" in ckpt:
+                opt_l.load_state_dict(ckpt["optimizer_l"])
+                sched_l.load_state_dict(ckpt["scheduler_l"])
             start = ckpt["iteration"]
         else:
             start = s.velocity_iters
     for it in range(start, s.velocity_iters):
         loss = velocity_iteration(pb)
         _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
+        if opt_l is not None:
+            _clip_and_step([pb.log_e_level], opt_l, sched_l, math.inf)
         losses["velocity"].append(loss)
         if progress:
             progress("velocity" + tag, it + 1, s.velocity_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
-            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses, rnd=rnd)
+            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses, rnd=rnd,
+                             opt_l=opt_l, sched_l=sched_l)
+    if s.stage1_level and (ckpt is None or ckpt["stage"] == "velocity"):
+        losses.setdefault("stage1_level", []).append(fold_level(pb))
     seconds["velocity"] = seconds.get("velocity", 0.0) + time.perf_counter() - t0
 
     # ---- stage 2: material (v0 frozen, or refined at a lower rate)
@@ -582,9 +624,11 @@ def run_fit(
         pb.velocities.load_state_dict(ckpt["velocities"])
         losses = ckpt["losses"]
         torch.set_rng_state(ckpt["torch_rng"])
-        if "residual" in ckpt:
-            with torch.no_grad():
+        with torch.no_grad():
+            if "residual" in ckpt:
                 pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
+            if "level" in ckpt:
+                pb.log_e_level.copy_(ckpt["level"].to(pb.device))
 
     skipped = 0
     resume_round = int(ckpt.get("round", 0)) if ckpt is not None else 0
@@ -630,6 +674,7 @@ def run_fit(
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
             "skipped_material_steps": skipped,
+            "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
             "calibration": None if calibration is None else {
                 k: calibration[k] for k in ("offsets", "gains", "cluster_sizes") if k in calibration},
         },
