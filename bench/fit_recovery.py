@@ -199,7 +199,7 @@ def main() -> None:
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare import PrepareOptions
     from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_truth_E, make_plant
+    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_regions, driver_truth_E, make_plant
 
     init_warp_quietly()
     if args.device == "cpu":
@@ -289,6 +289,21 @@ def main() -> None:
     }
     out["new_force"]["baseline_over_fitted"] = out["new_force"]["rms_error_uniform_baseline"] / max(
         out["new_force"]["rms_error_fitted"], 1e-12)
+    # Where the remaining error lives: the fitted E with one region set to the truth, and
+    # the fitted E flattened to its median per region (within-region variation removed).
+    d_regions = driver_regions(scene, prep, drivers)
+    swaps = {}
+    flat = res.driver_E.copy()
+    for i, name in enumerate(REGIONS):
+        sel = d_regions == i
+        if name == "pot" or not sel.any():
+            continue
+        one = res.driver_E.copy()
+        one[sel] = truth_E[sel]
+        swaps[f"{name}_true"] = rms(simulate_positions(scene, prep, drivers, one, **sim))
+        flat[sel] = np.median(res.driver_E[sel])
+    swaps["region_medians"] = rms(simulate_positions(scene, prep, drivers, flat, **sim))
+    out["new_force"]["rms_error_with"] = swaps
     if res.driver_E_uncalibrated is not None:
         # the same fit before its calibration stage: a paired comparison
         gl = drivers.labels.cpu().numpy()[: prep.count]

@@ -33,6 +33,8 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
             assert r["fitted_pa"] > 0 and r["log_space_rel_error"] >= 0
         nf = rep["new_force"]
         assert nf["rms_error_fitted"] >= 0 and nf["rms_error_uniform_baseline"] > 0
+        assert set(nf["rms_error_with"]) == {"stem_true", "leaf_true", "flower_true", "region_medians"}
+        assert all(v >= 0 for v in nf["rms_error_with"].values())
     assert oracle["oracle_v0"] and not fitted["oracle_v0"]
     assert fitted["substeps"] is None and oracle["substeps"] == 60
     assert oracle["v0_rel_error"] < 1e-5
