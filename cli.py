@@ -522,7 +522,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
                    "that the one-frame horizon stops short of. A lower loss moved the recovery benchmark "
                    "better with one video and worse with two; see docs/fitting.md.")
-@click.option("--level/--no-level", "level", default=False, show_default=True,  # = FitSettings.stage1_level
+@click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
                    "new force it moved the recovery benchmark closer on every seed measured; see "
@@ -530,7 +530,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
-              help="Starting Young's modulus, Pa (uniform).")
+              help="Starting Young's modulus, Pa (uniform); stage 1 rescales it unless --no-level.")
 @click.option("--nu", type=click.FloatRange(0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
 @click.option("--density", type=click.FloatRange(min=0, min_open=True), default=1000.0, show_default=True,
               help="Density, kg/m^3.")

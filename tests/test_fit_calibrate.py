@@ -128,3 +128,11 @@ def test_stage1_level_folds_into_the_residuals_exactly(tmp_path) -> None:
     assert torch.allclose(torch.log(E1), torch.log(E0) + 0.7, atol=1e-4)
     with pytest.raises(ValueError, match="residual"):
         FitSettings(quality="draft", stage1_level=True, driver_residual=False).resolved()
+
+
+def test_cli_level_default_is_the_settings_default() -> None:
+    from cli import main
+    from pd_tool.fit.pipeline import FitSettings
+
+    level = next(p for p in main.commands["fit"].params if p.name == "level")
+    assert level.default is FitSettings().stage1_level is True
