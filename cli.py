@@ -525,7 +525,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
-                   "new force it moved the recovery benchmark closer on every seed measured; see "
+                   "new force it moved the recovery benchmark closer on eight of nine seeds; see "
                    "docs/benchmarks.md.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")

@@ -75,7 +75,7 @@ class FitSettings:
     # and stage 2 then softens the stem to match it. One number cannot take on the field's
     # shape, unlike the whole field (1.33x against 3.49x at the quick scale). Folded into the
     # per-driver residuals when stage 1 ends. The recovery benchmark's new-force error improved
-    # on every seed compared (100k: 5.31x against 4.36x over six; docs/benchmarks.md).
+    # on eight of nine seeds at 100k (5.11x against 4.46x on average; docs/benchmarks.md).
     stage1_level: bool = True
     lr_level: float = 0.05  # Adam step of the level, nats of E
     # Stage 3, calibration: iterations of the exact whole-clip gradient over a few numbers
