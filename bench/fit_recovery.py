@@ -23,8 +23,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety, substeps=None):
-    """Gaussian positions [T, N, 3] (scene units) under a drag at the top for 0.5 s."""
+def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety, substeps=None,
+                       stats: dict | None = None):
+    """Gaussian positions [T, N, 3] (scene units) under a drag at the top for 0.5 s.
+    stats, when given, receives the most substeps per frame the run took."""
     import numpy as np
     import torch
 
@@ -43,10 +45,13 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.vector_to_sim(np.asarray(accel)), 0.0, 0.5)
     anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
     out = [scene.positions.detach().cpu().numpy()]
+    most = 0
     for _ in range(int(round(seconds * fps))):
-        solver.step_frame(1.0 / fps)
+        most = max(most, solver.step_frame(1.0 / fps))
         with torch.no_grad():
             out.append(anim(solver.positions())[0].cpu().numpy())
+    if stats is not None:
+        stats["substeps"] = most
     return np.stack(out)
 
 
@@ -267,8 +272,9 @@ def main() -> None:
     # fixed substeps are per frame of the video; the new-force runs step at 30 fps
     sim = dict(nu=s.nu, seconds=args.seconds, fps=30.0, accel=(0.0, 6.0, 0.0), device=args.device,
                cfl_safety=cfl, substeps=None if substeps is None else max(1, round(substeps * args.fps / 30.0)))
-    x_true = simulate_positions(scene, prep, drivers, truth_E, **sim)
-    x_fit = simulate_positions(scene, prep, drivers, res.driver_E, **sim)
+    n_true, n_fit = {}, {}
+    x_true = simulate_positions(scene, prep, drivers, truth_E, **sim, stats=n_true)
+    x_fit = simulate_positions(scene, prep, drivers, res.driver_E, **sim, stats=n_fit)
     x_base = simulate_positions(scene, prep, drivers, np.full(len(truth_E), s.init_E), **sim)
     fg = prep.foreground
     size = float(np.ptp(x_true[0][fg], axis=0).max())
@@ -303,7 +309,12 @@ def main() -> None:
         swaps[f"{name}_true"] = rms(simulate_positions(scene, prep, drivers, one, **sim))
         flat[sel] = np.median(res.driver_E[sel])
     swaps["region_medians"] = rms(simulate_positions(scene, prep, drivers, flat, **sim))
+    # the truth itself, stepped with as many substeps as the fitted E needed: the part of the
+    # fitted error that is MPM's substep-dependent damping, not the field
+    swaps["truth_at_fitted_substeps"] = rms(simulate_positions(
+        scene, prep, drivers, truth_E, **{**sim, "substeps": max(n_fit["substeps"], sim["substeps"] or 0)}))
     out["new_force"]["rms_error_with"] = swaps
+    out["new_force"]["substeps"] = {"truth": n_true["substeps"], "fitted": n_fit["substeps"]}
     if res.driver_E_uncalibrated is not None:
         # the same fit before its calibration stage: a paired comparison
         gl = drivers.labels.cpu().numpy()[: prep.count]

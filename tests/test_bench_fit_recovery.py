@@ -33,8 +33,14 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
             assert r["fitted_pa"] > 0 and r["log_space_rel_error"] >= 0
         nf = rep["new_force"]
         assert nf["rms_error_fitted"] >= 0 and nf["rms_error_uniform_baseline"] > 0
-        assert set(nf["rms_error_with"]) == {"stem_true", "leaf_true", "flower_true", "region_medians"}
+        assert set(nf["rms_error_with"]) == {"stem_true", "leaf_true", "flower_true", "region_medians",
+                                             "truth_at_fitted_substeps"}
         assert all(v >= 0 for v in nf["rms_error_with"].values())
+        assert nf["substeps"]["truth"] >= 1 and nf["substeps"]["fitted"] >= 1
+        if nf["substeps"]["fitted"] <= nf["substeps"]["truth"]:  # the floor changes nothing: the truth's own run
+            assert nf["rms_error_with"]["truth_at_fitted_substeps"] < 1e-6
+        else:
+            assert nf["rms_error_with"]["truth_at_fitted_substeps"] > 0
     assert oracle["oracle_v0"] and not fitted["oracle_v0"]
     assert fitted["substeps"] is None and oracle["substeps"] == 60
     assert oracle["v0_rel_error"] < 1e-5
