@@ -499,27 +499,37 @@ def _check_resume_key(path: Path, ckpt: dict, key: dict) -> None:
                               f"delete it, or fit without --resume")
 
 
-def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt_path: Path,
-               losses: dict[str, list[float]], seconds: dict[str, float], progress: ProgressFn | None) -> int:
-    """One round: stage 1 (v0 per video, E frozen at its current value), then stage 2 (E,
-    v0 frozen or refined). `ckpt`: a checkpoint of this round to continue from. Adds the
-    stages' losses and seconds; returns the stage-2 steps skipped for a non-finite gradient."""
+def _adam_with_schedule(param: torch.Tensor, lr: float, iters: int, warmup: int):
+    """Adam over one tensor with the stages' schedule: linear warm-up, then linear decay
+    to zero over `iters` steps."""
     from functools import partial
 
-    from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
+    from pd_tool.fit.schedule import warmup_linear_decay
+
+    opt = torch.optim.Adam([param], lr=lr)
+    total = max(iters, 1)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, partial(
+        warmup_linear_decay, total_steps=total, warmup_steps=min(warmup, total), final_factor=0.0))
+    return opt, sched
+
+
+def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt_path: Path,
+               losses: dict[str, list[float]], seconds: dict[str, float], progress: ProgressFn | None) -> int:
+    """One round: stage 1 (v0 per video, E frozen at its current value up to the level of
+    stage1_level), then stage 2 (E, v0 frozen or refined). `ckpt`: a checkpoint of this
+    round to continue from. Adds the stages' losses and seconds; returns the stage-2 steps
+    skipped for a non-finite gradient."""
+    from pd_tool.fit.schedule import make_optimizer
 
     tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
-    # ---- stage 1: initial velocity per video, E frozen
+    # ---- stage 1: initial velocity per video, E's field frozen (its level fitted with stage1_level)
     t0 = time.perf_counter()
     start = 0
     opt, sched = make_optimizer(list(pb.velocities), s.lr_velocity, max(s.velocity_iters, 1),
                                 warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
     opt_l = sched_l = None
     if s.stage1_level:
-        opt_l = torch.optim.Adam([pb.log_e_level], lr=s.lr_level)
-        sched_l = torch.optim.lr_scheduler.LambdaLR(opt_l, partial(
-            warmup_linear_decay, total_steps=max(s.velocity_iters, 1),
-            warmup_steps=min(s.warmup, max(s.velocity_iters, 1)), final_factor=0.0))
+        opt_l, sched_l = _adam_with_schedule(pb.log_e_level, s.lr_level, s.velocity_iters, s.warmup)
     if ckpt is not None:
         if ckpt["stage"] == "velocity":
             opt.load_state_dict(ckpt["optimizer"])
@@ -553,10 +563,7 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
                                 warmup_steps=min(s.warmup, max(s.material_iters, 1)))
     opt_r = sched_r = None
     if s.driver_residual:
-        opt_r = torch.optim.Adam([pb.log_e_residual], lr=s.lr_residual)
-        sched_r = torch.optim.lr_scheduler.LambdaLR(opt_r, partial(
-            warmup_linear_decay, total_steps=max(s.material_iters, 1),
-            warmup_steps=min(s.warmup, max(s.material_iters, 1)), final_factor=0.0))
+        opt_r, sched_r = _adam_with_schedule(pb.log_e_residual, s.lr_residual, s.material_iters, s.warmup)
     opt_v = sched_v = None
     if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
         opt_v, sched_v = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor,
