@@ -34,7 +34,9 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
         nf = rep["new_force"]
         assert nf["rms_error_fitted"] >= 0 and nf["rms_error_uniform_baseline"] > 0
         assert set(nf["rms_error_with"]) == {"stem_true", "leaf_true", "flower_true", "region_medians",
-                                             "truth_at_fitted_substeps"}
+                                             "truth_at_fitted_substeps", "capped_q99", "capped_q95"}
+        # a cap never raises E, so never the substep count
+        assert nf["substeps"]["capped_q95"] <= nf["substeps"]["capped_q99"] <= nf["substeps"]["fitted"]
         assert all(v >= 0 for v in nf["rms_error_with"].values())
         assert nf["substeps"]["truth"] >= 1 and nf["substeps"]["fitted"] >= 1
         if nf["substeps"]["fitted"] <= nf["substeps"]["truth"]:  # the floor changes nothing: the truth's own run
