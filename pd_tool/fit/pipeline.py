@@ -1,8 +1,10 @@
 """The fit: estimate E(x) (and v0(x) per video) so that simulation + rendering match the
 reference videos. PhysDreamer's two stages:
 
-1. velocity: E frozen at its initial value; optimise each video's v0 field on the first
-   `stage1_frames` frames with full back-propagation through the simulation;
+1. velocity: E's field frozen at its initial value; optimise each video's v0 field on the
+   first `stage1_frames` frames with full back-propagation through the simulation, and
+   (`stage1_level`, on by default; the paper has it off) one log-E offset shared by every
+   driver, folded into E when the stage ends;
 2. material: v0 frozen; optimise the shared E field over all frames, each frame simulated
    from the detached state of the previous one (a one-frame gradient horizon).
 
