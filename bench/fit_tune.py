@@ -1,6 +1,6 @@
 """Recovery of the plant's per-region E for several fit settings (a tuning sweep).
 
-    python bench/fit_tune.py --device cuda --configs '[{"lr_residual": 0.05}, {"driver_residual": false}]'
+    python bench/fit_tune.py --device cuda --configs '[{"lr_residual": 0.05}, {"driver_residual": false, "stage1_level": false}]'
 Each config is a dict of FitSettings overrides; prints and writes recovered median E per
 region, the loss curve and the time.
 """

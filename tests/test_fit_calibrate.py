@@ -65,8 +65,8 @@ def test_calibration_lowers_the_whole_clip_loss_and_folds_exactly(tmp_path) -> N
 def test_calibration_needs_the_residuals() -> None:
     from pd_tool.fit.pipeline import FitSettings
 
-    with pytest.raises(ValueError, match="residual"):
-        FitSettings(quality="draft", calibrate_iters=3, driver_residual=False).resolved()
+    with pytest.raises(ValueError, match="calibration folds its offsets into the per-driver residuals"):
+        FitSettings(quality="draft", calibrate_iters=3, driver_residual=False, stage1_level=False).resolved()
     with pytest.raises(ValueError, match="calibrate_clusters"):
         FitSettings(quality="draft", calibrate_clusters=0).resolved()
 
@@ -126,7 +126,7 @@ def test_stage1_level_folds_into_the_residuals_exactly(tmp_path) -> None:
         E1 = pb.driver_E()
     assert float(pb.log_e_level.detach()) == 0.0
     assert torch.allclose(torch.log(E1), torch.log(E0) + 0.7, atol=1e-4)
-    with pytest.raises(ValueError, match="residual"):
+    with pytest.raises(ValueError, match="stage1_level folds its offset into the per-driver residuals"):
         FitSettings(quality="draft", stage1_level=True, driver_residual=False).resolved()
 
 
