@@ -315,7 +315,7 @@ def main() -> None:
         scene, prep, drivers, truth_E, **{**sim, "substeps": max(n_fit["substeps"], sim["substeps"] or 0)}))
     # the fitted E with its stiffest moving drivers capped at a quantile: fewer substeps, so
     # less damping, at the price of a field the fit did not choose
-    moving_E = res.driver_E[~drivers.static.cpu().numpy().astype(bool)]
+    moving_E = res.driver_E[free]
     for q in (0.99, 0.95):
         capped = np.minimum(res.driver_E, np.quantile(moving_E, q))
         n_cap = {}

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from pd_tool.fit.fields import MaterialField, VelocityField
-from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
+from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer, warmup_linear_decay
 
 
 def test_schedule_values():
@@ -79,3 +79,18 @@ def test_weight_decay_only_on_linear_weights():
     f.requires_grad_(False)
     with pytest.raises(ValueError, match="no trainable"):
         make_optimizer(f, 1e-3, 10)
+
+
+def test_tensor_optimizer_is_plain_adam_on_the_same_schedule():
+    t = torch.nn.Parameter(torch.zeros(4))
+    opt, sched = make_tensor_optimizer(t, 0.2, 10, warmup_steps=3)
+    assert type(opt) is torch.optim.Adam and opt.param_groups[0]["weight_decay"] == 0
+    for step in range(12):
+        assert opt.param_groups[0]["lr"] == pytest.approx(0.2 * warmup_linear_decay(step, 10, 3))
+        t.grad = torch.ones(4)
+        opt.step()
+        sched.step()
+    with pytest.raises(ValueError, match="learning rate"):
+        make_tensor_optimizer(t, 0.0, 10)
+    with pytest.raises(ValueError, match="warmup_steps"):
+        make_tensor_optimizer(t, 0.1, 2, warmup_steps=3)

@@ -303,6 +303,7 @@ def velocity_iteration(pb: FitProblem) -> float:
     total = 0.0
     n = 0
     for i, video in enumerate(pb.videos):
+        # scaled per video: each video's backward frees the graph it was built in
         E = E_frozen * torch.exp(pb.log_e_level) if pb.s.stage1_level else E_frozen
         v0 = pb.driver_v0(i)
         sub = pb.substeps(E, v0)
@@ -501,27 +502,13 @@ def _check_resume_key(path: Path, ckpt: dict, key: dict) -> None:
                               f"delete it, or fit without --resume")
 
 
-def _adam_with_schedule(param: torch.Tensor, lr: float, iters: int, warmup: int):
-    """Adam over one tensor with the stages' schedule: linear warm-up, then linear decay
-    to zero over `iters` steps."""
-    from functools import partial
-
-    from pd_tool.fit.schedule import warmup_linear_decay
-
-    opt = torch.optim.Adam([param], lr=lr)
-    total = max(iters, 1)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, partial(
-        warmup_linear_decay, total_steps=total, warmup_steps=min(warmup, total), final_factor=0.0))
-    return opt, sched
-
-
 def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt_path: Path,
                losses: dict[str, list[float]], seconds: dict[str, float], progress: ProgressFn | None) -> int:
     """One round: stage 1 (v0 per video, E frozen at its current value up to the level of
     stage1_level), then stage 2 (E, v0 frozen or refined). `ckpt`: a checkpoint of this
     round to continue from. Adds the stages' losses and seconds; returns the stage-2 steps
     skipped for a non-finite gradient."""
-    from pd_tool.fit.schedule import make_optimizer
+    from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer
 
     tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
     # ---- stage 1: initial velocity per video, E's field frozen (its level fitted with stage1_level)
@@ -531,7 +518,8 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
                                 warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
     opt_l = sched_l = None
     if s.stage1_level:
-        opt_l, sched_l = _adam_with_schedule(pb.log_e_level, s.lr_level, s.velocity_iters, s.warmup)
+        opt_l, sched_l = make_tensor_optimizer(pb.log_e_level, s.lr_level, max(s.velocity_iters, 1),
+                                               warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
     if ckpt is not None:
         if ckpt["stage"] == "velocity":
             opt.load_state_dict(ckpt["optimizer"])
@@ -565,7 +553,8 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
                                 warmup_steps=min(s.warmup, max(s.material_iters, 1)))
     opt_r = sched_r = None
     if s.driver_residual:
-        opt_r, sched_r = _adam_with_schedule(pb.log_e_residual, s.lr_residual, s.material_iters, s.warmup)
+        opt_r, sched_r = make_tensor_optimizer(pb.log_e_residual, s.lr_residual, max(s.material_iters, 1),
+                                               warmup_steps=min(s.warmup, max(s.material_iters, 1)))
     opt_v = sched_v = None
     if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
         opt_v, sched_v = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor,

@@ -1,4 +1,5 @@
-"""Learning-rate schedule (linear warm-up, then linear decay) and the AdamW set-up for fields.
+"""Learning-rate schedule (linear warm-up, then linear decay) and the AdamW set-up for fields
+(and plain Adam for a single tensor).
 
 The authors' stage 2 used AdamW at lr 1e-3 with warm-up and linear decay and a gradient
 clip of 1.0 (method.md). `make_optimizer` builds that for any set of fields; the returned
@@ -88,7 +89,23 @@ def make_optimizer(
     if not any(g["params"] for g in groups):
         raise ValueError("no trainable parameters in the given modules")
     opt = torch.optim.AdamW(groups, lr=lr, betas=betas)
-    sched = torch.optim.lr_scheduler.LambdaLR(
+    return opt, _scheduler(opt, total_steps, warmup_steps, final_factor)
+
+
+def make_tensor_optimizer(
+    param: torch.Tensor, lr: float, total_steps: int, *, warmup_steps: int = 0, final_factor: float = 0.0,
+) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam (no decay) over one tensor, e.g. the fit's per-driver log-E residuals or its
+    stage-1 level, with make_optimizer's schedule. Arguments as make_optimizer's."""
+    if not lr > 0:
+        raise ValueError(f"learning rate must be > 0, got {lr}")
+    warmup_linear_decay(0, total_steps, warmup_steps, final_factor)  # validate early
+    opt = torch.optim.Adam([param], lr=lr)
+    return opt, _scheduler(opt, total_steps, warmup_steps, final_factor)
+
+
+def _scheduler(opt: torch.optim.Optimizer, total_steps: int, warmup_steps: int,
+               final_factor: float) -> torch.optim.lr_scheduler.LambdaLR:
+    return torch.optim.lr_scheduler.LambdaLR(
         opt, partial(warmup_linear_decay, total_steps=total_steps, warmup_steps=warmup_steps,
                      final_factor=final_factor))
-    return opt, sched
