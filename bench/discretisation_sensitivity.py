@@ -127,6 +127,11 @@ def substep_part(args, scene) -> dict:
     cases = {
         f"substeps x0.85 ({int(round(0.85 * n))})": (E, int(round(0.85 * n))),
         f"substeps x2 ({2 * n})": (E, 2 * n),
+        # were the difference time-stepping error, finer steps would converge (x4, x8 would
+        # differ from the CFL run little more than x2 does); MPM's transfer damping keeps
+        # adding with every doubling instead
+        f"substeps x4 ({4 * n})": (E, 4 * n),
+        f"substeps x8 ({8 * n})": (E, 8 * n),
         "stem E x0.67": (np.where(reg == stem, 0.67 * E, E), n),
         # the stem is the stiffest moving region, so under CFL its E also sets the substeps
         "stem E x0.67, CFL substeps": (np.where(reg == stem, 0.67 * E, E), None),

@@ -82,6 +82,48 @@ def use_true_v0(views: int) -> None:
     FitProblem.driver_v0 = true_v0
 
 
+def record_residual_gradients() -> dict:
+    """Make every fit in this process record, each stage-2 iteration, the per-driver
+    gradient of the video loss with respect to the log-E residuals (the regulariser's
+    part left out). Returns the dict it fills: "data" -> list of [Q] arrays."""
+    import pd_tool.fit.pipeline as pipeline
+
+    rec = {"data": []}
+
+    def material_iteration(pb, v0s, horizon):
+        E = pb.driver_E()
+        if v0s is None:
+            v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
+        loss = pipeline.sequence_loss(pb, E, v0s, horizon)
+        before = None if pb.log_e_residual.grad is None else pb.log_e_residual.grad.clone()
+        loss.backward()
+        g = pb.log_e_residual.grad.detach().clone()
+        rec["data"].append((g if before is None else g - before).cpu().numpy())
+        reg = pb.s.tv_weight * pb.material.tv() + pb.residual_penalty()
+        reg.backward()
+        return float(loss.detach())
+
+    pipeline.material_iteration = material_iteration
+    return rec
+
+
+def gradient_summary(grads: list, regions, moving, names) -> dict:
+    """Per region (moving drivers): quantiles (10/50/90%) of each driver's RMS residual
+    gradient over stage 2, and the mean |mean sign| of its gradient (1: always one way)."""
+    import numpy as np
+
+    g = np.stack(grads)  # [iterations, Q]
+    rms = np.sqrt((g ** 2).mean(0))
+    sign = np.abs(np.sign(g).mean(0))
+    out = {"iterations": int(len(g))}
+    for i, name in enumerate(names):
+        sel = (regions == i) & moving
+        if sel.any():
+            out[name] = {"rms_q10_q50_q90": np.quantile(rms[sel], [0.1, 0.5, 0.9]).tolist(),
+                         "sign_consistency": float(sign[sel].mean())}
+    return out
+
+
 def true_pushes(pb, views: int) -> list:
     """Every view's true initial velocity at a FitProblem's drivers: [Q, 3] m/s tensors."""
     import torch
@@ -192,6 +234,14 @@ def main() -> None:
                          "'truth': the CFL count of the reference under the true E. Default: each simulation "
                          "picks its own by CFL, as pdtool does")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--save-drivers", type=Path, metavar="NPZ",
+                    help="also write each driver's rest position (simulation axes, m), region, static flag, "
+                         "true and fitted E (Pa) and first video's fitted v0 (m/s), for offline study")
+    ap.add_argument("--no-variants", action="store_true",
+                    help="skip the new-force runs of the fitted field's variants (rms_error_with): faster")
+    ap.add_argument("--residual-gradients", action="store_true",
+                    help="diagnostic: report each region's per-driver stage-2 residual gradients "
+                         "(JSON residual_gradients), to compare with Adam's eps (--set residual_eps=...)")
     args = ap.parse_args()
     if args.quick:
         args.gaussians, args.size, args.quality = 3000, 192, "draft"
@@ -214,6 +264,7 @@ def main() -> None:
     for item in args.set:
         key, _, text = item.partition("=")
         overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
+    grads = record_residual_gradients() if args.residual_gradients else None
     if args.oracle_v0:
         use_true_v0(views=args.views)
         args.velocity_iters = 0
@@ -254,6 +305,11 @@ def main() -> None:
         return regions
 
     regions = region_errors(res.gaussian_E)
+    if args.save_drivers:
+        np.savez_compressed(args.save_drivers, position=drivers.positions.cpu().numpy(),
+                            region=driver_regions(scene, prep, drivers), static=drivers.static.cpu().numpy(),
+                            truth_E=truth_E, fitted_E=res.driver_E, fitted_v0=res.driver_v0,
+                            region_names=np.array(REGIONS))
     # the first video's fitted v0 against its true push, over the moving drivers
     free = ~drivers.static.cpu().numpy().astype(bool)
     v_true = true_push(drivers.positions.double().cpu().numpy(), ~free, 0)[free]
@@ -295,34 +351,41 @@ def main() -> None:
     }
     out["new_force"]["baseline_over_fitted"] = out["new_force"]["rms_error_uniform_baseline"] / max(
         out["new_force"]["rms_error_fitted"], 1e-12)
-    # Where the remaining error lives: the fitted E with one region set to the truth, and
-    # the fitted E flattened to its median per region (within-region variation removed).
-    d_regions = driver_regions(scene, prep, drivers)
-    swaps = {}
-    flat = res.driver_E.copy()
-    for i, name in enumerate(REGIONS):
-        sel = d_regions == i
-        if name == "pot" or not sel.any():
-            continue
-        one = res.driver_E.copy()
-        one[sel] = truth_E[sel]
-        swaps[f"{name}_true"] = rms(simulate_positions(scene, prep, drivers, one, **sim))
-        flat[sel] = np.median(res.driver_E[sel])
-    swaps["region_medians"] = rms(simulate_positions(scene, prep, drivers, flat, **sim))
-    # the truth itself, stepped with as many substeps as the fitted E needed: the part of the
-    # fitted error that is MPM's substep-dependent damping, not the field
-    swaps["truth_at_fitted_substeps"] = rms(simulate_positions(
-        scene, prep, drivers, truth_E, **{**sim, "substeps": max(n_fit["substeps"], sim["substeps"] or 0)}))
-    # the fitted E with its stiffest moving drivers capped at a quantile: fewer substeps, so
-    # less damping, at the price of a field the fit did not choose
-    moving_E = res.driver_E[free]
-    for q in (0.99, 0.95):
-        capped = np.minimum(res.driver_E, np.quantile(moving_E, q))
-        n_cap = {}
-        swaps[f"capped_q{round(q * 100)}"] = rms(simulate_positions(scene, prep, drivers, capped, **sim, stats=n_cap))
-        n_fit[f"capped_q{round(q * 100)}"] = n_cap["substeps"]
-    out["new_force"]["rms_error_with"] = swaps
-    out["new_force"]["substeps"] = {"truth": n_true["substeps"], "fitted": n_fit.pop("substeps"), **n_fit}
+    if grads is not None:
+        out["residual_gradients"] = gradient_summary(grads["data"], driver_regions(scene, prep, drivers), free,
+                                                     REGIONS)
+    out["new_force"]["substeps"] = {"truth": n_true["substeps"], "fitted": n_fit.pop("substeps")}
+    if not args.no_variants:
+        # Where the remaining error lives: the fitted E with one region set to the truth, and
+        # the fitted E flattened to its median per region (within-region variation removed).
+        d_regions = driver_regions(scene, prep, drivers)
+        swaps = {}
+        flat = res.driver_E.copy()
+        for i, name in enumerate(REGIONS):
+            sel = d_regions == i
+            if name == "pot" or not sel.any():
+                continue
+            one = res.driver_E.copy()
+            one[sel] = truth_E[sel]
+            swaps[f"{name}_true"] = rms(simulate_positions(scene, prep, drivers, one, **sim))
+            flat[sel] = np.median(res.driver_E[sel])
+        swaps["region_medians"] = rms(simulate_positions(scene, prep, drivers, flat, **sim))
+        # the truth itself, stepped with as many substeps as the fitted E needed: the part of the
+        # fitted error that is MPM's substep-dependent damping, not the field
+        n_truth_run = max(out["new_force"]["substeps"]["fitted"], sim["substeps"] or 0)
+        swaps["truth_at_fitted_substeps"] = rms(simulate_positions(scene, prep, drivers, truth_E,
+                                                                   **{**sim, "substeps": n_truth_run}))
+        # the fitted E with its stiffest moving drivers capped at a quantile: fewer substeps, so
+        # less damping, at the price of a field the fit did not choose
+        moving_E = res.driver_E[free]
+        for q in (0.99, 0.95):
+            capped = np.minimum(res.driver_E, np.quantile(moving_E, q))
+            n_cap = {}
+            swaps[f"capped_q{round(q * 100)}"] = rms(simulate_positions(scene, prep, drivers, capped, **sim,
+                                                                        stats=n_cap))
+            n_fit[f"capped_q{round(q * 100)}"] = n_cap["substeps"]
+        out["new_force"]["rms_error_with"] = swaps
+        out["new_force"]["substeps"].update(n_fit)
     if res.driver_E_uncalibrated is not None:
         # the same fit before its calibration stage: a paired comparison
         gl = drivers.labels.cpu().numpy()[: prep.count]

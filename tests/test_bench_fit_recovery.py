@@ -57,3 +57,31 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
     assert o["E_fitted/v0_fitted"] == o["E_fitted/v0_truth"] and o["E_truth/v0_fitted"] == o["E_truth/v0_truth"]
     f = fitted["objective"]
     assert f["E_truth/v0_truth"] < f["E_truth/v0_fitted"]  # a v0 far off costs loss at the true E
+
+
+@pytest.mark.slow
+def test_fit_recovery_lean_run_saves_drivers_and_gradients(tmp_path: Path) -> None:
+    import numpy as np
+
+    from pd_tool.synthetic import REGION_TRUTH_E
+
+    npz = tmp_path / "drivers.npz"
+    rep = _run(tmp_path, "--material-iters", "2", "--no-variants", "--residual-gradients", "--save-drivers", str(npz),
+               "--set", "residual_eps=1e-16")
+    assert rep["overrides"] == {"residual_eps": 1e-16}
+    nf = rep["new_force"]
+    assert "rms_error_with" not in nf and set(nf["substeps"]) == {"truth", "fitted"}
+    g = rep["residual_gradients"]
+    assert g["iterations"] == 2  # one record per stage-2 iteration
+    assert {"stem", "leaf", "flower"} <= set(g)
+    for name in ("stem", "leaf", "flower"):
+        q = g[name]["rms_q10_q50_q90"]
+        assert 0 <= q[0] <= q[1] <= q[2] and 0 <= g[name]["sign_consistency"] <= 1
+    assert g["stem"]["rms_q10_q50_q90"][1] > 0  # the stem's E moves the image
+    d = np.load(npz)
+    q = rep["drivers"]
+    assert d["position"].shape == (q, 3) and d["fitted_v0"].shape == (q, 3)
+    assert len(d["fitted_E"]) == len(d["truth_E"]) == len(d["region"]) == len(d["static"]) == q
+    assert np.all(d["fitted_E"] > 0)
+    names = list(d["region_names"])
+    assert np.array_equal(d["truth_E"], np.array([REGION_TRUTH_E[names[r]] for r in d["region"]]))

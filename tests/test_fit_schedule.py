@@ -94,3 +94,25 @@ def test_tensor_optimizer_is_plain_adam_on_the_same_schedule():
         make_tensor_optimizer(t, 0.0, 10)
     with pytest.raises(ValueError, match="warmup_steps"):
         make_tensor_optimizer(t, 0.1, 2, warmup_steps=3)
+
+
+def test_tensor_optimizer_eps_sets_the_gradient_scale_of_a_full_step():
+    # Adam's first step is lr * g / (|g| + eps): a gradient far below eps barely moves,
+    # one far above it takes the whole step
+    for eps, g, step in ((1e-8, 1e-9, 0.1 / 11), (1e-16, 1e-9, 0.1), (1e-8, 1e-3, 0.1)):
+        t = torch.nn.Parameter(torch.zeros(1))
+        opt, _ = make_tensor_optimizer(t, 0.1, 10, eps=eps)
+        t.grad = torch.full((1,), g)
+        opt.step()
+        assert -float(t) == pytest.approx(step, rel=1e-4)
+    with pytest.raises(ValueError, match="eps"):
+        make_tensor_optimizer(t, 0.1, 10, eps=0.0)
+
+
+def test_fit_settings_refuse_a_residual_eps_that_is_not_positive():
+    from pd_tool.fit.pipeline import FitSettings
+
+    for eps in (0.0, -1e-8):
+        with pytest.raises(ValueError, match="residual_eps"):
+            FitSettings(quality="draft", residual_eps=eps).resolved()
+    assert FitSettings(quality="draft", residual_eps=1e-16).resolved().residual_eps == 1e-16
