@@ -85,12 +85,18 @@ def use_true_v0(views: int) -> None:
 def record_residual_gradients() -> dict:
     """Make every fit in this process record, each stage-2 iteration, the per-driver
     gradient of the video loss with respect to the log-E residuals (the regulariser's
-    part left out). Returns the dict it fills: "data" -> list of [Q] arrays."""
+    part left out). Returns the dict it fills: "data" -> list of [Q] arrays.
+
+    It replaces pipeline.material_iteration with the same step whose backward runs in two
+    passes, the loss's then the regulariser's, so that the first can be read on its own
+    (gradients add, so the optimiser sees the same sum)."""
     import pd_tool.fit.pipeline as pipeline
 
     rec = {"data": []}
 
     def material_iteration(pb, v0s, horizon):
+        if not pb.s.driver_residual:
+            raise SystemExit("--residual-gradients needs the per-driver residuals (driver_residual=true)")
         E = pb.driver_E()
         if v0s is None:
             v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
