@@ -87,29 +87,29 @@ def record_residual_gradients() -> dict:
     gradient of the video loss with respect to the log-E residuals (the regulariser's
     part left out). Returns the dict it fills: "data" -> list of [Q] arrays.
 
-    It replaces pipeline.material_iteration with the same step whose backward runs in two
-    passes, the loss's then the regulariser's, so that the first can be read on its own
-    (gradients add, so the optimiser sees the same sum)."""
-    import pd_tool.fit.pipeline as pipeline
+    The fit's own step runs unchanged: FitProblem.residual_penalty, called once per stage-2
+    step, also takes its own gradient and hooks the residuals, whose hook then sees the
+    step's whole gradient and keeps it less the penalty's."""
+    import torch
+
+    from pd_tool.fit.pipeline import FitProblem
 
     rec = {"data": []}
+    penalty = FitProblem.residual_penalty
 
-    def material_iteration(pb, v0s, horizon):
-        if not pb.s.driver_residual:
-            raise SystemExit("--residual-gradients needs the per-driver residuals (driver_residual=true)")
-        E = pb.driver_E()
-        if v0s is None:
-            v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
-        loss = pipeline.sequence_loss(pb, E, v0s, horizon)
-        before = None if pb.log_e_residual.grad is None else pb.log_e_residual.grad.clone()
-        loss.backward()
-        g = pb.log_e_residual.grad.detach().clone()
-        rec["data"].append((g if before is None else g - before).cpu().numpy())
-        reg = pb.s.tv_weight * pb.material.tv() + pb.residual_penalty()
-        reg.backward()
-        return float(loss.detach())
+    def residual_penalty(pb):
+        value = penalty(pb)
+        (own,) = torch.autograd.grad(value, pb.log_e_residual, retain_graph=True)
+        handle = None
 
-    pipeline.material_iteration = material_iteration
+        def record(total):
+            rec["data"].append((total - own).detach().cpu().numpy())
+            handle.remove()  # one step's gradient: the next step hooks again
+
+        handle = pb.log_e_residual.register_hook(record)
+        return value
+
+    FitProblem.residual_penalty = residual_penalty
     return rec
 
 
@@ -279,6 +279,8 @@ def main() -> None:
         substeps = int(args.substeps)
     settings = FitSettings(quality=args.quality, device=args.device, working_long_side=args.size,
                            velocity_iters=args.velocity_iters, material_iters=args.material_iters, **overrides)
+    if args.residual_gradients and not settings.driver_residual:
+        ap.error("--residual-gradients needs the per-driver residuals (driver_residual=true)")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
