@@ -96,8 +96,16 @@ class FitSettings:
     # are 1e-9 to 1e-7 (bench/fit_recovery.py --residual-gradients), so the default 1e-8
     # slows the weakest; 1e-16 moved the benchmark's regions and motion within the seed
     # spread (docs/benchmarks.md, fit), so the default stays torch's.
-    residual_eps: float = 1e-8
-    residual_smoothness: float = 1e-3  # weight of the mean squared residual difference between neighbouring drivers
+    residual_eps: float = 1e-16
+    residual_smoothness: float = 0.0  # weight of the mean squared residual difference between neighbouring drivers
+    # Diffusion of the residuals after every stage-2 step, in fit-grid cells squared per
+    # iteration (0: off): each driver moves D dx^2 / h^2 of the way (at most 0.9) toward its
+    # nearest drivers' mean, h being its mean distance to them, so the smoothing covers the
+    # same length of object whatever the driver density. Unlike residual_smoothness, a
+    # gradient that Adam normalises per driver, it acts in the residual's own units: it holds
+    # a driver with a strong video gradient (the stem's stiff outliers) as firmly as one with
+    # a weak gradient (a leaf), and carries the leaves' softening out to their tips.
+    residual_diffusion: float = 0.02
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -131,6 +139,8 @@ class FitSettings:
             raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
         if not 0.0 < out.cfl_quantile <= 1.0:
             raise ValueError(f"cfl_quantile must be in (0, 1], got {out.cfl_quantile}")
+        if not (math.isfinite(out.residual_diffusion) and out.residual_diffusion >= 0.0):
+            raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
         if not out.residual_eps > 0:
             raise ValueError(f"residual_eps must be > 0, got {out.residual_eps}")
         if out.calibrate_iters < 0:
@@ -219,6 +229,8 @@ class FitProblem:
 
         # each driver's nearest other drivers, for the residual's smoothness term
         self.driver_pairs = nearest_drivers(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))[:, 1:]
+        # each driver's mean distance to them (m), the spacing residual_diffusion scales by
+        self.driver_spacing = (self.x_rest[:, None] - self.x_rest[self.driver_pairs]).norm(dim=-1).mean(dim=1)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         from pd_tool.sim import DiffSim, SimConfig
@@ -253,6 +265,20 @@ class FitProblem:
     def residual_penalty(self) -> torch.Tensor:
         r = self.log_e_residual
         return self.s.residual_smoothness * ((r[:, None] - r[self.driver_pairs]) ** 2).mean()
+
+    def diffusion_fractions(self, cells2: float) -> torch.Tensor:
+        """[Q] fraction of the way each residual moves per diffusion step: cells2 (fit-grid
+        cells squared) times dx^2 over the driver's squared spacing, at most 0.9 (1 would
+        swap neighbours' values on a chain instead of smoothing them)."""
+        h2 = self.driver_spacing.clamp_min(1e-6 * self.prep.dx) ** 2
+        return (cells2 * self.prep.dx**2 / h2).clamp(max=0.9)
+
+    @torch.no_grad()
+    def diffuse_residuals(self, cells2: float) -> None:
+        """One explicit diffusion step of the residuals over the driver graph (see
+        FitSettings.residual_diffusion); every driver updates from the old values."""
+        r = self.log_e_residual
+        r.add_(self.diffusion_fractions(cells2) * (r[self.driver_pairs].mean(dim=1) - r))
 
     def driver_v0(self, i: int) -> torch.Tensor:
         v = self.velocities[i](self.x_norm)
@@ -592,6 +618,8 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
             _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
         if opt_r is not None and not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
             skipped += 1
+        if opt_r is not None and s.residual_diffusion > 0:
+            pb.diffuse_residuals(s.residual_diffusion)
         losses["material"].append(loss)
         if progress:
             progress("material" + tag, it + 1, s.material_iters, loss)
