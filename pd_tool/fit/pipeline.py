@@ -226,11 +226,12 @@ class FitProblem:
         self.log_e_residual = torch.nn.Parameter(torch.zeros(len(self.x_rest), device=self.device))
         self.log_e_level = torch.nn.Parameter(torch.zeros((), device=self.device))  # stage 1's level (nats)
         from pd_tool.drivers import nearest_drivers
+        from pd_tool.fit.diffusion import neighbour_spacing
 
         # each driver's nearest other drivers, for the residual's smoothness term
         self.driver_pairs = nearest_drivers(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))[:, 1:]
         # each driver's mean distance to them (m), the spacing residual_diffusion scales by
-        self.driver_spacing = (self.x_rest[:, None] - self.x_rest[self.driver_pairs]).norm(dim=-1).mean(dim=1)
+        self.driver_spacing = neighbour_spacing(self.x_rest, self.driver_pairs)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         from pd_tool.sim import DiffSim, SimConfig
@@ -266,19 +267,11 @@ class FitProblem:
         r = self.log_e_residual
         return self.s.residual_smoothness * ((r[:, None] - r[self.driver_pairs]) ** 2).mean()
 
-    def diffusion_fractions(self, cells2: float) -> torch.Tensor:
-        """[Q] fraction of the way each residual moves per diffusion step: cells2 (fit-grid
-        cells squared) times dx^2 over the driver's squared spacing, at most 0.9 (1 would
-        swap neighbours' values on a chain instead of smoothing them)."""
-        h2 = self.driver_spacing.clamp_min(1e-6 * self.prep.dx) ** 2
-        return (cells2 * self.prep.dx**2 / h2).clamp(max=0.9)
-
-    @torch.no_grad()
     def diffuse_residuals(self, cells2: float) -> None:
-        """One explicit diffusion step of the residuals over the driver graph (see
-        FitSettings.residual_diffusion); every driver updates from the old values."""
-        r = self.log_e_residual
-        r.add_(self.diffusion_fractions(cells2) * (r[self.driver_pairs].mean(dim=1) - r))
+        """One diffusion step of the residuals over the driver graph (FitSettings.residual_diffusion)."""
+        from pd_tool.fit.diffusion import diffuse, diffusion_fractions
+
+        diffuse(self.log_e_residual.data, self.driver_pairs, diffusion_fractions(self.driver_spacing, self.prep.dx, cells2))
 
     def driver_v0(self, i: int) -> torch.Tensor:
         v = self.velocities[i](self.x_norm)
