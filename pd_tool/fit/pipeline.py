@@ -91,20 +91,26 @@ class FitSettings:
     # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
     driver_residual: bool = True
     lr_residual: float = 0.15
-    # Adam's eps for the residuals (a diagnostic setting). A driver whose gradient is below
-    # it takes proportionally shorter steps. At 100k the leaves' and the flower's gradients
-    # are 1e-9 to 1e-7 (bench/fit_recovery.py --residual-gradients), so the default 1e-8
-    # slows the weakest; 1e-16 moved the benchmark's regions and motion within the seed
-    # spread (docs/benchmarks.md, fit), so the default stays torch's.
+    # Adam's eps for the residuals. A driver whose gradient is below it takes proportionally
+    # shorter steps; at 100k the leaves' and the flower's gradients are 1e-9 to 1e-7
+    # (bench/fit_recovery.py --residual-gradients), so torch's 1e-8 held the leaves near the
+    # start. 1e-16 alone moved them only within the seed spread, since the smoothness penalty
+    # held them back; with the diffusion below it brings every region within 10%
+    # (docs/benchmarks.md, fit).
     residual_eps: float = 1e-16
-    residual_smoothness: float = 0.0  # weight of the mean squared residual difference between neighbouring drivers
+    # Weight of the mean squared residual difference between neighbouring drivers (a
+    # diagnostic setting; 1e-3 until the twelfth session). Adam normalises its gradient per
+    # driver against the video's, which is 100x weaker on a leaf than on the stem, so it held
+    # the leaves back and hardly the stem; residual_diffusion does its job instead.
+    residual_smoothness: float = 0.0
     # Diffusion of the residuals after every stage-2 step, in fit-grid cells squared per
     # iteration (0: off): each driver moves D dx^2 / h^2 of the way (at most 0.9) toward its
     # nearest drivers' mean, h being its mean distance to them, so the smoothing covers the
-    # same length of object whatever the driver density. Unlike residual_smoothness, a
-    # gradient that Adam normalises per driver, it acts in the residual's own units: it holds
-    # a driver with a strong video gradient (the stem's stiff outliers) as firmly as one with
-    # a weak gradient (a leaf), and carries the leaves' softening out to their tips.
+    # same length of object whatever the driver density (pd_tool/fit/diffusion.py). It acts
+    # in the residual's own units, so it holds a driver with a strong video gradient (the
+    # stem's stiff outliers, which set the substep count and so MPM's damping) as firmly as
+    # one with a weak gradient (a leaf), and carries the leaves' softening out to their tips.
+    # 0.02 moves the median driver about half way at the 100k benchmark's driver density.
     residual_diffusion: float = 0.02
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
