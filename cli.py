@@ -527,6 +527,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
                    "new force it moved the recovery benchmark closer on eight of nine seeds; see "
                    "docs/benchmarks.md.")
+@click.option("--diffusion", type=click.FloatRange(min=0), default=0.02, show_default=True,
+              help="How strongly neighbouring parts share their stiffness: smoothing of the per-part "
+                   "stiffness after every stage-2 iteration, in fit-grid cells squared (0 = off). It keeps a "
+                   "few parts from turning much stiffer than their neighbours, and carries a change out to parts "
+                   "the video hardly shows (leaf tips). See docs/fitting.md.")
 @click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
 @click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
@@ -542,8 +547,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int, horizon: int, polish: int, level: bool, working_size: int, init_e: float, nu: float,
-        density: float, background: str, resume: bool, no_preview: bool, seed: int, device: str, **prep_kw) -> None:
+        rounds: int, horizon: int, polish: int, level: bool, diffusion: float, working_size: int, init_e: float,
+        nu: float, density: float, background: str, resume: bool, no_preview: bool, seed: int, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
     Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
@@ -580,7 +585,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         splats = load_splats(scene, device=dev)
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
-                               stage1_level=level, init_E=init_e,
+                               stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
                                nu=nu, density=density,
                                working_long_side=working_size, background=bg, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
