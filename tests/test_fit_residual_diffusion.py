@@ -74,6 +74,10 @@ def test_fraction_is_capped_and_constants_and_bounds_are_kept() -> None:
         diffuse(r, pairs, frac)
         assert lo - 1e-12 <= float(r.min()) and float(r.max()) <= hi + 1e-12
     assert float(r.std()) < 0.5 * spread
+    # a single driver has no neighbours: nothing to average, and no NaN written
+    one = torch.tensor([0.3])
+    diffuse(one, torch.zeros((1, 0), dtype=torch.long), torch.tensor([0.5]))
+    assert float(one) == pytest.approx(0.3)
 
 
 def test_settings_refuse_a_negative_or_non_finite_diffusion() -> None:

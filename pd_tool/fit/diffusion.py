@@ -32,5 +32,8 @@ def diffusion_fractions(spacing: torch.Tensor, dx: float, cells2: float) -> torc
 @torch.no_grad()
 def diffuse(values: torch.Tensor, pairs: torch.Tensor, fractions: torch.Tensor) -> None:
     """One explicit diffusion step, in place: values += fractions * (neighbours' mean - values).
-    Every point updates from the old values, so the step never leaves [min, max] of them."""
+    Every point updates from the old values, so the step never leaves [min, max] of them.
+    A point set too small to have neighbours (pairs [Q, 0]) is left as it is."""
+    if pairs.shape[1] == 0:
+        return
     values.add_(fractions * (values[pairs].mean(dim=1) - values))

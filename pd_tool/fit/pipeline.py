@@ -234,7 +234,7 @@ class FitProblem:
         from pd_tool.drivers import nearest_drivers
         from pd_tool.fit.diffusion import neighbour_spacing
 
-        # each driver's nearest other drivers, for the residual's smoothness term
+        # each driver's nearest other drivers, for the residuals' smoothing (penalty and diffusion)
         self.driver_pairs = nearest_drivers(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))[:, 1:]
         # each driver's mean distance to them (m), the spacing residual_diffusion scales by
         self.driver_spacing = neighbour_spacing(self.x_rest, self.driver_pairs)
