@@ -8,15 +8,16 @@ import math
 import pytest
 import torch
 
-from pd_tool.fit.diffusion import MAX_FRACTION, diffuse, diffusion_fractions, neighbour_spacing
+from pd_tool.fit.diffusion import MAX_FRACTION, diffuse, diffusion_fractions
 
 
-def _ring(n: int, radius: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """n points on a circle (3-D, z = 0), each paired with its two neighbours; and the angles."""
+def _ring(n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n points on a unit circle: each one's two neighbours [n, 2], its distance to them
+    (the chord) [n], and the angles [n]."""
     theta = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
-    pos = torch.stack([radius * theta.cos(), radius * theta.sin(), torch.zeros(n, dtype=torch.float64)], 1)
     i = torch.arange(n)
-    return pos, torch.stack([(i - 1) % n, (i + 1) % n], 1), theta
+    spacing = torch.full((n,), 2 * math.sin(math.pi / n), dtype=torch.float64)
+    return torch.stack([(i - 1) % n, (i + 1) % n], 1), spacing, theta
 
 
 def test_step_matches_a_dense_float64_reference() -> None:
@@ -30,13 +31,12 @@ def test_step_matches_a_dense_float64_reference() -> None:
     h = torch.tensor([float(d[i, pairs[i]].mean()) for i in range(60)], dtype=torch.float64)
     frac = torch.minimum(cells2 * dx**2 / h**2, torch.tensor(MAX_FRACTION, dtype=torch.float64))
     want = torch.tensor([float(r[i] + frac[i] * (r[pairs[i]].mean() - r[i])) for i in range(60)], dtype=torch.float64)
-    assert torch.allclose(neighbour_spacing(pos, pairs), h)
     got = r.clone()
-    diffuse(got, pairs, diffusion_fractions(neighbour_spacing(pos, pairs), dx, cells2))
+    diffuse(got, pairs, diffusion_fractions(h, dx, cells2))
     assert torch.allclose(got, want, rtol=0, atol=1e-12)
     # float32 on the same data agrees to float32 rounding
     got32 = r.float()
-    diffuse(got32, pairs, diffusion_fractions(neighbour_spacing(pos.float(), pairs), dx, cells2))
+    diffuse(got32, pairs, diffusion_fractions(h.float(), dx, cells2))
     assert torch.allclose(got32.double(), want, atol=1e-5)
 
 
@@ -44,9 +44,9 @@ def test_a_mode_decays_as_analysed_and_the_same_at_two_densities() -> None:
     dx, cells2, m, steps = 0.05, 0.02, 3, 40
     decay = {}
     for n in (200, 400):
-        pos, pairs, theta = _ring(n)
-        h = 2 * math.sin(math.pi / n)  # chord between neighbours
-        frac = diffusion_fractions(neighbour_spacing(pos, pairs), dx, cells2)
+        pairs, spacing, theta = _ring(n)
+        h = float(spacing[0])
+        frac = diffusion_fractions(spacing, dx, cells2)
         assert torch.allclose(frac, torch.full_like(frac, cells2 * dx**2 / h**2))
         r = torch.cos(m * theta)
         for _ in range(steps):
@@ -61,8 +61,8 @@ def test_a_mode_decays_as_analysed_and_the_same_at_two_densities() -> None:
 
 
 def test_fraction_is_capped_and_constants_and_bounds_are_kept() -> None:
-    pos, pairs, _ = _ring(50)
-    frac = diffusion_fractions(neighbour_spacing(pos, pairs), dx=10.0, cells2=1.0)
+    pairs, spacing, _ = _ring(50)
+    frac = diffusion_fractions(spacing, dx=10.0, cells2=1.0)
     assert float(frac.max()) == pytest.approx(MAX_FRACTION)
     r = torch.full((50,), 0.7, dtype=torch.float64)
     diffuse(r, pairs, frac)
@@ -104,6 +104,10 @@ def test_stage_two_diffuses_the_residuals(tmp_path, monkeypatch) -> None:
     original = FitProblem.diffuse_residuals
 
     def spy(self, cells2):
+        # the spacing it scales by: each driver's mean distance to its paired neighbours
+        x = self.x_rest.double()
+        want = torch.stack([(x[self.driver_pairs[i]] - x[i]).norm(dim=1).mean() for i in range(len(x))])
+        assert torch.allclose(self.driver_spacing.double(), want, rtol=1e-5)
         before = self.log_e_residual.detach().clone()
         original(self, cells2)
         calls.append((cells2, float((self.log_e_residual.detach() - before).abs().max())))

@@ -14,13 +14,6 @@ import torch
 MAX_FRACTION = 0.9  # 1 would swap neighbours' values on a chain instead of smoothing them
 
 
-def neighbour_spacing(positions: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
-    """[Q] mean distance (positions' units) from each point to its neighbours.
-
-    positions [Q, 3]; pairs [Q, k] long, each point's neighbours (itself excluded)."""
-    return (positions[:, None] - positions[pairs]).norm(dim=-1).mean(dim=1)
-
-
 def diffusion_fractions(spacing: torch.Tensor, dx: float, cells2: float) -> torch.Tensor:
     """[Q] fraction of the way each residual moves per step: cells2 * dx^2 / spacing^2,
     at most MAX_FRACTION. spacing [Q] and dx in the same length unit; cells2 in grid cells

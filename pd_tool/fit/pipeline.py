@@ -231,13 +231,13 @@ class FitProblem:
                                       math.log(settings.init_E)).to(self.device)
         self.log_e_residual = torch.nn.Parameter(torch.zeros(len(self.x_rest), device=self.device))
         self.log_e_level = torch.nn.Parameter(torch.zeros((), device=self.device))  # stage 1's level (nats)
-        from pd_tool.drivers import nearest_drivers
-        from pd_tool.fit.diffusion import neighbour_spacing
+        from pd_tool.drivers import knn
 
-        # each driver's nearest other drivers, for the residuals' smoothing (penalty and diffusion)
-        self.driver_pairs = nearest_drivers(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))[:, 1:]
-        # each driver's mean distance to them (m), the spacing residual_diffusion scales by
-        self.driver_spacing = neighbour_spacing(self.x_rest, self.driver_pairs)
+        # each driver's nearest other drivers, for the residuals' smoothing (penalty and
+        # diffusion), and its mean distance to them (m), the spacing residual_diffusion scales by
+        dist2, nearest = knn(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))
+        self.driver_pairs = nearest[:, 1:]
+        self.driver_spacing = dist2[:, 1:].sqrt().mean(dim=1)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         from pd_tool.sim import DiffSim, SimConfig
