@@ -136,3 +136,6 @@ def test_cli_level_default_is_the_settings_default() -> None:
 
     level = next(p for p in main.commands["fit"].params if p.name == "level")
     assert level.default is FitSettings().stage1_level is True
+    # the CLI writes its defaults out (it imports pd_tool lazily); --diffusion's is the settings' too
+    diffusion = next(p for p in main.commands["fit"].params if p.name == "diffusion")
+    assert diffusion.default == FitSettings().residual_diffusion > 0
