@@ -154,7 +154,9 @@ def _write_records(path: Path, rec) -> Path:
 
 @pytest.mark.parametrize(
     "field,value,match",
-    [("scale_1", np.nan, "NaN/inf scale"), ("x", np.inf, "NaN/inf position"), ("opacity", np.nan, "NaN/inf opacity")],
+    [("scale_1", np.nan, "NaN/inf scale"), ("x", np.inf, "NaN/inf position"), ("opacity", np.nan, "NaN/inf opacity"),
+     ("opacity", np.inf, "NaN/inf opacity"), ("opacity", -np.inf, "NaN/inf opacity"),
+     ("scale_0", np.inf, "NaN/inf scale"), ("scale_2", -np.inf, "NaN/inf scale")],
 )
 def test_nan_values(tmp_path: Path, field: str, value: float, match: str) -> None:
     rec = _plant_records()
@@ -196,3 +198,30 @@ def test_zero_gaussians(tmp_path: Path) -> None:
 def test_splat_wrong_size(tmp_path: Path) -> None:
     with pytest.raises(SplatFormatError, match="multiple of 32"):
         load_splats(_write_bytes(tmp_path / "x.splat", b"\0" * 33))
+
+
+def _undercount(data: bytes, n: int) -> bytes:
+    head, body = data.split(b"end_header", 1)
+    return head.replace(f"element vertex {n}".encode(), f"element vertex {n - 1}".encode()) + b"end_header" + body
+
+
+@pytest.mark.parametrize("text,byte_order", [(False, "<"), (False, ">"), (True, "<")])
+def test_header_that_undercounts_the_body_is_refused(tmp_path: Path, text: bool, byte_order: str) -> None:
+    # plyfile reads the counted records only: the last Gaussian would vanish without a word
+    path = save_ply(make_plant(100, seed=0), tmp_path / "ok.ply", text=text, byte_order=byte_order)
+    assert load_ply(path).count == 100
+    bad = _write_bytes(tmp_path / "under.ply", _undercount(path.read_bytes(), 100))
+    with pytest.raises(PlyFormatError, match="99 vertex records"):
+        load_ply(bad)
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_trailing_bytes_are_refused(tmp_path: Path, text: bool) -> None:
+    path = save_ply(make_plant(100, seed=0), tmp_path / "ok.ply", text=text)
+    tail = b"1 2 3\n" if text else b"\x00" * 5
+    bad = _write_bytes(tmp_path / "tail.ply", path.read_bytes() + tail)
+    with pytest.raises(PlyFormatError, match="export the splat again"):
+        load_ply(bad)
+    # blank lines after an ASCII body are layout, not data
+    if text:
+        assert load_ply(_write_bytes(tmp_path / "blank.ply", path.read_bytes() + b"\n\n")).count == 100

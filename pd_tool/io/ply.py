@@ -36,15 +36,46 @@ def _read_plydata(path: Path):
     try:
         # plyfile / numpy warn on some malformed bodies (loadtxt: "input contained no data");
         # the values are validated after parsing, and a warning would break the one-line error
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), open(path, "rb") as fh:
             warnings.simplefilter("ignore")
-            return PlyData.read(str(path))
+            ply = PlyData.read(fh)
+            if not ply.text:
+                # plyfile stops after the counted records: a header that undercounts would
+                # silently drop Gaussians, and trailing bytes would go unnoticed
+                extra = len(fh.read(1 << 16))
+                if extra:
+                    raise PlyFormatError(
+                        f"{path}: {'at least ' * (extra == 1 << 16)}{extra} bytes follow the "
+                        f"{_counts(ply)} the header declares; the header's element count is wrong or the "
+                        f"file is corrupt; export the splat again")
+    except PlyFormatError:
+        raise
     except MemoryError:
         raise PlyFormatError(f"{path}: header declares more data than memory holds; the file is corrupt") from None
     except Exception as e:  # plyfile raises several types (PlyParseError, ValueError, EOFError...)
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         hint = "the file is truncated or corrupt; export it again"
         raise PlyFormatError(f"{path}: cannot parse PLY ({msg}); {hint}") from None
+    if ply.text:
+        _check_ascii_rows(path, ply)
+    return ply
+
+
+def _counts(ply) -> str:
+    return ", ".join(f"{el.count:,} {el.name} records" for el in ply.elements) or "no elements"
+
+
+def _check_ascii_rows(path: Path, ply) -> None:
+    # plyfile reads one line per record and ignores whatever follows the counted ones
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line.strip() == b"end_header":
+                break
+        rows = sum(1 for line in fh if line.strip())
+    declared = sum(el.count for el in ply.elements)
+    if rows != declared:
+        raise PlyFormatError(f"{path}: the body holds {rows:,} rows but the header declares {_counts(ply)}; "
+                             f"the header's element count is wrong or the file is corrupt; export the splat again")
 
 
 def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianScene:
@@ -105,9 +136,9 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
 
     for label, arr, props, limit in (
         ("position", xyz, "x y z", F32_MAX),
-        ("scale", log_scales, "scale_0..2", np.inf),
+        ("scale", log_scales, "scale_0..2", F32_MAX),
         ("rotation", rot, "rot_0..3", F32_MAX),  # a double beyond 1e154 would overflow the norm
-        ("opacity", opacity_logits, "opacity", np.inf),
+        ("opacity", opacity_logits, "opacity", F32_MAX),
         ("colour", sh, "f_dc/f_rest", F32_MAX),
     ):
         # a double-precision PLY can hold finite values that are inf once stored as float32
