@@ -63,17 +63,39 @@ def test_round_trip_frames_masks_camera(tmp_path, device):
 def test_natural_sort_and_jpg(tmp_path):
     folder = tmp_path / "v"
     folder.mkdir()
-    for i in (1, 2, 10):  # lexicographic order would be 1, 10, 2
+    for i in (8, 9, 11):  # lexicographic order would be 11, 8, 9
         iio.imwrite(folder / f"frame{i}.png", np.full((H, W, 3), i * 20, np.uint8))
-    iio.imwrite(folder / "frame3.jpg", np.full((H, W, 3), 60, np.uint8))
+    iio.imwrite(folder / "frame10.jpg", np.full((H, W, 3), 200, np.uint8))
     (folder / "notes.txt").write_text("ignored")
     _camera_json(folder / "camera.json", _camera())
     v = load_reference_video(folder, working_size=None)
-    assert [p.name for p in v.frame_paths] == ["frame1.png", "frame2.png", "frame3.jpg", "frame10.png"]
+    assert [p.name for p in v.frame_paths] == ["frame8.png", "frame9.png", "frame10.jpg", "frame11.png"]
     levels = (v.frames[:, 0, 0, 0] * 255).round().tolist()
-    assert levels == [20, 40, 60, 200]
+    assert levels == [160, 180, 200, 220]
     assert v.fps == DEFAULT_FPS  # no fps anywhere
     assert natural_key("Frame02b") < natural_key("frame10a")
+
+
+def test_frames_that_would_shift_in_time_are_refused(tmp_path):
+    # a frame's index is its time: a folder named like a frame, or a gap in the numbering,
+    # would move every later frame to the wrong time
+    folder = tmp_path / "v"
+    folder.mkdir()
+    for i in range(6):
+        iio.imwrite(folder / f"frame_{i:04d}.png", np.full((H, W, 3), 50, np.uint8))
+    _camera_json(folder / "camera.json", _camera())
+    assert load_reference_video(folder, working_size=None).num_frames == 6
+    (folder / "frame_0006.png").mkdir()
+    with pytest.raises(VideoError, match="frame_0006.png: has a frame's name but is a folder"):
+        load_reference_video(folder, working_size=None)
+    (folder / "frame_0006.png").rmdir()
+    (folder / "frame_0002.png").unlink()
+    with pytest.raises(VideoError, match="jump from frame_0001.png to frame_0003.png"):
+        load_reference_video(folder, working_size=None)
+    for i in (0, 4):  # every other frame, evenly: a constant step keeps the timing
+        (folder / f"frame_{i:04d}.png").unlink()
+    assert [p.name for p in load_reference_video(folder, working_size=None).frame_paths] == [
+        "frame_0001.png", "frame_0003.png", "frame_0005.png"]
 
 
 def test_working_size_resizes_frames_masks_and_camera(tmp_path):

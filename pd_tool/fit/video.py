@@ -92,8 +92,26 @@ def natural_key(name: str) -> tuple:
 
 
 def _list_files(folder: Path, exts: Sequence[str]) -> list[Path]:
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in exts and not p.name.startswith(".")]
-    return sorted(files, key=lambda p: natural_key(p.name))
+    """The frame (or video) files in `folder`, in natural order. A frame's index is its
+    time, so anything that would shift later frames is refused: an entry with a frame's
+    name that is not a file, and numbered names with a gap (a constant step is kept)."""
+    named = [p for p in folder.iterdir() if p.suffix.lower() in exts and not p.name.startswith(".")]
+    odd = [p for p in named if not p.is_file()]
+    if odd:
+        raise VideoError(f"{odd[0]}: has a frame's name but is {'a folder' if odd[0].is_dir() else 'not a file'}; "
+                         f"every later frame would shift in time; remove or rename it")
+    files = sorted(named, key=lambda p: natural_key(p.name))
+    numbers = [re.findall(r"\d+", p.stem) for p in files]
+    if len(files) > 2 and all(numbers):
+        idx = [int(n[-1]) for n in numbers]
+        steps = {b - a for a, b in zip(idx, idx[1:])}
+        if len(steps) > 1:
+            step = min(steps)
+            at = next(i for i in range(1, len(idx)) if idx[i] - idx[i - 1] != step)
+            raise VideoError(f"{folder}: frame numbers jump from {files[at - 1].name} to {files[at].name} (other "
+                             f"frames step by {step}); a missing frame shifts every later one in time; "
+                             f"export the frames again or renumber them evenly")
+    return files
 
 
 def _to_float_rgb(img: np.ndarray, path: Path) -> np.ndarray:
