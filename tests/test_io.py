@@ -225,3 +225,13 @@ def test_trailing_bytes_are_refused(tmp_path: Path, text: bool) -> None:
     # blank lines after an ASCII body are layout, not data
     if text:
         assert load_ply(_write_bytes(tmp_path / "blank.ply", path.read_bytes() + b"\n\n")).count == 100
+
+
+def test_pipe_named_like_a_scene_is_refused(tmp_path: Path) -> None:
+    # opening a FIFO for reading blocks until a writer comes: the load must not hang
+    import os
+
+    fifo = tmp_path / "scene.ply"
+    os.mkfifo(fifo)
+    with pytest.raises(SplatFormatError, match="not a regular file"):
+        load_splats(fifo)

@@ -20,6 +20,8 @@ def load_splats(path: str | Path, device: str | torch.device = "cpu") -> Gaussia
         raise SplatFormatError(f"{path}: no such file")
     if path.is_dir():
         raise SplatFormatError(f"{path}: is a folder; pass a .ply or .splat file")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise SplatFormatError(f"{path}: is not a regular file (a pipe or device?); pass a .ply or .splat file")
     suffix = path.suffix.lower()
     if suffix == ".ply":
         return load_ply(path, device)
