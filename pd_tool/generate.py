@@ -46,7 +46,8 @@ COMPONENT_CONFIGS = {
     "scheduler": "scheduler_config.json",
     "feature_extractor": "preprocessor_config.json",
 }
-WEIGHT_SUFFIXES = (".safetensors", ".bin")
+# Only safetensors are loaded: a .bin weight file is a pickle, which can run code when read.
+WEIGHT_SUFFIXES = (".safetensors",)
 SVD_SIZE = (1024, 576)  # width, height, px: the resolution SVD was trained at (the paper's 576 x 1024)
 SHEET_COLUMNS = 6  # frames per contact-sheet row (evenly spaced, first and last included)
 SHEET_THUMB = 160  # px, long side of a contact-sheet thumbnail
@@ -169,11 +170,16 @@ def inspect_model(path: str | Path) -> ModelInfo:
         if not (path / comp / cfg).is_file():
             raise GenerateError(f"{path}: no {comp}/{cfg}; the folder is incomplete (copy the whole model repository)")
         if comp in ("unet", "vae", "image_encoder"):
-            weights = [p.name for p in (path / comp).iterdir() if p.name.endswith(WEIGHT_SUFFIXES)]
+            names = [p.name for p in (path / comp).iterdir()]
+            weights = [n for n in names if n.endswith(WEIGHT_SUFFIXES)]
             if not weights:
-                raise GenerateError(f"{path / comp}: no weights (*.safetensors or *.bin); the download is incomplete "
+                if any(n.endswith(".bin") for n in names):
+                    raise GenerateError(f"{path / comp}: holds only .bin weights, which are pickles that can run code; "
+                                        f"pdtool loads *.safetensors only: download the safetensors files of the "
+                                        f"model repository")
+                raise GenerateError(f"{path / comp}: no weights (*.safetensors); the download is incomplete "
                                     f"(git lfs pull, or copy the whole model repository)")
-            plain = [n for n in weights if n.split(".")[1] in ("safetensors", "bin")]
+            plain = [n for n in weights if n.split(".")[1] == "safetensors"]
             if not plain and any(".fp16." in n for n in weights):
                 variant = "fp16"  # the fp16-only download of the SVD repository
     vae = _read_json(path / "vae" / "config.json")
@@ -271,7 +277,8 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
         cls = getattr(diffusers, info.class_name)
         with warnings.catch_warnings():  # newer diffusers renamed torch_dtype; older ones know only it
             warnings.simplefilter("ignore", FutureWarning)
-            pipe = cls.from_pretrained(info.path, torch_dtype=dtype, local_files_only=True, variant=info.variant)
+            pipe = cls.from_pretrained(info.path, torch_dtype=dtype, local_files_only=True, variant=info.variant,
+                                       use_safetensors=True)
     except Exception as e:  # a user's folder: corrupt weights, wrong shapes, missing files
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         raise GenerateError(f"{info.path}: cannot load the model ({type(e).__name__}: {first[:300]}); "

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -181,6 +182,14 @@ def test_missing_extra_is_one_clean_line(shared_data: Path, tmp_path: Path) -> N
     assert not out.exists()
 
 
+class _OpensOnUnpickle:
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
 def _bad_models(base: Path, tiny: Path) -> dict[str, tuple[Path, str]]:
     import shutil
 
@@ -195,7 +204,12 @@ def _bad_models(base: Path, tiny: Path) -> dict[str, tuple[Path, str]]:
     corrupt = base / "corrupt"
     shutil.copytree(tiny, corrupt)
     (corrupt / "unet" / "diffusion_pytorch_model.safetensors").write_bytes(b"not a safetensors file" * 10)
-    return {"missing": (base / "nowhere", "no such folder"), "empty": (empty, "no model_index.json"),
+    pickled = base / "pickled"  # .bin weights are pickles: unpickling this one would create the marker
+    shutil.copytree(tiny, pickled)
+    (pickled / "unet" / "diffusion_pytorch_model.safetensors").unlink()
+    (pickled / "unet" / "diffusion_pytorch_model.bin").write_bytes(
+        pickle.dumps(_OpensOnUnpickle(str(base / "pickle-ran"))))
+    return {"pickled": (pickled, "pickles that can run code"),"missing": (base / "nowhere", "no such folder"), "empty": (empty, "no model_index.json"),
             "other": (other, "not an image-to-video"), "no_unet": (no_unet, "no unet/config.json"),
             "corrupt": (corrupt, "cannot load the model")}
 
@@ -209,6 +223,7 @@ def test_bad_model_folders_are_one_clean_line(tiny_model: Path, shared_data: Pat
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and words in lines[0] and str(folder) in lines[0], (name, res.stderr)
         assert not out.exists(), name
+    assert not (tmp_path / "pickle-ran").exists()
     # a frame size the model cannot take, before any rendering
     res = run_cli(shared_data / "udon.ply", "--model", tiny_model, "--width", "60", "--height", "48", "-o",
                   tmp_path / "odd")
