@@ -121,9 +121,9 @@ def _check_output(path: Path) -> None:
 
         MaterialFile.load(path)
     elif name.endswith(".ckpt"):
-        import torch
+        from pd_tool.fit.checkpoint import read_checkpoint
 
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        _, state = read_checkpoint(path, max_bytes=1 << 30)
         assert state["stage"] in ("velocity", "material"), name
     elif name.endswith(".json"):
         assert isinstance(json.loads(path.read_text()), dict), name
