@@ -825,10 +825,12 @@ def check_videos_can_teach(videos: list) -> None:
                     f"{v.folder / 'masks'}: every mask of frames 1-{v.num_frames - 1} is black (no pixel marks "
                     f"the object), so the fit has nothing to compare; paint the object white in the masks, or "
                     f"remove masks/ to fit on whole frames")
-        change = (frames - v.frames[:1]).abs().amax(dim=-1)  # [T-1, H, W], largest channel change
-        if weight is not None:
-            change = change * (weight > 0)
-        largest = float(change.max())
+        largest = 0.0
+        for k in range(len(frames)):  # a frame at a time: no second copy of the whole video
+            change = (frames[k] - v.frames[0]).abs().amax(dim=-1)  # [H, W], the largest channel change
+            if weight is not None:
+                change = change * (weight[k] > 0)
+            largest = max(largest, float(change.max()))
         from pd_tool.fit.video import VIDEO_EXTS
 
         source = v.frame_paths[0] if len(v.frame_paths) == 1 and v.frame_paths[0].suffix.lower() in VIDEO_EXTS \
@@ -861,7 +863,8 @@ def check_fit_can_learn(pb: FitProblem) -> None:
     for v in pb.videos:
         cam = v.camera
         near = 0.01  # the rasteriser's near plane (pd_tool.render.render), world units
-        uvz = torch.as_tensor(cam.project(sc.positions[moving].detach().double().cpu().numpy()))
+        with np.errstate(divide="ignore", invalid="ignore"):  # a centre on the camera's plane: u, v infinite
+            uvz = torch.as_tensor(cam.project(sc.positions[moving].detach().double().cpu().numpy()))
         front = uvz[:, 2] > near
         # a Gaussian reaches 3 sigma past its centre on screen
         reach = 3.0 * sc.scales[moving].detach().double().cpu().amax(dim=1) * max(cam.fx, cam.fy) / uvz[:, 2].clamp_min(near)
