@@ -967,8 +967,8 @@ def run_fit(
     out = Path(out)
     ckpt_path = out.with_name(out.name + ".ckpt")
     _check_destination(out, ckpt_path)
+    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
     check_videos_can_teach(videos)
-    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
     check_fit_can_learn(pb)
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
     seconds: dict[str, float] = {}
