@@ -199,3 +199,20 @@ def test_a_still_mp4_is_told_from_a_moving_one(plant: Path, tmp_path: Path) -> N
     check_videos_can_teach([load_reference_video(moving, working_size=32)])
     with pytest.raises(FitLearnsNothing, match=r"still/v\.mp4: no frame differs from frame 0 by more than"):
         check_videos_can_teach([load_reference_video(still, working_size=32)])
+
+
+@pytest.mark.parametrize("where", ["video", "video/masks"])
+def test_a_frame_that_is_a_folder_is_refused(plant: Path, tmp_path: Path, monkeypatch, where: str) -> None:
+    """Frames are timed by their order, so one that is a folder is refused, not skipped."""
+    def edit(w: Path) -> None:
+        if where == "video/masks":
+            _object_masks(w)
+        (w / where / "frame_0002.png").unlink()
+        (w / where / "frame_0002.png").mkdir()
+
+    res, written = _run(plant, tmp_path, monkeypatch, edit)
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.splitlines()
+    assert lines == [f"Error: {where}/frame_0002.png: is a folder or another non-file named like a frame, and "
+                     f"frames are timed by their order; remove or rename it"], lines
+    assert written == []

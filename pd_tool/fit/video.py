@@ -92,7 +92,12 @@ def natural_key(name: str) -> tuple:
 
 
 def _list_files(folder: Path, exts: Sequence[str]) -> list[Path]:
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in exts and not p.name.startswith(".")]
+    files = [p for p in folder.iterdir() if p.suffix.lower() in exts and not p.name.startswith(".")]
+    for p in files:
+        # frames are timed by their place in the order: skipping one would shift every later frame
+        if not p.is_file():
+            raise VideoError(f"{p}: is a folder or another non-file named like a frame, and frames are timed by "
+                             f"their order; remove or rename it")
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
