@@ -118,6 +118,14 @@ def _npy(a: np.ndarray, allow_pickle: bool = False) -> bytes:
     return buf.getvalue()
 
 
+def _raw_npy(header: str, data: bytes) -> bytes:
+    """A .npy member with any header text (version 1.0), padded as numpy pads it."""
+    text = header.encode("latin1")
+    pad = 64 - (10 + len(text) + 1) % 64
+    text += b" " * pad + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text + data
+
+
 @pytest.mark.parametrize("name,header_edit,arrays,why", [
     ("nan constant", lambda h: h.replace(b'["lr", 0.05]', b'["lr", NaN]'), None, "holds NaN"),
     ("overflow", lambda h: h.replace(b'["lr", 0.05]', b'["lr", 1e999]'), None, "beyond a float"),
@@ -133,6 +141,10 @@ def _npy(a: np.ndarray, allow_pickle: bool = False) -> bytes:
     ("trailing bytes", None, {"arrays/0.npy": _npy(np.zeros((2, 3), np.float32)) + b"\0" * 8}, "holds 32 bytes"),
     ("short data", None, {"arrays/0.npy": _npy(np.zeros((2, 3), np.float32))[:-4]}, "holds 20 bytes"),
     ("other shape", None, {"arrays/0.npy": _npy(np.zeros((3, 2), np.float32))}, "not the array its header lists"),
+    ("negative shape", None, {"arrays/0.npy": _raw_npy("{'descr': '<f4', 'fortran_order': False, 'shape': (-2, -3)}",
+                                                       b"\0" * 24)}, r"declares the shape \(-2, -3\)"),
+    ("code in the header", None, {"arrays/0.npy": _raw_npy("{'descr': __import__('os').getcwd()}", b"")},
+     "no readable .npy header"),
 ])
 def test_crafted_files_with_a_good_checksum_are_refused(tmp_path: Path, name, header_edit, arrays, why) -> None:
     path = _write(tmp_path / "c.ckpt", _tree())

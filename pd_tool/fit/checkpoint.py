@@ -183,8 +183,11 @@ def _npy(data: bytes, name: str, fail) -> np.ndarray:
             shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
         else:
             raise fail(f"{name} is .npy format {version}")
-    except ValueError as e:
-        raise fail(f"{name} has no readable .npy header ({str(e)[:60]})") from None
+    # numpy parses the header dict with ast.literal_eval (no code), whose failures vary in type
+    except (ValueError, SyntaxError, TypeError, KeyError, EOFError, RecursionError, MemoryError) as e:
+        raise fail(f"{name} has no readable .npy header ({type(e).__name__})") from None
+    if any(d < 0 for d in shape):
+        raise fail(f"{name} declares the shape {tuple(shape)}")
     if dtype not in _DTYPES or fortran:
         raise fail(f"{name} holds {dtype.str}{' in Fortran order' if fortran else ''}, not a fit's numbers")
     count = math.prod(shape)
@@ -276,18 +279,26 @@ def read_checkpoint(path: str | Path, *, max_bytes: int) -> tuple[dict[str, Any]
     if size > max_bytes:
         raise fail(f"{size:,} bytes where this fit writes at most {max_bytes:,}")
     members: dict[str, bytes] = {}
-    order: list[str] = []
     try:
         with zipfile.ZipFile(path) as zf:
-            for info in zf.infolist():
+            infos = zf.infolist()
+            order = [info.filename for info in infos]
+            n_arrays = len(order) - 3
+            # names and sizes first, so that nothing is read from a file laid out otherwise
+            # (members that overlap could make a small file read as many times its size)
+            if order != [MAGIC_MEMBER, HEADER_MEMBER, *(f"arrays/{i}.npy" for i in range(n_arrays)), CHECKSUM_MEMBER]:
+                raise fail("its members are not those of a fit checkpoint")
+            for info in infos:
                 if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
-                    raise fail(f"member {info.filename[:60]!r} is compressed or encrypted")
-                if info.file_size != info.compress_size or info.file_size > size:
-                    raise fail(f"member {info.filename[:60]!r} claims {info.file_size:,} bytes")
-                if info.filename in members:
-                    raise fail(f"member {info.filename[:60]!r} appears twice")
+                    raise fail(f"member {info.filename} is compressed or encrypted")
+                if info.file_size != info.compress_size:
+                    raise fail(f"member {info.filename} claims {info.file_size:,} bytes in {info.compress_size:,}")
+            if sum(info.file_size for info in infos) > size:
+                raise fail(f"its members claim more bytes than the file's {size:,}")
+            if infos[1].file_size > MAX_HEADER_BYTES:
+                raise fail(f"a header of {infos[1].file_size:,} bytes")
+            for info in infos:
                 members[info.filename] = zf.read(info)
-                order.append(info.filename)
     except CheckpointError:
         raise
     # zipfile raises many types for damaged archives (a cut-off central directory, a bad
@@ -295,13 +306,6 @@ def read_checkpoint(path: str | Path, *, max_bytes: int) -> tuple[dict[str, Any]
     except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, ValueError, OSError, EOFError, KeyError,
             NotImplementedError, RuntimeError, struct.error, MemoryError) as e:
         raise fail(f"truncated or corrupt ({type(e).__name__})") from None
-    if order[:2] != [MAGIC_MEMBER, HEADER_MEMBER] or order[-1:] != [CHECKSUM_MEMBER]:
-        raise fail("its members are not those of a fit checkpoint")
-    if len(members[HEADER_MEMBER]) > MAX_HEADER_BYTES:
-        raise fail(f"a header of {len(members[HEADER_MEMBER]):,} bytes")
-    n_arrays = len(order) - 3
-    if order[2:-1] != [f"arrays/{i}.npy" for i in range(n_arrays)]:
-        raise fail("its members are not those of a fit checkpoint")
     stored = members[CHECKSUM_MEMBER]
     if stored != _digest([(n, members[n]) for n in order[:-1]]).encode("ascii"):
         raise fail("its sha256 checksum does not match its contents")

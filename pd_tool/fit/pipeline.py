@@ -577,7 +577,7 @@ def _check_resume_key(path: Path, problem: dict, key: dict) -> None:
     if not problem:
         raise CheckpointError(f"{path}: the checkpoint does not say which fit it belongs to (no problem key); "
                               f"{_RESUME_FIX}")
-    for name in sorted(set(key) | set(problem)):
+    for name in [*key, *(k for k in problem if k not in key)]:
         if problem.get(name) != key.get(name):
             what = name if name != "drivers" else f"driver count {problem.get(name)!r:.20} != {key[name]}"
             raise CheckpointError(f"{path}: the checkpoint belongs to another fit ({what} differs); {_RESUME_FIX}")
