@@ -2,7 +2,7 @@
 
 Through the CLI on a tiny plant (800 Gaussians, 32 px, 4 frames): the camera looking away,
 the object outside the image, every mask black, masks that leave out the moving part, a
-still video, every particle pinned, and (with the checks before the fit turned off, so the
+still video, no iterations at all, every particle pinned, and (with the checks before the fit turned off, so the
 fit runs) a loss that never moves. The same plant's video, with and without masks around
 the object, is fitted: the checks do not refuse a fit that can learn.
 """
@@ -127,6 +127,8 @@ CASES = [
      r"^Error: video: the moving part .* changes no pixel of the rest frame inside the masks"),
     ("still video", _still, ARGS, r"^Error: video: no frame differs from frame 0 by more than 0\.0/255, so the video "
                                   r"shows no motion to fit; pass a video of the object moving"),
+    ("no iterations", None, [*ARGS, "--velocity-iters", "0", "--material-iters", "0"],
+     r"^Error: --velocity-iters 0 and --material-iters 0 leave nothing to fit"),
     ("every particle pinned", None, _pinned(ARGS), r"^Error: every particle is static \(--static-below 100\.0 pins "
                                                    r"all \d+\), so nothing can move; shrink the static region"),
 ]

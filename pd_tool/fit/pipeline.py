@@ -966,6 +966,9 @@ def run_fit(
     s = (settings or FitSettings()).resolved()
     out = Path(out)
     ckpt_path = out.with_name(out.name + ".ckpt")
+    if s.velocity_iters + s.material_iters + s.calibrate_iters == 0:
+        raise FitLearnsNothing("--velocity-iters 0 and --material-iters 0 leave nothing to fit (the material file "
+                               "would hold the starting E); give at least one iteration")
     _check_destination(out, ckpt_path)
     pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
     check_videos_can_teach(videos)
