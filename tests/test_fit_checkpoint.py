@@ -135,6 +135,7 @@ def _raw_npy(header: str, data: bytes) -> bytes:
     ("deep", lambda h: h.replace(b'["lr", 0.05]', b'["lr", ' + b"[" * 100 + b"]" * 100 + b"]" ), None, "nested more than"),
     ("very deep", lambda h: h.replace(b'["lr", 0.05]', b'["lr", ' + b"[" * 100000 + b"]" * 100000 + b"]" ), None,
      "(nested more than|not JSON)"),
+    ("huge integer", lambda h: h.replace(b'["n", 10]', b'["n", ' + b"9" * 5000 + b"]"), None, "not JSON"),
     ("repeated key", lambda h: h.replace(b'"format":', b'"version": 1, "format":'), None, "repeats a key"),
     ("nan array", None, {"arrays/0.npy": _npy(np.full((2, 3), np.nan, np.float32))}, r"state\.a\.0 holds NaN"),
     ("object array", None, {"arrays/0.npy": _npy(np.array([None, 1], dtype=object), True)}, "holds |O"),
@@ -497,3 +498,45 @@ def test_cli_full_or_read_only_destination_ends_in_one_line(plant, tmp_path: Pat
     expect = "No space left on device" if kind == "full" else "Read-only file system"
     assert "dest" in lines[0] and expect in lines[0] and "writable folder" in lines[0], lines
     assert left == [], left  # no temporaries, no partial checkpoint
+
+
+def test_mutated_files_end_in_one_line_error(tmp_path: Path) -> None:
+    """Seeded random edits (bytes flipped, cut or inserted; JSON tokens spliced into the
+    header and the checksum recomputed): every read either succeeds or raises one
+    CheckpointError line, never another exception."""
+    import random
+
+    from pd_tool.fit.checkpoint import _digest
+
+    rnd = random.Random(35)
+    good = checkpoint_bytes(_tree(), {"k": 1})
+    path = tmp_path / "c.ckpt"
+    _write(path, _tree())
+    members = _members(path)
+    tokens = [b"{", b"}", b"[", b"]", b'"dict"', b'"tensor"', b'"tuple"', b'"float"', b"-1", b"1e999", b"NaN",
+              b",", b":", b"null", b"true", b"99999999999", b"'", b"("]
+    refused = 0
+    for i in range(400):
+        if i % 2:  # the file's bytes
+            b = bytearray(good)
+            j = rnd.randrange(len(b))
+            b[j:j + rnd.randint(0, 2)] = bytes(rnd.randrange(256) for _ in range(rnd.randint(0, 3)))
+            data = bytes(b[: len(b) if rnd.random() < 0.8 else rnd.randrange(len(b))])
+            path.write_bytes(data)
+        else:  # one member, then signed again
+            m = dict(members)
+            name = rnd.choice([n for n in m if n.startswith("arrays/") or n == "header.json"])
+            b = bytearray(m[name])
+            for _ in range(rnd.randint(1, 3)):
+                j = rnd.randrange(len(b) + 1)
+                b[j:j + rnd.randint(0, 3)] = rnd.choice(tokens) if rnd.random() < 0.7 else bytes([rnd.randrange(256)])
+            m[name] = bytes(b)
+            m.pop("sha256")
+            m["sha256"] = _digest(list(m.items())).encode()
+            _rezip(path, m)
+        try:
+            read_checkpoint(path, max_bytes=BIG)
+        except CheckpointError as e:
+            assert "\n" not in str(e) and str(e).startswith(str(path)), str(e)
+            refused += 1
+    assert refused > 300  # most edits break the file (edits of array data bytes may not)

@@ -177,14 +177,16 @@ def _npy(data: bytes, name: str, fail) -> np.ndarray:
     fh = io.BytesIO(data)
     try:
         version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:
-            raise fail(f"{name} is .npy format {version}")
-    # numpy parses the header dict with ast.literal_eval (no code), whose failures vary in type
-    except (ValueError, SyntaxError, TypeError, KeyError, EOFError, RecursionError, MemoryError) as e:
+    except ValueError:
+        raise fail(f"{name} is not a .npy array") from None
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in readers:
+        raise fail(f"{name} is .npy format {version}")
+    try:
+        shape, fortran, dtype = readers[version](fh)
+    # numpy parses the header dict with tokenize and ast.literal_eval (no code), whose failures
+    # vary in type (ValueError, SyntaxError, tokenize.TokenError, RecursionError, ...)
+    except Exception as e:
         raise fail(f"{name} has no readable .npy header ({type(e).__name__})") from None
     if any(d < 0 for d in shape):
         raise fail(f"{name} declares the shape {tuple(shape)}")
@@ -214,7 +216,10 @@ def _strict_json(raw: bytes, fail) -> Any:
 
     try:
         return json.loads(raw.decode("utf-8"), parse_constant=constant, parse_float=number, object_pairs_hook=pairs)
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+    except CheckpointError:
+        raise
+    # JSONDecodeError, UnicodeDecodeError and an integer past Python's digit limit are ValueErrors
+    except (ValueError, RecursionError) as e:
         raise fail(f"its header is not JSON ({type(e).__name__})") from None
 
 
