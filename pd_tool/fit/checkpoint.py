@@ -52,7 +52,7 @@ MAX_HEADER_BYTES = 16 << 20  # the tree is scalars and short lists (tensors are 
 MAX_DEPTH = 32  # nesting of the tree; a fit's state is 6 deep
 # little-endian (or byte-sized) dtypes a fit's state uses: weights, moments, counters, RNG
 _DTYPES = {np.dtype("<f4"), np.dtype("<f8"), np.dtype("<i8"), np.dtype("<i4"), np.dtype("|u1"), np.dtype("|b1")}
-_NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+_NONFINITE = ("nan", "inf", "-inf")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # fixed: the same state gives the same bytes
 
 
@@ -89,6 +89,18 @@ def _encode(obj: Any, arrays: list[np.ndarray]) -> Any:
     raise TypeError(f"a fit checkpoint cannot hold a {type(obj).__name__}")
 
 
+def _plain(obj: Any) -> Any:
+    """A JSON-ready problem key with any non-finite float as its name (such a key matches no
+    fit's, so the checkpoint is refused on resuming, not the save on writing)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return repr(obj)
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    return obj
+
+
 def _digest(members: list[tuple[str, bytes]]) -> str:
     h = hashlib.sha256()
     for name, data in members:
@@ -102,7 +114,7 @@ def checkpoint_bytes(state: dict[str, Any], problem: dict[str, Any]) -> bytes:
     tensors among them) and `problem` (the fit's JSON-ready problem key)."""
     arrays: list[np.ndarray] = []
     tree = _encode(state, arrays)
-    header = {"format": FORMAT, "version": VERSION, "problem": problem, "state": tree,
+    header = {"format": FORMAT, "version": VERSION, "problem": _plain(problem), "state": tree,
               "arrays": [{"dtype": a.dtype.str, "shape": list(a.shape)} for a in arrays]}
     members = [(MAGIC_MEMBER, MAGIC),
                (HEADER_MEMBER, json.dumps(header, sort_keys=True, allow_nan=False).encode("utf-8"))]
