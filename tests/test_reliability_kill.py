@@ -1,4 +1,4 @@
-"""Atomic outputs, resumable fits and determinism (issue 10, items 2-4).
+"""Atomic outputs, resumable fits and determinism.
 
 `pdtool bake` and `pdtool fit` run in subprocesses (the installed console script) on a tiny
 synthetic plant and are SIGKILLed at seeded random moments. After every kill each final

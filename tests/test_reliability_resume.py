@@ -1,4 +1,4 @@
-"""Resuming a fit from a checkpoint in the middle of a stage (issue 10, item 3).
+"""Resuming a fit from a checkpoint in the middle of a stage.
 
 test_reliability_kill.py resumes a SIGKILLed `pdtool fit` from the checkpoint written when
 stage 2 starts. Here, with a checkpoint after every iteration, the fit is interrupted in

@@ -96,7 +96,7 @@ class FitSettings:
     # (docs/benchmarks.md, fit).
     residual_eps: float = 1e-16
     # Weight of the mean squared residual difference between neighbouring drivers (a
-    # diagnostic setting; 1e-3 until the twelfth session). Adam normalises its gradient per
+    # diagnostic setting, 0 by default). Adam normalises its gradient per
     # driver against the video's, which is 100x weaker on a leaf than on the stem, so it held
     # the leaves back and hardly the stem; residual_diffusion does its job instead.
     residual_smoothness: float = 0.0
