@@ -27,13 +27,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from pd_tool.atomic import atomic_output
 from pd_tool.errors import PdToolError, VideoError
 from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene
 from pd_tool.presets import fit_simulation, load_preset
 from pd_tool.scene import GaussianScene
-
-CHECKPOINT_VERSION = 1
 
 
 @dataclass
@@ -99,7 +96,7 @@ class FitSettings:
     # (docs/benchmarks.md, fit).
     residual_eps: float = 1e-16
     # Weight of the mean squared residual difference between neighbouring drivers (a
-    # diagnostic setting; 1e-3 until the twelfth session). Adam normalises its gradient per
+    # diagnostic setting, 0 by default). Adam normalises its gradient per
     # driver against the video's, which is 100x weaker on a leaf than on the stem, so it held
     # the leaves back and hardly the stem; residual_diffusion does its job instead.
     residual_smoothness: float = 0.0
@@ -477,38 +474,46 @@ def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None
             "cluster_sizes": torch.bincount(labels, minlength=s.calibrate_clusters + 1)[:-1].tolist()}
 
 
-def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, opt, sched, losses,
-                     opt_v=None, sched_v=None, opt_r=None, sched_r=None, rnd: int = 0,
-                     opt_l=None, sched_l=None) -> None:
-    state = {
-        "version": CHECKPOINT_VERSION, "stage": stage, "iteration": it, "round": rnd,
+def _stage_optimizers(pb: FitProblem, s: FitSettings, stage: str) -> dict[str, tuple[Any, Any]]:
+    """The optimisers and schedules of a stage, by checkpoint suffix: "" the stage's own
+    (v0 fields in stage 1, the E field in stage 2), "_l" stage 1's level, "_r" the
+    per-driver residuals, "_v" v0's refinement in stage 2 (each only when its setting is on)."""
+    from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer
+
+    if stage == "velocity":
+        n = max(s.velocity_iters, 1)
+        out = {"": make_optimizer(list(pb.velocities), s.lr_velocity, n, warmup_steps=min(s.warmup, n))}
+        if s.stage1_level:
+            out["_l"] = make_tensor_optimizer(pb.log_e_level, s.lr_level, n, warmup_steps=min(s.warmup, n))
+        return out
+    n = max(s.material_iters, 1)
+    out = {"": make_optimizer(pb.material, s.lr_material, n, warmup_steps=min(s.warmup, n))}
+    if s.driver_residual:
+        out["_r"] = make_tensor_optimizer(pb.log_e_residual, s.lr_residual, n, warmup_steps=min(s.warmup, n),
+                                          eps=s.residual_eps)
+    if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
+        out["_v"] = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor, n,
+                                   warmup_steps=min(s.warmup, n))
+    return out
+
+
+def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, optimizers: dict[str, tuple[Any, Any]],
+                     losses: dict[str, list[float]], rnd: int = 0) -> None:
+    """Write the fit's state after `it` iterations of `stage` in round `rnd` (the file
+    format: pd_tool/fit/checkpoint.py; what it must hold: _check_checkpoint)."""
+    from pd_tool.fit.checkpoint import write_checkpoint
+
+    state: dict[str, Any] = {
+        "stage": stage, "iteration": it, "round": rnd,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
-        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "losses": losses,
+        "residual": pb.log_e_residual.detach(), "level": pb.log_e_level.detach(),
+        # float64 arrays: a loss that came out NaN is written, and refused when resuming
+        "losses": {k: torch.tensor(v, dtype=torch.float64) for k, v in losses.items()},
         "torch_rng": torch.get_rng_state(),
     }
-    state["residual"] = pb.log_e_residual.detach().cpu().clone()
-    state["level"] = pb.log_e_level.detach().cpu().clone()
-    state["problem"] = getattr(pb, "resume_key", None)
-    if opt_v is not None:
-        state["optimizer_v"], state["scheduler_v"] = opt_v.state_dict(), sched_v.state_dict()
-    if opt_r is not None:
-        state["optimizer_r"], state["scheduler_r"] = opt_r.state_dict(), sched_r.state_dict()
-    if opt_l is not None:
-        state["optimizer_l"], state["scheduler_l"] = opt_l.state_dict(), sched_l.state_dict()
-    with atomic_output(path) as tmp:
-        torch.save(state, tmp)
-
-
-def _load_checkpoint(path: Path) -> dict | None:
-    if not path.is_file():
-        return None
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception:
-        raise PdToolError(f"{path}: unreadable fit checkpoint; delete it and fit without --resume") from None
-    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
-        raise PdToolError(f"{path}: checkpoint from another pdtool version; delete it and fit without --resume")
-    return state
+    for suffix, (opt, sched) in optimizers.items():
+        state["optimizer" + suffix], state["scheduler" + suffix] = opt.state_dict(), sched.state_dict()
+    write_checkpoint(path, state, getattr(pb, "resume_key", {}))  # none when a bench script runs a round
 
 
 def _resume_key(pb: FitProblem, scene_path: str | Path) -> dict:
@@ -522,44 +527,210 @@ def _resume_key(pb: FitProblem, scene_path: str | Path) -> dict:
             "image": [list(v.frames.shape[1:3]) for v in pb.videos], "settings": settings}
 
 
-def _check_resume_key(path: Path, ckpt: dict, key: dict) -> None:
+_RESUME_FIX = "delete it, or fit without --resume"
+
+
+def _foreign_checkpoint(path: Path, what: str) -> PdToolError:
+    from pd_tool.fit.checkpoint import CheckpointError
+
+    return CheckpointError(f"{path}: is not a pdtool fit checkpoint ({what}), and a fit keeps its checkpoint at "
+                           f"that path; pdtool neither reads nor replaces it: move it away, or fit to another --out")
+
+
+def _checkpoint_max_bytes(pb: FitProblem, s: FitSettings) -> int:
+    """The largest checkpoint this fit writes, with room to spare: every trained tensor
+    with two Adam moments (x3, x4 for the slack), the loss histories, the header."""
+    from pd_tool.fit.checkpoint import MAX_HEADER_BYTES
+
+    tensors = [*pb.material.parameters(), *pb.velocities.parameters(), pb.log_e_residual, pb.log_e_level]
+    weights = sum(t.numel() * t.element_size() for t in tensors)
+    return 4 * weights + 8 * s.rounds * (s.velocity_iters + s.material_iters + 2) + MAX_HEADER_BYTES + (1 << 20)
+
+
+def _load_checkpoint(path: Path, pb: FitProblem, s: FitSettings) -> dict | None:
+    """The checkpoint at `path`, checked against this fit (_check_checkpoint), with its
+    losses as lists; None when there is none. One-line CheckpointError otherwise."""
+    from pd_tool.fit.checkpoint import CheckpointError, ForeignCheckpointFile, is_pdtool_checkpoint, read_checkpoint
+
+    if not path.exists() and not path.is_symlink():
+        return None
+    ours, what = is_pdtool_checkpoint(path)
+    if not ours:
+        raise _foreign_checkpoint(path, what)
+    try:
+        problem, state = read_checkpoint(path, max_bytes=_checkpoint_max_bytes(pb, s))
+    except ForeignCheckpointFile:
+        raise _foreign_checkpoint(path, "unrecognised") from None
+    except CheckpointError as e:
+        raise CheckpointError(f"{e}; {_RESUME_FIX}") from None
+    _check_resume_key(path, problem, pb.resume_key)
+    _check_checkpoint(path, state, pb, s)
+    state["losses"] = {k: v.tolist() for k, v in state["losses"].items()}
+    return state
+
+
+def _check_resume_key(path: Path, problem: dict, key: dict) -> None:
     # a checkpoint of another fit (other scene, options, videos, or a preparation that came
     # out differently) would load into tensors of the wrong shape, or silently mix two fits
-    old = ckpt.get("problem")
-    if old is None:
-        return
-    for name in key:
-        if old.get(name) != key[name]:
-            what = name if name != "drivers" else f"driver count {old.get(name)} != {key[name]}"
-            raise PdToolError(f"{path}: the checkpoint belongs to another fit ({what} differs); "
-                              f"delete it, or fit without --resume")
+    from pd_tool.fit.checkpoint import CheckpointError
+
+    if not problem:
+        raise CheckpointError(f"{path}: the checkpoint does not say which fit it belongs to (no problem key); "
+                              f"{_RESUME_FIX}")
+    for name in [*key, *(k for k in problem if k not in key)]:
+        if problem.get(name) != key.get(name):
+            what = name if name != "drivers" else f"driver count {problem.get(name)!r:.20} != {key[name]}"
+            raise CheckpointError(f"{path}: the checkpoint belongs to another fit ({what} differs); {_RESUME_FIX}")
+
+
+def _check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) -> None:
+    """Refuse (one line) a checkpoint this fit cannot continue from: a stage, iteration or
+    round outside the fit's ranges, missing or unknown entries, tensors of another shape or
+    dtype than this fit's, optimiser or schedule states that do not match the fit's
+    settings and iteration, loss histories of the wrong length. The checksum only tells a
+    damaged file; these checks hold for a crafted one that recomputed it."""
+    from pd_tool.fit.checkpoint import CheckpointError
+
+    def bad(why: str) -> CheckpointError:
+        return CheckpointError(f"{path}: {why}; {_RESUME_FIX}")
+
+    def integer(name: str, lo: int, hi: int) -> int:
+        v = state.get(name)
+        if type(v) is not int or not lo <= v <= hi:
+            raise bad(f"{name} {v!r:.24} is outside this fit's range {lo}-{hi}")
+        return v
+
+    stage = state.get("stage")
+    if stage not in ("velocity", "material"):
+        raise bad(f"stage {stage!r:.24} is not 'velocity' or 'material'")
+    iters = s.velocity_iters if stage == "velocity" else s.material_iters
+    if iters < 1:
+        raise bad(f"it stopped in the {stage} stage, which this fit skips ({stage}_iters = 0)")
+    it = integer("iteration", 0, iters - 1)
+    rnd = integer("round", 0, s.rounds - 1)
+    optimizers = _stage_optimizers(pb, s, stage)
+    want = {"stage", "iteration", "round", "material", "velocities", "residual", "level", "losses", "torch_rng"}
+    want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
+    if set(state) != want:
+        missing, unknown = sorted(want - set(state)), sorted(map(str, set(state) - want))
+        raise bad(f"it lacks {', '.join(missing)}" if missing else f"it holds unknown entries {', '.join(unknown)}")
+
+    def tensor(name: str, t: Any, like: torch.Tensor) -> None:
+        if not isinstance(t, torch.Tensor) or t.dtype != like.dtype or t.shape != like.shape:
+            found = f"{t.dtype} {list(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
+            raise bad(f"{name} is {found}, where this fit has {like.dtype} {list(like.shape)}")
+
+    def module(name: str, sd: Any, like: dict) -> None:
+        if not isinstance(sd, dict) or set(sd) != set(like):
+            raise bad(f"{name} does not hold this fit's field weights")
+        for k, t in like.items():
+            tensor(f"{name}.{k}", sd[k], t)
+
+    module("material", state["material"], pb.material.state_dict())
+    module("velocities", state["velocities"], pb.velocities.state_dict())
+    tensor("residual", state["residual"], pb.log_e_residual.detach())
+    tensor("level", state["level"], pb.log_e_level.detach())
+    tensor("torch_rng", state["torch_rng"], torch.get_rng_state())
+    for suffix, (opt, sched) in optimizers.items():
+        _check_optimizer(bad, "optimizer" + suffix, state["optimizer" + suffix], opt, sched, it, tensor)
+        _check_scheduler(bad, "scheduler" + suffix, state["scheduler" + suffix], sched, it)
+
+    # the histories hold one loss per iteration run so far (and one level per fold)
+    vi, mi = s.velocity_iters, s.material_iters
+    lengths = {"velocity": rnd * vi + (it if stage == "velocity" else vi),
+               "material": rnd * mi + (it if stage == "material" else 0)}
+    folds = rnd + (stage == "material") if s.stage1_level else 0
+    if folds:
+        lengths["stage1_level"] = folds
+    losses = state["losses"]
+    if not isinstance(losses, dict) or set(losses) != set(lengths):
+        raise bad(f"its loss histories are not {', '.join(sorted(lengths))}")
+    for k, n in lengths.items():
+        tensor(f"losses.{k}", losses[k], torch.zeros(n, dtype=torch.float64))
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal values of equal types, all the way down (1 == 1.0 == True is not enough)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    return a == b
+
+
+def _scheduled_lrs(sched: Any, it: int) -> list[float]:
+    # what LambdaLR sets after `it` steps: base lr times the schedule's factor at step `it`
+    return [base * fn(it) for fn, base in zip(sched.lr_lambdas, sched.base_lrs)]
+
+
+def _check_optimizer(bad, name: str, sd: Any, opt: Any, sched: Any, it: int, tensor) -> None:
+    """An Adam/AdamW state_dict as this fit's optimiser has it after `it` iterations:
+    this fit's hyperparameters and scheduled lr, moments shaped like the parameters, at
+    most `it` steps."""
+    like = opt.state_dict()
+    if not isinstance(sd, dict) or set(sd) != {"state", "param_groups"}:
+        raise bad(f"{name} is not an optimiser state")
+    groups = sd["param_groups"]
+    if not isinstance(groups, list) or len(groups) != len(like["param_groups"]):
+        raise bad(f"{name} has other parameter groups than this fit")
+    params: dict[int, torch.Tensor] = {}
+    for g, g_like, lr, live in zip(groups, like["param_groups"], _scheduled_lrs(sched, it), opt.param_groups):
+        if not isinstance(g, dict) or g.keys() != g_like.keys():
+            raise bad(f"{name} has other parameter groups than this fit")
+        for k, v in g_like.items():
+            if not _same(g[k], lr if k == "lr" else v):
+                raise bad(f"{name}'s {k} is {g[k]!r:.40}, where this fit has {(lr if k == 'lr' else v)!r:.40}")
+        params.update(zip(g_like["params"], live["params"]))
+    if not isinstance(sd["state"], dict):
+        raise bad(f"{name} is not an optimiser state")
+    for idx, st in sd["state"].items():
+        if idx not in params:
+            raise bad(f"{name} holds a state for a parameter this fit does not have")
+        p = params[idx].detach()
+        keys = {"step", "exp_avg", "exp_avg_sq"}
+        if not isinstance(st, dict) or set(st) != keys:
+            raise bad(f"{name} holds a parameter state other than Adam's")
+        step = st["step"]
+        if not (isinstance(step, torch.Tensor) and step.dim() == 0 and step.dtype in (torch.float32, torch.float64)
+                and float(step) == int(step) and 1 <= float(step) <= it):
+            raise bad(f"{name} has a step count outside 1-{it}")
+        tensor(f"{name}.exp_avg", st["exp_avg"], p)
+        tensor(f"{name}.exp_avg_sq", st["exp_avg_sq"], p)
+        if (st["exp_avg_sq"] < 0).any():
+            raise bad(f"{name} has a negative second moment")
+
+
+def _check_scheduler(bad, name: str, sd: Any, sched: Any, it: int) -> None:
+    """A LambdaLR state_dict as this fit's schedule has it after `it` iterations."""
+    like = sched.state_dict()
+    if not isinstance(sd, dict) or sd.keys() != like.keys():
+        raise bad(f"{name} is not this fit's learning-rate schedule")
+    expect = dict(like, last_epoch=it, _step_count=it + 1, _last_lr=_scheduled_lrs(sched, it))
+    for k, v in expect.items():
+        if k in sd and not _same(sd[k], v):
+            raise bad(f"{name}'s {k} is {sd[k]!r:.40}, where this fit has {v!r:.40} at iteration {it}")
 
 
 def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt_path: Path,
                losses: dict[str, list[float]], seconds: dict[str, float], progress: ProgressFn | None) -> int:
     """One round: stage 1 (v0 per video, E frozen at its current value up to the level of
     stage1_level), then stage 2 (E, v0 frozen or refined). `ckpt`: a checkpoint of this
-    round to continue from. Adds the stages' losses and seconds; returns the stage-2 steps
-    skipped for a non-finite gradient."""
-    from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer
-
+    round to continue from (checked by _check_checkpoint). Adds the stages' losses and
+    seconds; returns the stage-2 steps skipped for a non-finite gradient."""
     tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
     # ---- stage 1: initial velocity per video, E's field frozen (its level fitted with stage1_level)
     t0 = time.perf_counter()
     start = 0
-    opt, sched = make_optimizer(list(pb.velocities), s.lr_velocity, max(s.velocity_iters, 1),
-                                warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
-    opt_l = sched_l = None
-    if s.stage1_level:
-        opt_l, sched_l = make_tensor_optimizer(pb.log_e_level, s.lr_level, max(s.velocity_iters, 1),
-                                               warmup_steps=min(s.warmup, max(s.velocity_iters, 1)))
+    optimizers = _stage_optimizers(pb, s, "velocity")
+    opt, sched = optimizers[""]
+    opt_l, sched_l = optimizers.get("_l", (None, None))
     if ckpt is not None:
         if ckpt["stage"] == "velocity":
-            opt.load_state_dict(ckpt["optimizer"])
-            sched.load_state_dict(ckpt["scheduler"])
-            if opt_l is not None and "optimizer_l" in ckpt:
-                opt_l.load_state_dict(ckpt["optimizer_l"])
-                sched_l.load_state_dict(ckpt["scheduler_l"])
+            for suffix, (o, sc) in optimizers.items():
+                o.load_state_dict(ckpt["optimizer" + suffix])
+                sc.load_state_dict(ckpt["scheduler" + suffix])
             start = ckpt["iteration"]
         else:
             start = s.velocity_iters
@@ -572,8 +743,7 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
         if progress:
             progress("velocity" + tag, it + 1, s.velocity_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
-            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, opt, sched, losses, rnd=rnd,
-                             opt_l=opt_l, sched_l=sched_l)
+            _save_checkpoint(ckpt_path, pb, "velocity", it + 1, optimizers, losses, rnd=rnd)
     if s.stage1_level and (ckpt is None or ckpt["stage"] == "velocity"):
         losses.setdefault("stage1_level", []).append(fold_level(pb))
     seconds["velocity"] = seconds.get("velocity", 0.0) + time.perf_counter() - t0
@@ -582,33 +752,20 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
     t0 = time.perf_counter()
     with torch.no_grad():
         v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
-    opt, sched = make_optimizer(pb.material, s.lr_material, max(s.material_iters, 1),
-                                warmup_steps=min(s.warmup, max(s.material_iters, 1)))
-    opt_r = sched_r = None
-    if s.driver_residual:
-        opt_r, sched_r = make_tensor_optimizer(pb.log_e_residual, s.lr_residual, max(s.material_iters, 1),
-                                               warmup_steps=min(s.warmup, max(s.material_iters, 1)),
-                                               eps=s.residual_eps)
-    opt_v = sched_v = None
-    if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
-        opt_v, sched_v = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor,
-                                        max(s.material_iters, 1), warmup_steps=min(s.warmup, max(s.material_iters, 1)))
+    optimizers = _stage_optimizers(pb, s, "material")
+    opt, sched = optimizers[""]
+    opt_r, sched_r = optimizers.get("_r", (None, None))
+    opt_v, sched_v = optimizers.get("_v", (None, None))
     start = 0
     if ckpt is not None and ckpt["stage"] == "material":
-        opt.load_state_dict(ckpt["optimizer"])
-        sched.load_state_dict(ckpt["scheduler"])
-        if opt_v is not None and "optimizer_v" in ckpt:
-            opt_v.load_state_dict(ckpt["optimizer_v"])
-            sched_v.load_state_dict(ckpt["scheduler_v"])
-        if opt_r is not None and "optimizer_r" in ckpt:
-            opt_r.load_state_dict(ckpt["optimizer_r"])
-            sched_r.load_state_dict(ckpt["scheduler_r"])
+        for suffix, (o, sc) in optimizers.items():
+            o.load_state_dict(ckpt["optimizer" + suffix])
+            sc.load_state_dict(ckpt["scheduler" + suffix])
         start = ckpt["iteration"]
     skipped = 0
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
-            _save_checkpoint(ckpt_path, pb, "material", 0, opt, sched, losses, opt_v, sched_v, opt_r, sched_r,
-                             rnd=rnd)
+            _save_checkpoint(ckpt_path, pb, "material", 0, optimizers, losses, rnd=rnd)
         horizon = None if it >= s.material_iters - s.polish_iters else s.material_horizon
         loss = material_iteration(pb, None if s.refine_velocity else v0s, horizon)
         if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
@@ -623,10 +780,171 @@ def _fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, ckpt
         if progress:
             progress("material" + tag, it + 1, s.material_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            _save_checkpoint(ckpt_path, pb, "material", it + 1, opt, sched, losses, opt_v, sched_v, opt_r, sched_r,
-                             rnd=rnd)
+            _save_checkpoint(ckpt_path, pb, "material", it + 1, optimizers, losses, rnd=rnd)
     seconds["material"] = seconds.get("material", 0.0) + time.perf_counter() - t0
     return skipped
+
+
+class FitLearnsNothing(PdToolError):
+    """The fit's inputs cannot move its loss: nothing to see, nothing free to move, no motion."""
+
+
+# Thresholds of the "learns nothing" checks. Frames and masks are read from 8-bit files, so
+# half a level (0.5/255) is the finest difference they hold: a rendered change below it is
+# not in the data.
+_PIXEL_LEVEL = 0.5 / 255
+# A reference video "shows no motion" when no pixel of any frame differs from frame 0 by more
+# than this. Image frames are each stored on their own, so a still scene repeats frame 0 to
+# within 8-bit rounding. A video file's codec adds noise to a still scene: libx264 on a
+# still 256-px plant reached 3/255 at crf 18, 9/255 at crf 23 and 22/255 at crf 35. A swaying
+# plant changes its edge pixels by far more: 60-200/255 in the tests' 24-32 px videos, over
+# 200/255 at 256 px, in PNG frames and in mp4 at every crf tried.
+_STILL_FRAMES = 4.0 / 255
+_STILL_VIDEO_FILE = 32.0 / 255
+# A video whose masks hold less than one whole pixel of weight over every compared frame
+# leaves the loss nothing to compare (frame_loss gives 0 for an empty mask).
+_MIN_MASK_PIXELS = 1.0
+# After the fit: a loss history "did not move" when its spread is within this fraction of its
+# size. Adam moves every parameter with a non-zero gradient by about its lr, which changes the
+# loss by far more; a loss the parameters cannot reach stays the same bit for bit.
+_FLAT_LOSS = 1e-6
+
+
+def check_videos_can_teach(videos: list) -> None:
+    """Refuse (FitLearnsNothing, one line) a reference video the fit cannot learn from,
+    before any simulation: every mask of the compared frames (1 on) black, or no motion
+    (no pixel, inside the masks, changes from frame 0 by more than a few 8-bit levels)."""
+    for v in videos:
+        frames = v.frames[1:]
+        weight = None
+        if v.masks is not None:
+            weight = v.masks[1:]
+            total = float(weight.sum())
+            if total < _MIN_MASK_PIXELS:
+                raise FitLearnsNothing(
+                    f"{v.folder / 'masks'}: every mask of frames 1-{v.num_frames - 1} is black (no pixel marks "
+                    f"the object), so the fit has nothing to compare; paint the object white in the masks, or "
+                    f"remove masks/ to fit on whole frames")
+        largest = 0.0
+        for k in range(len(frames)):  # a frame at a time: no second copy of the whole video
+            change = (frames[k] - v.frames[0]).abs().amax(dim=-1)  # [H, W], the largest channel change
+            if weight is not None:
+                change = change * (weight[k] > 0)
+            largest = max(largest, float(change.max()))
+        from pd_tool.fit.video import VIDEO_EXTS
+
+        source = v.frame_paths[0] if len(v.frame_paths) == 1 and v.frame_paths[0].suffix.lower() in VIDEO_EXTS \
+            else v.folder
+        if largest <= (_STILL_VIDEO_FILE if source != v.folder else _STILL_FRAMES):
+            where = " inside the masks" if weight is not None else ""
+            raise FitLearnsNothing(
+                f"{source}: no frame differs from frame 0 by more than {largest * 255:.1f}/255{where}, so the "
+                f"video shows no motion to fit; pass a video of the object moving (frame 0 at rest)")
+
+
+@torch.no_grad()
+def check_fit_can_learn(pb: FitProblem) -> None:
+    """Refuse (FitLearnsNothing, one line) a fit whose simulation cannot change what its
+    videos compare, before any simulation: every particle static (bake refuses the same
+    scene: nothing can move), or, per video, the moving Gaussians out of the camera's view
+    (all behind it, or all outside the image) or changing no pixel of the rest frame inside
+    the masks (hidden, masked out, transparent)."""
+    if not (~pb.static).any():
+        o = pb.prep.options
+        region = " and ".join(f"--{k.replace('_', '-')} {getattr(o, k)}" for k in ("static_below", "static_box")
+                              if getattr(o, k) is not None)
+        raise FitLearnsNothing(f"every particle is static ({region or 'the static region'} pins all "
+                               f"{len(pb.prep.static):,}), so nothing can move; shrink the static region "
+                               f"(--static-below / --static-box)")
+    p = pb.prep
+    fg = torch.as_tensor(p.foreground, dtype=torch.long, device=pb.scene.positions.device)
+    moving = fg[torch.as_tensor(~p.static[: len(p.foreground)], device=fg.device)]
+    sc = pb.scene
+    for v in pb.videos:
+        cam = v.camera
+        near = 0.01  # the rasteriser's near plane (pd_tool.render.render), world units
+        with np.errstate(divide="ignore", invalid="ignore"):  # a centre on the camera's plane: u, v infinite
+            uvz = torch.as_tensor(cam.project(sc.positions[moving].detach().double().cpu().numpy()))
+        front = uvz[:, 2] > near
+        # a Gaussian reaches 3 sigma past its centre on screen
+        reach = 3.0 * sc.scales[moving].detach().double().cpu().amax(dim=1) * max(cam.fx, cam.fy) / uvz[:, 2].clamp_min(near)
+        inside = front & (uvz[:, 0] + reach >= 0) & (uvz[:, 0] - reach <= cam.width) \
+            & (uvz[:, 1] + reach >= 0) & (uvz[:, 1] - reach <= cam.height)
+        what = f"{v.folder}: the moving part of the scene ({len(moving):,} Gaussians)"
+        fix = (f"so the fit cannot see it move; use the camera frame 0 was seen with ({v.camera_path}), "
+               f"or check the static region")
+        if not front.any():
+            raise FitLearnsNothing(f"{what} is behind the camera, {fix}")
+        if not inside.any():
+            raise FitLearnsNothing(f"{what} lies outside the camera's {cam.width}x{cam.height} image, {fix}")
+        from pd_tool.render import render
+
+        shown = render(sc.positions, sc.quats, sc.scales, sc.opacities, sc.sh, cam, background=pb.s.background).rgb
+        opacity = sc.opacities.clone()
+        opacity[moving] = 0.0
+        hidden = render(sc.positions, sc.quats, sc.scales, opacity, sc.sh, cam, background=pb.s.background).rgb
+        change = (shown - hidden).abs().amax(dim=-1)  # [H, W]
+        if v.masks is not None:
+            # SSIM compares 11-px windows (pd_tool.fit.losses), so a change up to 5 px outside
+            # a mask still reaches the loss
+            seen = (v.masks[1:] > 0).any(dim=0).float()[None, None]
+            seen = torch.nn.functional.max_pool2d(seen, 11, stride=1, padding=5)[0, 0] > 0
+            change = change * seen.to(change.device)
+        if float(change.max()) <= _PIXEL_LEVEL:
+            masked = " inside the masks" if v.masks is not None else ""
+            raise FitLearnsNothing(f"{what} changes no pixel of the rest frame{masked} (hidden, masked out or "
+                                   f"transparent), {fix}")
+
+
+def _check_learned(ckpt_path: Path, losses: dict[str, list[float]]) -> None:
+    """After the fit, before anything is written: refuse (FitLearnsNothing) when every loss
+    history of two or more iterations stayed flat, i.e. the videos gave the fit no gradient
+    (E may still have moved, under the smoothness terms alone). The checkpoint, pdtool's
+    own, goes too: nothing is left."""
+    judged = {k: [x for x in losses[k] if math.isfinite(x)] for k in ("velocity", "material", "calibrate")
+              if len(losses.get(k, [])) >= 2}
+    if not judged:
+        return  # one iteration per stage: a loss cannot be seen to move or not
+    for h in judged.values():
+        if len(h) >= 2 and max(h) - min(h) > _FLAT_LOSS * max(abs(x) for x in h):
+            return
+    _remove_own_checkpoint(ckpt_path)
+    k, h = max(judged.items(), key=lambda kv: len(losses[kv[0]]))
+    at = f"stayed at {h[0]:.6g}" if h else "was NaN"
+    raise FitLearnsNothing(
+        f"the fit learned nothing: its {k} loss {at} over {len(losses[k])} iterations, so the videos do not "
+        f"constrain the moving part (out of view, masked out or still); nothing was written; check the camera, "
+        f"masks/ and the static region")
+
+
+def _check_destination(out: Path, ckpt_path: Path) -> None:
+    """Before any work: the checkpoint's path holds nothing but a pdtool checkpoint (a fit
+    replaces and deletes that file, so it must be pdtool's own), and out's folder, when it
+    exists, takes new files (a read-only folder is found now, not at the first checkpoint)."""
+    import os
+    import tempfile
+
+    from pd_tool.fit.checkpoint import CheckpointError, is_pdtool_checkpoint
+
+    if ckpt_path.exists() or ckpt_path.is_symlink():
+        ours, what = is_pdtool_checkpoint(ckpt_path)
+        if not ours:
+            raise _foreign_checkpoint(ckpt_path, what)
+    if out.parent.is_dir():
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part.probe", dir=out.parent)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as e:
+            raise CheckpointError(f"cannot write in {out.parent} (for {out.name} and its checkpoint): "
+                                  f"{e.strerror or type(e).__name__}; choose a writable folder for --out") from None
+
+
+def _remove_own_checkpoint(path: Path) -> None:
+    from pd_tool.fit.checkpoint import is_pdtool_checkpoint
+
+    if is_pdtool_checkpoint(path)[0]:
+        path.unlink()
 
 
 def run_fit(
@@ -648,25 +966,36 @@ def run_fit(
     s = (settings or FitSettings()).resolved()
     out = Path(out)
     ckpt_path = out.with_name(out.name + ".ckpt")
-    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)
+    if s.velocity_iters + s.material_iters + s.calibrate_iters == 0:
+        raise FitLearnsNothing("--velocity-iters 0 and --material-iters 0 leave nothing to fit (the material file "
+                               "would hold the starting E); give at least one iteration")
+    _check_destination(out, ckpt_path)
+    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
+    check_videos_can_teach(videos)
+    check_fit_can_learn(pb)
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
     seconds: dict[str, float] = {}
     pb.resume_key = _resume_key(pb, scene_path)
-    ckpt = _load_checkpoint(ckpt_path) if resume else None
+    ckpt = _load_checkpoint(ckpt_path, pb, s) if resume else None
     if ckpt is not None:
-        _check_resume_key(ckpt_path, ckpt, pb.resume_key)
+        # _check_checkpoint matched every tensor's shape and dtype to this fit's, so these loads
+        # cannot fail on the data; torch may still refuse an RNG state it cannot use
         pb.material.load_state_dict(ckpt["material"])
         pb.velocities.load_state_dict(ckpt["velocities"])
         losses = ckpt["losses"]
-        torch.set_rng_state(ckpt["torch_rng"])
+        try:
+            torch.set_rng_state(ckpt["torch_rng"])
+        except (RuntimeError, ValueError, TypeError):
+            from pd_tool.fit.checkpoint import CheckpointError
+
+            raise CheckpointError(f"{ckpt_path}: its random-number state is not one torch accepts; "
+                                  f"{_RESUME_FIX}") from None
         with torch.no_grad():
-            if "residual" in ckpt:
-                pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
-            if "level" in ckpt:
-                pb.log_e_level.copy_(ckpt["level"].to(pb.device))
+            pb.log_e_residual.copy_(ckpt["residual"].to(pb.device))
+            pb.log_e_level.copy_(ckpt["level"].to(pb.device))
 
     skipped = 0
-    resume_round = int(ckpt.get("round", 0)) if ckpt is not None else 0
+    resume_round = ckpt["round"] if ckpt is not None else 0
     for rnd in range(s.rounds):
         if rnd < resume_round:
             continue
@@ -689,6 +1018,7 @@ def run_fit(
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
+    _check_learned(ckpt_path, losses)
     p = pb.prep
     labels = pb.drivers.labels.cpu().numpy()[: p.count]  # the Gaussians' drivers (filled particles follow)
     meta: dict[str, Any] = {
@@ -722,8 +1052,7 @@ def run_fit(
     mf = MaterialFile(driver_E=driver_E, driver_v0=v0_mean,
                       driver_rest=p.transform.to_scene(pb.x_rest.double().cpu().numpy()), meta=meta, fields=fields)
     mf.save(out)
-    if ckpt_path.exists():
-        ckpt_path.unlink()
+    _remove_own_checkpoint(ckpt_path)
     return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
                      gaussian_E=driver_E[labels], losses=losses,
                      seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped,
