@@ -512,6 +512,12 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
         raise output_error(shown, code)
     tmp: Path | None = None
     old: Path | None = None
+    made: list[Path] = []  # folders created for this output, removed again if it fails
+    p = Path(os.path.abspath(path.parent))
+    while path_kind(p) is None and p != p.parent:
+        made.append(p)
+        p = p.parent
+    done = False
     try:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -555,6 +561,7 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
             raise
         except OSError as e:
             raise output_error(shown, e) from None
+        done = True
     finally:
         if tmp is not None and path_kind(tmp) is not None:
             with contextlib.suppress(OSError):
@@ -564,4 +571,10 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
                     tmp.unlink()
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+        if not done:
+            for folder in made:  # deepest first; only while empty
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
 

@@ -147,7 +147,7 @@ class UsdBakeWriter:
         try:
             self._setup_stage(stage, up_axis, meters_per_unit, colors, opacities, sh, ids,
                               scale_factor, color_points)
-            self._layer.Save()
+            self._save()
         except BaseException:
             del stage
             self._layer = None
@@ -411,8 +411,9 @@ def _write_error(path: Path, e: Exception | None, temporaries: tuple[Path, ...] 
     text = _pxr_message(e) if e is not None else ""
     for tmp in temporaries:
         text = text.replace(str(tmp), str(path))
+    everything = " ".join(str(e).split()) if e is not None else ""  # pxr's chain: the OS error may come first
     for code in _OS_ERRNOS:
-        if os.strerror(code) in text:
+        if os.strerror(code) in everything:
             return _atomic.output_error(path, code)
     problem = _atomic.destination_problem(path)
     if problem is not None:
