@@ -9,9 +9,11 @@ not power loss.
 Ownership: pdtool replaces only what it wrote itself.
 - A folder it writes (frames, generated videos, the Blender add-on) carries a manifest,
   `.pdtool-output.json`, listing every entry and each file's size. An existing folder is
-  replaced only when it is empty, or when everything in it is listed in its manifest at
-  the listed size; one foreign or changed file and the run refuses, deleting nothing.
-  The current folder and the folders that hold it are never replaced.
+  replaced only when it is empty, or when every file in it is listed in its manifest at
+  the listed size or carries pdtool's mark (below: e.g. a frame and camera.json that
+  `pdtool render` wrote there); one foreign or changed file, or an empty folder pdtool
+  did not make, and the run refuses, deleting nothing. The current folder and the
+  folders that hold it are never replaced.
 - A file it writes beside another output without being asked by name (a fit's report,
   plots, E field, preview; the fit record; camera.json in a named folder) carries a mark:
   PNG tEXt `Software=pdtool`, a PLY header comment, a JSON key `written_by`, the mp4/gif
@@ -349,7 +351,8 @@ def _foreign_entry(folder: Path, known: frozenset[str]) -> str | None:
                 r = rel / d
                 if (Path(root) / d).is_symlink():
                     return r.as_posix()
-                if r.as_posix() not in folders and r.as_posix() not in known_dirs and not _is_cache(r):
+                unlisted = r.as_posix() not in folders and r.as_posix() not in known_dirs and not _is_cache(r)
+                if unlisted and not any(os.scandir(Path(root) / d)):  # else its entries decide
                     return r.as_posix() + "/"
             for n in names:
                 r = rel / n
@@ -359,7 +362,9 @@ def _foreign_entry(folder: Path, known: frozenset[str]) -> str | None:
                 if _is_cache(r) or key in known:
                     continue
                 p = Path(root) / n
-                if p.is_symlink() or files.get(key) != p.stat().st_size:
+                if p.is_symlink():
+                    return key
+                if files.get(key) != p.stat().st_size and not is_own_file(p):
                     return key
     except OSError as e:
         return f"an unreadable entry ({os.strerror(e.errno) if e.errno else e})"
@@ -378,8 +383,9 @@ def _real(p: str | Path) -> Path:
 def check_replaceable_folder(path: str | Path, what: str | None = None, *, known: Iterable[str] = ()) -> None:
     """Refuse (OutputError) when writing the folder `path` would delete something pdtool
     did not write: `path` is a file or a link, the current folder or one that holds it,
-    or a folder with an entry that its manifest does not list (at the listed size).
-    Missing and empty folders pass. `known`: relative paths that count as pdtool's even
+    or a folder holding a file that its manifest does not list (at the listed size) and
+    that carries no pdtool mark, a link, or an empty folder of someone else's. Missing
+    and empty folders pass. `known`: relative paths that count as pdtool's even
     without a manifest (the add-on's own files). `what`: the option, for the message."""
     path = Path(path)
     label = _label(what, path)

@@ -143,6 +143,20 @@ def test_empty_and_missing_folders_are_fine_links_files_and_the_current_folder_a
             check_replaceable_folder(p)
 
 
+def test_a_folder_of_files_pdtool_marked_counts_as_pdtools(tmp_path: Path) -> None:
+    """`render -o video/frame_0000.png --write-camera video/` leaves marked files, no manifest."""
+    from pd_tool.cameras import auto_camera, save_camera_json
+    from pd_tool.preview import save_png
+
+    video = tmp_path / "video"
+    save_png(video / "frame_0000.png", np.zeros((8, 8, 3), np.uint8))
+    save_camera_json(video / "camera.json", auto_camera(_scene().positions.numpy(), 8, 8))
+    check_replaceable_folder(video)
+    (video / "frame_0001.png").write_bytes(b"\x89PNG\r\n\x1a\n drawn elsewhere")
+    with pytest.raises(OutputError, match="frame_0001.png"):
+        check_replaceable_folder(video)
+
+
 def test_known_files_and_python_caches_count_as_pdtools(tmp_path: Path) -> None:
     old = tmp_path / "addon"
     (old / "__pycache__").mkdir(parents=True)
@@ -482,6 +496,18 @@ def test_cli_frames_out_replaces_its_own_folder(plant: Path, tmp_path: Path) -> 
     names = sorted(p.name for p in (tmp_path / "frames").iterdir())
     assert names == [MANIFEST, "camera.json", "frame_0000.png", "frame_0001.png", "frame_0002.png"]
     assert _leftovers(tmp_path) == []
+
+
+def test_cli_frames_out_replaces_the_render_it_started_from(plant: Path, tmp_path: Path) -> None:
+    """docs/tutorial.md's stand-in for a video model: render I_0 and its camera into video/,
+    then bake frames from that camera over the same folder."""
+    res = _cli(["render", plant, "--width", "32", "--height", "32", "-o", "video/frame_0000.png",
+                "--write-camera", "video/"], tmp_path)
+    assert res.exit_code == 0, res.output
+    res = _cli(["bake", "--scene", plant, *BAKE, "--camera", "video/camera.json", "--frames-out", "video/",
+                "out.usd"], tmp_path)
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "video" / "frame_0002.png").is_file() and (tmp_path / "video" / MANIFEST).is_file()
 
 
 def test_cli_long_output_name_is_one_line(plant: Path, tmp_path: Path) -> None:
