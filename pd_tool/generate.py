@@ -215,6 +215,8 @@ def check_output(out: str | Path, overwrite: bool, inputs: dict[str, str | Path 
     try:
         check_replaceable_folder(out, "-o")
     except PdToolError as e:
+        if "pdtool did not write" not in str(e):
+            raise
         raise GenerateError(f"{e}; --overwrite replaces only folders that pdtool generate wrote") from None
     check_destination(out, "-o", folder=True)
 
