@@ -75,8 +75,13 @@ class _Mp4Encoder:
             self._err += chunk
             del self._err[:-_STDERR_KEEP]
 
-    def _failure(self) -> _EncoderFailed:
+    def _reap(self) -> None:
+        """ffmpeg has exited: collect its error output and close the pipe."""
         self._reader.join(timeout=5)
+        self._p.stderr.close()
+
+    def _failure(self) -> _EncoderFailed:
+        self._reap()
         lines = [ln.strip() for ln in self._err.decode("utf-8", "replace").splitlines() if ln.strip()]
         return _EncoderFailed(lines[-1][:200] if lines else f"ffmpeg exited with status {self._p.returncode}")
 
@@ -98,7 +103,7 @@ class _Mp4Encoder:
         self._p.wait()
         if self._p.returncode != 0:
             raise self._failure()
-        self._reader.join(timeout=5)
+        self._reap()
 
     def abort(self) -> None:
         if self._p.poll() is None:
@@ -110,7 +115,7 @@ class _Mp4Encoder:
             pass
         self._p.stdin = None
         self._p.wait()
-        self._reader.join(timeout=5)
+        self._reap()
 
 
 def _as_frame(frame: np.ndarray, index: int, shape: tuple[int, ...] | None) -> np.ndarray:
