@@ -416,6 +416,40 @@ def test_generate_overwrites_only_folders_it_made(tmp_path: Path, monkeypatch) -
     assert not (tmp_path / "second").exists() and _leftovers(tmp_path) == []
 
 
+def test_bake_refuses_before_preparing_or_writing_anything(plant: Path, tmp_path: Path, monkeypatch) -> None:
+    import pd_tool.bake as bake_mod
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.io import load_splats
+    from pd_tool.presets import Material
+
+    def no_work(*a, **k):
+        raise AssertionError("the scene was prepared before the outputs were checked")
+
+    monkeypatch.setattr(bake_mod, "prepare_scene", no_work)
+    scene = load_splats(plant)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    (tmp_path / "fits").mkdir()
+    (tmp_path / "fits" / "m.pdmat").write_text("x")
+    run = dict(force=ForceSpec(accel=(0.0, 0.0, 1.0)), material=Material.from_preset("flower"),
+               settings=BakeSettings(seconds=0.1, quality="draft"))
+    cases = [
+        (dict(frames_dir=tmp_path / "mine"), "notes.txt"),
+        (dict(frames_dir=tmp_path / "fits", inputs={"--material": tmp_path / "fits" / "m.pdmat"}),
+         "holds the input --material"),
+        (dict(frames_dir=plant.parent), "holds the input --scene"),
+        (dict(preview=tmp_path / "o.usd"), "must end in .mp4 or .gif"),
+        (dict(frames_dir=tmp_path / "o.usd" / ".."), "holds OUT"),
+    ]
+    for extra, words in cases:
+        with pytest.raises(PdToolError, match=words):
+            bake(scene, tmp_path / "o.usd", **run, **extra)
+    (tmp_path / "dir.usd").mkdir()
+    with pytest.raises(PdToolError, match="OUT .*dir.usd: is a folder"):
+        bake(scene, tmp_path / "dir.usd", **run)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.usd", "fits", "mine"] and _leftovers(tmp_path) == []
+
+
 # ----------------------------------------------------------------------------- names
 
 
