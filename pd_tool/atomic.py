@@ -416,8 +416,7 @@ def check_outputs(files: Mapping[str, str | Path | None], folders: Mapping[str, 
     fs = {k: _real(v) for k, v in files.items() if v is not None}
     ds = {k: _real(v) for k, v in folders.items() if v is not None}
     ins = {k: _real(v) for k, v in inputs.items() if v is not None}
-    shown = {**{k: v for k, v in inputs.items() if v is not None}, **{k: v for k, v in folders.items() if v is not None},
-             **{k: v for k, v in files.items() if v is not None}}
+    shown = {k: v for group in (inputs, folders, files) for k, v in group.items() if v is not None}
     outs = {**fs, **ds}
     names = list(outs)
     for i, a in enumerate(names):

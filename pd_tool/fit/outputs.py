@@ -122,8 +122,8 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
     e_scene, e_range = e_field_scene(scene, result.prep.foreground, result.gaussian_E)
     paths["e_field_ply"] = save_ply(e_scene, planned["e_field_ply"][0], own_only=True, what=planned["e_field_ply"][1])
     cam = videos[0].camera
-    paths["e_field_png"] = save_png(planned["e_field_png"][0], render_image(e_scene, cam, background=settings.background),
-                                    own_only=True, what=planned["e_field_png"][1])
+    picture = render_image(e_scene, cam, background=settings.background)
+    paths["e_field_png"] = save_png(planned["e_field_png"][0], picture, own_only=True, what=planned["e_field_png"][1])
     if preview:
         v0 = np.asarray(result.driver_v0, np.float64)
         sim = simulate_reference(scene, result.prep, result.drivers, result.driver_E, v0, cam,
