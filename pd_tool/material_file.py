@@ -285,14 +285,17 @@ _RECORD_FIX = "move it away, or fit in another folder"
 
 def check_record(workdir: str | Path = ".") -> None:
     """Refuse (OutputError), before a fit runs, a fit record that cannot be written in
-    `workdir`: .pdtool is a file, or .pdtool/last-fit.json is not a record pdtool wrote
+    `workdir`: .pdtool is a file or a link, or .pdtool/last-fit.json is not a record pdtool wrote
     (nobody named it, so it never replaces someone else's file), or the folder is not
     writable."""
-    from pd_tool.atomic import check_destination, check_own_file
+    from pd_tool.atomic import check_destination, check_own_file, path_kind
     from pd_tool.errors import OutputError
 
     path = Path(workdir) / RECORD_PATH
-    if path.parent.exists() and not path.parent.is_dir():
+    kind = path_kind(path.parent)
+    if kind == "link":  # a project folder from elsewhere must not steer where pdtool writes
+        raise OutputError(f"cannot write {path}: {path.parent} is a symbolic link; {_RECORD_FIX}", path=path)
+    if kind not in (None, "dir"):
         raise OutputError(f"cannot write {path}: {path.parent} is a file, not a folder; {_RECORD_FIX}", path=path)
     check_own_file(path, "the record of the latest fit", _RECORD_FIX)
     check_destination(path)

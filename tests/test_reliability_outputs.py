@@ -310,6 +310,11 @@ def test_fit_record_replaces_only_a_pdtool_record(tmp_path: Path) -> None:
     (other / ".pdtool").write_text("a file")
     with pytest.raises(OutputError, match=r"\.pdtool is a file"):
         write_record(tmp_path / "s.ply", tmp_path / "m.pdmat", other)
+    (other / ".pdtool").unlink()
+    (other / ".pdtool").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    with pytest.raises(OutputError, match=r"\.pdtool is a symbolic link"):
+        write_record(tmp_path / "s.ply", tmp_path / "m.pdmat", other)
+    assert not (tmp_path / "elsewhere").exists()
 
 
 def test_camera_json_in_a_named_folder_replaces_only_pdtools(tmp_path: Path) -> None:
