@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -40,44 +39,55 @@ def _files(src: Path) -> list[Path]:
                   and p.suffix not in (".pyc", ".pyo"))
 
 
+def _inside(a: Path, b: Path) -> bool:
+    """Whether a lies in b or b in a (resolved paths)."""
+    a, b = Path(os.path.realpath(a)), Path(os.path.realpath(b))
+    return a == b or b in a.parents or a in b.parents
+
+
 def install_addon(dest_dir: str | Path) -> Path:
     """Copy the add-on into `dest_dir`/pdtool_blender, replacing an older copy.
 
     Returns the installed folder. The copy is made beside the target and renamed into
-    place, so a failed copy leaves the old add-on as it was.
+    place, so a failed copy leaves the old add-on as it was. An existing pdtool_blender
+    folder is replaced only when pdtool put it there (its manifest, or nothing but the
+    add-on's own files and Python's caches); anything else there is refused
+    (OutputError), as is a target inside pdtool's own copy of the add-on.
     """
+    from pd_tool.atomic import atomic_output, check_destination, path_kind
+
     dest_dir = Path(dest_dir)
-    if dest_dir.exists() and not dest_dir.is_dir():
+    if path_kind(dest_dir) in ("file", "other") or (path_kind(dest_dir) == "link" and not os.path.isdir(dest_dir)):
         raise AddonPackageError(f"--install-to {dest_dir} is a file; give a folder (e.g. Blender's scripts/addons)")
     src = addon_source()
-    dest_dir.mkdir(parents=True, exist_ok=True)
     target = dest_dir / ADDON_NAME
-    tmp = Path(tempfile.mkdtemp(prefix=f".{ADDON_NAME}-", dir=dest_dir))
-    try:
-        shutil.copytree(src, tmp / ADDON_NAME, ignore=shutil.ignore_patterns(*_SKIP))
-        if target.exists():
-            shutil.rmtree(target)
-        os.replace(tmp / ADDON_NAME, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    if _inside(target, src):
+        raise AddonPackageError(f"--install-to {dest_dir}: {target} is pdtool's own copy of the add-on; give "
+                                f"Blender's scripts/addons folder")
+    check_destination(target, "--install-to", folder=True)
+    # a copy installed before folders carried a manifest (or by Blender's own installer)
+    # holds only these files
+    shipped = [p.relative_to(src).as_posix() for p in _files(src)]
+    with atomic_output(target, directory=True, what="--install-to", known=shipped) as tmp:
+        shutil.copytree(src, tmp, ignore=shutil.ignore_patterns(*_SKIP), dirs_exist_ok=True)
     return target
 
 
 def zip_addon(out: str | Path) -> Path:
-    """Write the add-on as a zip (top folder pdtool_blender/) to `out`; returns `out`."""
+    """Write the add-on as a zip (top folder pdtool_blender/) to `out`; returns `out`.
+    Raises OutputError when it cannot be written."""
+    from pd_tool.atomic import atomic_output, check_destination
+
     out = Path(out)
     if out.suffix.lower() != ".zip":
         raise AddonPackageError(f"--zip {out}: the file name must end in .zip")
     src = addon_source()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}-", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    try:
-        with zipfile.ZipFile(tmp_name, "w", zipfile.ZIP_DEFLATED) as zf:
-            for p in _files(src):
+    if _inside(out, src):
+        raise AddonPackageError(f"--zip {out}: lies inside the add-on it packs ({src}); write it elsewhere")
+    check_destination(out, "--zip")
+    files = _files(src)
+    with atomic_output(out, what="--zip") as tmp:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
+            for p in files:
                 zf.write(p, f"{ADDON_NAME}/{p.relative_to(src).as_posix()}")
-        os.replace(tmp_name, out)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
     return out

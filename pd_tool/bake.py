@@ -7,10 +7,11 @@ simulation, no new samples), see REST_*.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -148,6 +149,40 @@ def _usd_frame(prep: PreparedScene) -> tuple[np.ndarray, str]:
     return up_rotation(up), "Z"
 
 
+def check_bake_outputs(
+    out: str | Path,
+    *,
+    preview: str | Path | None = None,
+    frames_dir: str | Path | None = None,
+    inputs: Mapping[str, str | Path | None] | None = None,
+) -> None:
+    """Refuse, before any work, a bake whose outputs cannot be written or would destroy
+    something: OUT, --preview and --frames-out with names the file system takes, in
+    writable folders; --frames-out a new, empty or pdtool-made folder that holds neither
+    another output, an input nor the current folder; no output that is an input.
+    inputs: {option: path} of the files the bake reads (--scene, --material, --camera).
+    Raises OutputError / PreviewError / UsdExportError (one line each)."""
+    from pd_tool.atomic import check_destination, check_outputs, check_replaceable_folder
+    from pd_tool.errors import UsdExportError
+    from pd_tool.preview import PREVIEW_SUFFIXES, PreviewError
+    from usd_export.writer import SUFFIXES
+
+    out = Path(out)
+    if out.suffix.lower() not in SUFFIXES:
+        raise UsdExportError(f"{out}: output must end in {', '.join(SUFFIXES)}")
+    if preview is not None and Path(preview).suffix.lower() not in PREVIEW_SUFFIXES:
+        raise PreviewError(f"--preview {preview}: must end in .mp4 or .gif, not '{Path(preview).suffix}'")
+    check_outputs({"OUT": out, "--preview": preview}, {"--frames-out": frames_dir}, inputs or {})
+    check_destination(out, "OUT")
+    if not os.path.isdir(out.parent):
+        raise UsdExportError(f"{out}: folder {out.parent} does not exist; create it or choose another output path")
+    if preview is not None:
+        check_destination(preview, "--preview")
+    if frames_dir is not None:
+        check_destination(frames_dir, "--frames-out", folder=True)
+        check_replaceable_folder(frames_dir, "--frames-out")
+
+
 def bake(
     scene: GaussianScene,
     out: str | Path,
@@ -161,6 +196,7 @@ def bake(
     preview: str | Path | None = None,
     frames_dir: str | Path | None = None,
     camera=None,
+    inputs: Mapping[str, str | Path | None] | None = None,
 ) -> BakeResult:
     """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
 
@@ -169,6 +205,9 @@ def bake(
     preview: also render the animation to this .mp4/.gif; frames_dir: also write the
     rendered frames with their camera.json as a reference-video folder (what `pdtool fit`
     reads); camera: the pd_tool.cameras.Camera for both (default: an automatic view).
+    inputs: {option: path} of the files read for this bake (the scene's own file is
+    added); outputs are checked against them and against each other before any work
+    (`check_bake_outputs`).
     """
     from pd_tool.animate import GaussianAnimator
     from pd_tool.rotations import matrix_to_quat, quat_multiply
@@ -177,6 +216,8 @@ def bake(
     from usd_export import UsdBakeWriter
 
     t_start = time.perf_counter()
+    read = {"--scene": getattr(scene, "source", None), **(inputs or {})}
+    check_bake_outputs(out, preview=preview, frames_dir=frames_dir, inputs=read)
     settings = settings or BakeSettings()
     if material is None and material_file is None:
         raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
@@ -327,7 +368,8 @@ def bake(
     if frames_dir is not None:
         from pd_tool.fit.video import write_video_folder
 
-        write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True)
+        write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True,
+                           what="--frames-out")
         result.report.append(f"frames {frames_dir}/ ({len(preview_images)} PNG + camera.json)")
     return result
 

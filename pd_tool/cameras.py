@@ -350,12 +350,15 @@ def select_view(cameras: list[Camera], view: int | str | None = None) -> Camera:
     return cameras[int(view)]
 
 
-def save_camera_json(path: str | os.PathLike, camera: Camera) -> None:
-    """Write ``camera`` as a pdtool camera.json (version 1) atomically (temp file + rename)."""
-    from pd_tool.atomic import atomic_output
+def save_camera_json(path: str | os.PathLike, camera: Camera, *, own_only: bool = True) -> None:
+    """Write ``camera`` as a pdtool camera.json (version 1) atomically (temp file + rename),
+    marked as pdtool's ("written_by"). By default it replaces only a camera file that
+    pdtool wrote: `render --write-camera DIR` names a folder, not this file, and a
+    camera.json already there may be the user's own. Raises OutputError."""
+    from pd_tool.atomic import WRITTEN_BY, atomic_output
 
-    with atomic_output(Path(path)) as tmp:
-        tmp.write_text(json.dumps(camera.to_dict(), indent=2) + "\n", encoding="utf-8")
+    with atomic_output(Path(path), own_only=own_only, what="pdtool's camera") as tmp:
+        tmp.write_text(json.dumps({"written_by": WRITTEN_BY, **camera.to_dict()}, indent=2) + "\n", encoding="utf-8")
 
 
 def look_at(eye: Iterable[float], target: Iterable[float], up: Iterable[float]) -> np.ndarray:

@@ -40,3 +40,17 @@ class VideoError(PdToolError):
 
 class UsdExportError(PdToolError):
     """USD writing or validation failed."""
+
+
+class OutputError(PdToolError, OSError):
+    """An output cannot be written (a full, read-only or missing destination, a name the
+    file system refuses), or writing it would replace something pdtool did not write.
+    Also an OSError, so code that handles failed writes keeps working. `path`: the
+    user's path that could not be written."""
+
+    def __init__(self, message: str, path=None) -> None:
+        super().__init__(message)
+        self.path = path
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""

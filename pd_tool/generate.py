@@ -204,13 +204,27 @@ def check_size(info: ModelInfo, width: int, height: int) -> None:
                             f"use e.g. --width {near(width)} --height {near(height)}")
 
 
-def check_output(out: str | Path, overwrite: bool) -> None:
-    """Refuse to replace an existing non-empty folder (or a file) unless overwrite."""
+def check_output(out: str | Path, overwrite: bool, inputs: dict[str, str | Path | None] | None = None) -> None:
+    """Refuse an output folder that cannot or must not be written: a file; an existing
+    non-empty folder without overwrite; with overwrite, a folder that pdtool did not make
+    (or that holds anything it did not write); the current folder or one that holds it
+    or an input (`inputs`: {option: path}, e.g. the scene and --model); a destination
+    that is not writable. Raises GenerateError / OutputError (one line)."""
+    from pd_tool.atomic import check_destination, check_outputs, check_replaceable_folder, path_kind
+
     out = Path(out)
-    if out.is_file():
+    if path_kind(out) in ("file", "other"):
         raise GenerateError(f"{out}: is a file; -o takes a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    check_outputs({}, {"-o": out}, inputs or {})
+    if path_kind(out) == "dir" and any(out.iterdir()) and not overwrite:
         raise GenerateError(f"{out}: already exists and is not empty; choose a new folder or pass --overwrite")
+    try:
+        check_replaceable_folder(out, "-o")
+    except PdToolError as e:
+        if "pdtool did not write" not in str(e):
+            raise
+        raise GenerateError(f"{e}; --overwrite replaces only folders that pdtool generate wrote") from None
+    check_destination(out, "-o", folder=True)
 
 
 # ----------------------------------------------------------------------------- camera and input
@@ -383,7 +397,8 @@ def generate_reference_videos(
         background: RGB 0-1 behind the Gaussians in I_0 (use the fit's --background).
         static: optional [N] bool, the Gaussians that stay still (pot, table); the camera
             motion is then measured where they are in the image, else on the whole frame.
-        overwrite: replace an existing folder.
+        overwrite: replace an existing folder that pdtool generate made (never one that
+            holds anything pdtool did not write).
         say: progress lines.
     Returns:
         GenerateResult. Raises GenerateError when every video moved the camera more than
@@ -396,7 +411,7 @@ def generate_reference_videos(
     from pd_tool.views import render_image
 
     out = Path(out)
-    check_output(out, overwrite)
+    check_output(out, overwrite, {"SCENE": getattr(scene, "source", None), "--model": model.path})
     check_size(model, camera.width, camera.height)
     image = render_image(scene, camera, background=background)
     weight = static_weight(scene, camera, static) if static is not None else None
@@ -426,7 +441,7 @@ def generate_reference_videos(
                             f"{settings.max_camera_motion:g}% of the frame (--max-camera-motion); "
                             f"try other seeds (--seed, --count) or a lower --motion-bucket; nothing written")
     sheet_path = None
-    with atomic_output(out, directory=True) as tmp:
+    with atomic_output(out, directory=True, what="-o") as tmp:
         for c in keep:
             c.folder = "." if settings.count == 1 else f"video_{c.index}"
             write_video_folder(tmp if settings.count == 1 else tmp / c.folder, c.frames, camera, settings.fps,

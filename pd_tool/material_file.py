@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import WRITTEN_BY, atomic_output
 from pd_tool.errors import MaterialFileError
 
 FORMAT = "pdtool-material"
@@ -280,13 +280,36 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
         raise MaterialFileError(f"{bad} ({type(e).__name__}); run `pdtool fit` again") from None
 
 
-def write_record(scene: str | Path, material: str | Path, workdir: str | Path = ".") -> Path:
-    """Remember the latest fit in `workdir` (absolute paths), atomically."""
+_RECORD_FIX = "move it away, or fit in another folder"
+
+
+def check_record(workdir: str | Path = ".") -> None:
+    """Refuse (OutputError), before a fit runs, a fit record that cannot be written in
+    `workdir`: .pdtool is a file or a link, or .pdtool/last-fit.json is not a record pdtool wrote
+    (nobody named it, so it never replaces someone else's file), or the folder is not
+    writable."""
+    from pd_tool.atomic import check_destination, check_own_file, path_kind
+    from pd_tool.errors import OutputError
+
     path = Path(workdir) / RECORD_PATH
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rec = {"scene": str(Path(scene).resolve()), "material": str(Path(material).resolve()),
+    kind = path_kind(path.parent)
+    if kind == "link":  # a project folder from elsewhere must not steer where pdtool writes
+        raise OutputError(f"cannot write {path}: {path.parent} is a symbolic link; {_RECORD_FIX}", path=path)
+    if kind not in (None, "dir"):
+        raise OutputError(f"cannot write {path}: {path.parent} is a file, not a folder; {_RECORD_FIX}", path=path)
+    check_own_file(path, "the record of the latest fit", _RECORD_FIX)
+    check_destination(path)
+
+
+def write_record(scene: str | Path, material: str | Path, workdir: str | Path = ".") -> Path:
+    """Remember the latest fit in `workdir` (absolute paths), atomically. It replaces only
+    a record that pdtool wrote (`check_record`); raises OutputError otherwise or when the
+    folder cannot be written."""
+    check_record(workdir)
+    path = Path(workdir) / RECORD_PATH
+    rec = {"written_by": WRITTEN_BY, "scene": str(Path(scene).resolve()), "material": str(Path(material).resolve()),
            "written": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    with atomic_output(path) as tmp:
+    with atomic_output(path, own_only=True, what="the record of the latest fit") as tmp:
         tmp.write_text(json.dumps(rec, indent=2))
     return path
 

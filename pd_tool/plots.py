@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import atomic_output, png_info
 
 _COLORS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (140, 86, 75)]
 W, H = 720, 440  # px
@@ -69,8 +69,9 @@ def _frame(draw, ax: _Axes, title: str, xlabel: str, ylabel: str) -> None:
 
 
 def line_plot(path: str | Path, series: dict[str, tuple[Sequence[float], Sequence[float]]], *, title: str,
-              xlabel: str, ylabel: str, logy: bool = False) -> Path:
-    """Write a PNG with one line per series {name: (x, y)}; atomic."""
+              xlabel: str, ylabel: str, logy: bool = False, own_only: bool = False) -> Path:
+    """Write a PNG with one line per series {name: (x, y)}; atomic, marked as pdtool's.
+    own_only: replace an existing file only when pdtool wrote it (a side output)."""
     from PIL import Image, ImageDraw
 
     xs = np.concatenate([np.asarray(x, float) for x, _ in series.values()])
@@ -91,16 +92,17 @@ def line_plot(path: str | Path, series: dict[str, tuple[Sequence[float], Sequenc
             draw.ellipse([pts[0][0] - 3, pts[0][1] - 3, pts[0][0] + 3, pts[0][1] + 3], fill=c)
         draw.text((W - R - 170, T + 8 + 14 * i), f"- {name}", fill=c)
     path = Path(path)
-    with atomic_output(path) as tmp:
-        img.save(tmp, format="PNG")
+    with atomic_output(path, own_only=own_only, what=f"the plot '{title}'") as tmp:
+        img.save(tmp, format="PNG", pnginfo=png_info())
     return path
 
 
 def scatter_plot(path: str | Path, points: Sequence[tuple[float, float, str]], *, front: Sequence[int] = (),
                  highlight: dict[int, str] | None = None, title: str, xlabel: str, ylabel: str,
-                 logx: bool = True, logy: bool = True) -> Path:
+                 logx: bool = True, logy: bool = True, own_only: bool = False) -> Path:
     """Scatter (x, y, label) points; `front` indices are joined by a line (a Pareto front);
-    `highlight` {index: name} marks and names chosen points (presets)."""
+    `highlight` {index: name} marks and names chosen points (presets). Atomic, marked as
+    pdtool's; own_only: replace an existing file only when pdtool wrote it."""
     from PIL import Image, ImageDraw
 
     xs = np.array([p[0] for p in points], float)
@@ -121,6 +123,6 @@ def scatter_plot(path: str | Path, points: Sequence[tuple[float, float, str]], *
         draw.ellipse([u - 6, v - 6, u + 6, v + 6], outline=_COLORS[2], width=2)
         draw.text((u + 8, v - 14), name, fill=_COLORS[2])
     path = Path(path)
-    with atomic_output(path) as tmp:
-        img.save(tmp, format="PNG")
+    with atomic_output(path, own_only=own_only, what=f"the plot '{title}'") as tmp:
+        img.save(tmp, format="PNG", pnginfo=png_info())
     return path

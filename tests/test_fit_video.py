@@ -46,7 +46,10 @@ def test_round_trip_frames_masks_camera(tmp_path, device):
     masks = np.zeros((T, H, W), np.uint8)
     masks[:, 5:15, 8:20] = 255
     folder = write_video_folder(tmp_path / "video", frames, _camera(), 24.0, masks=masks)
-    assert sorted(p.name for p in folder.iterdir()) == ["camera.json"] + [f"frame_{i:04d}.png" for i in range(T)] + ["masks"]
+    from pd_tool.atomic import MANIFEST
+
+    assert sorted(p.name for p in folder.iterdir()) == sorted(
+        [MANIFEST, "camera.json", "masks"] + [f"frame_{i:04d}.png" for i in range(T)])  # the manifest: pdtool's folder
     assert not [p for p in tmp_path.iterdir() if p.name != "video"]  # no temp leftovers
     dev = "cuda" if device == "cuda" else "cpu"
     v = load_reference_video(folder, working_size=None, device=dev)

@@ -1,6 +1,6 @@
 """pd_tool.atomic.atomic_output: whole or absent, hidden temporaries, usual file modes,
-folders replaced without a half-deleted moment (issue 10, item 2; the SIGKILL tests are in
-test_reliability_kill.py)."""
+folders replaced without a half-deleted moment (the SIGKILL tests are in
+test_reliability_kill.py; what pdtool may replace is in test_reliability_outputs.py)."""
 from __future__ import annotations
 
 import os
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import MANIFEST, atomic_output
 
 
 def _mode(p: Path) -> int:
@@ -40,24 +40,31 @@ def test_error_keeps_the_old_file_and_removes_the_temporary(tmp_path: Path) -> N
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
 
 
+def _pdtool_folder(path: Path, files: dict[str, str]) -> None:
+    with atomic_output(path, directory=True) as tmp:
+        for name, text in files.items():
+            (tmp / name).write_text(text)
+
+
+def _visible(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name != MANIFEST)
+
+
 def test_folder_replaced_whole(tmp_path: Path) -> None:
     old = tmp_path / "frames"
-    old.mkdir()
-    (old / "f0.png").write_text("old")
-    (old / "f1.png").write_text("old")
+    _pdtool_folder(old, {"f0.png": "old", "f1.png": "old"})
     with atomic_output(old, directory=True) as tmp:
         (tmp / "f0.png").write_text("new")
         # while the new folder is written, the old one is untouched
-        assert sorted(p.name for p in old.iterdir()) == ["f0.png", "f1.png"]
-    assert [p.name for p in old.iterdir()] == ["f0.png"] and (old / "f0.png").read_text() == "new"
+        assert _visible(old) == ["f0.png", "f1.png"]
+    assert _visible(old) == ["f0.png"] and (old / "f0.png").read_text() == "new"
     assert [p.name for p in tmp_path.iterdir()] == ["frames"]  # no hidden leftovers
     assert _mode(old) & 0o700 == 0o700
 
 
 def test_folder_error_keeps_the_old_folder(tmp_path: Path) -> None:
     old = tmp_path / "frames"
-    old.mkdir()
-    (old / "f0.png").write_text("old")
+    _pdtool_folder(old, {"f0.png": "old"})
     with pytest.raises(OSError):
         with atomic_output(old, directory=True) as tmp:
             (tmp / "f0.png").write_text("new")

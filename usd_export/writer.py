@@ -11,9 +11,12 @@ Atomic output: everything is written to a hidden temporary file next to the
 destination (same file system) and moved into place with os.replace only by
 `close()`, after validation. An exception inside `with UsdBakeWriter(...)`
 (or `abort()`) deletes the temporary file, so a failed bake leaves nothing.
+A destination that cannot be written (full, read-only, a name too long) raises
+pd_tool.errors.OutputError, one line naming the destination, never the temporary.
 """
 from __future__ import annotations
 
+import errno
 import os
 import queue
 import secrets
@@ -24,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Kind, Sdf, Usd, UsdGeom
 
+from pd_tool import atomic as _atomic
 from pd_tool.errors import UsdExportError
 
 from ._geom import normalize_quats, sh_dc_to_rgb, rgb_to_sh_dc
@@ -36,6 +40,10 @@ DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma elli
 DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
 QUEUE_FRAMES = 2  # threaded mode: frames waiting for the writer thread (bounds memory)
 ROOT = "/Root"
+_TEMP_NAME_BYTES = 96  # of the output's name kept in a temporary's name (NAME_MAX is 255)
+# OS errors that pxr's messages may carry, by their strerror text
+_OS_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG,
+              errno.EIO)
 
 
 class UsdBakeWriter:
@@ -112,27 +120,34 @@ class UsdBakeWriter:
         self._cancel = False
 
         token = f"{os.getpid()}-{secrets.token_hex(4)}"
-        self._tmp = self.path.parent / f".{self.path.name}.tmp-{token}.usdc"
-        self._tmp_text = self.path.parent / f".{self.path.name}.tmp-{token}.usda"
+        # the output's name, shortened: a temporary must fit NAME_MAX wherever the name does
+        stem = os.fsdecode(os.fsencode(self.path.name)[:_TEMP_NAME_BYTES]).rstrip("\ufffd")
+        self._tmp = self.path.parent / f".{stem}.tmp-{token}.usdc"
+        self._tmp_text = self.path.parent / f".{stem}.tmp-{token}.usda"
+        self._layer = None
         # Last line of defence for a writer dropped without close()/abort() (no
         # with-block, an exception in between): its temporaries go at collection
         # or interpreter exit. After close() the file was renamed away already.
         self._finalizer = weakref.finalize(self, _unlink_all, (self._tmp, self._tmp_text))
-        if not self.path.parent.is_dir():
+        if not os.path.isdir(self.path.parent):
             raise UsdExportError(f"{self.path}: folder {self.path.parent} does not exist; "
                                  f"create it or choose another output path")
+        problem = _atomic.destination_problem(self.path)  # a name too long, a read-only or full disk
+        if problem is not None:
+            raise _atomic.output_error(self.path, problem)
         try:
             # A strong reference: a stage hands out only weak layer handles, and the
             # layer must outlive the stage used to set it up.
             self._layer = Sdf.Layer.CreateNew(str(self._tmp))
             stage = Usd.Stage.Open(self._layer)
         except Exception as e:  # pxr raises Tf.ErrorException on unwritable paths
-            raise UsdExportError(f"{self.path}: cannot create a USD file there ({_pxr_message(e)}); "
-                                 f"check the folder is writable") from e
+            self._layer = None
+            self._remove_temporaries()
+            raise _write_error(self.path, e, (self._tmp, self._tmp_text), creating=True) from None
         try:
             self._setup_stage(stage, up_axis, meters_per_unit, colors, opacities, sh, ids,
                               scale_factor, color_points)
-            self._layer.Save()
+            self._save()
         except BaseException:
             del stage
             self._layer = None
@@ -310,12 +325,9 @@ class UsdBakeWriter:
         try:
             ok = self._layer.Save()
         except Exception as e:  # Tf.ErrorException: disk full, folder removed, ...
-            raise UsdExportError(f"{self.path}: writing the USD file failed "
-                                 f"({_pxr_message(e)}); check free disk space "
-                                 f"and that {self.path.parent} still exists") from e
+            raise _write_error(self.path, e, (self._tmp, self._tmp_text)) from None
         if not ok:
-            raise UsdExportError(f"{self.path}: writing the USD file failed; check free disk "
-                                 f"space and that {self.path.parent} still exists")
+            raise _write_error(self.path, None)
         self._unsaved = 0
 
     def close(self, *, validate: bool = True) -> Path:
@@ -344,7 +356,10 @@ class UsdBakeWriter:
             if validate:
                 from .validate import validate_usd
                 self.warnings = validate_usd(src, every_sample=False)
-            os.replace(src, self.path)
+            try:
+                os.replace(src, self.path)
+            except OSError as e:
+                raise _atomic.output_error(self.path, e) from None
         except BaseException:
             self.abort()
             raise
@@ -388,11 +403,34 @@ def _pxr_message(e: Exception) -> str:
     return text.strip("'\" ")
 
 
+def _write_error(path: Path, e: Exception | None, temporaries: tuple[Path, ...] = (),
+                 creating: bool = False) -> Exception:
+    """The error for a failed USD write: OutputError when the destination shows why
+    (full, read-only, ...) or pxr names an OS error, else UsdExportError with pxr's words
+    (the hidden temporary's name replaced by the user's path)."""
+    text = _pxr_message(e) if e is not None else ""
+    for tmp in temporaries:
+        text = text.replace(str(tmp), str(path))
+    everything = " ".join(str(e).split()) if e is not None else ""  # pxr's chain: the OS error may come first
+    for code in _OS_ERRNOS:
+        if os.strerror(code) in everything:
+            return _atomic.output_error(path, code)
+    problem = _atomic.destination_problem(path)
+    if problem is not None:
+        return _atomic.output_error(path, problem)
+    if creating:
+        return UsdExportError(f"{path}: cannot create a USD file there{f' ({text})' if text else ''}; check the "
+                              f"folder is writable")
+    return UsdExportError(f"{path}: writing the USD file failed{f' ({text})' if text else ''}; check free "
+                          f"disk space and that {path.parent} still exists")
+
+
 def _unlink_all(paths) -> None:
+    # runs from a finalizer too, where an exception would print a traceback at exit
     for p in paths:
         try:
             p.unlink()
-        except FileNotFoundError:
+        except OSError:
             pass
 
 

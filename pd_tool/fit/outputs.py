@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import WRITTEN_BY, atomic_output
 from pd_tool.scene import GaussianScene, rgb_to_sh
 
 # A perceptual blue -> green -> yellow ramp (viridis-like stops) for log E.
@@ -39,21 +39,71 @@ def e_field_scene(scene: GaussianScene, foreground: np.ndarray, gaussian_E: np.n
     return dataclasses.replace(scene, sh=sh, raw=None), (10 ** lo, 10 ** hi)
 
 
-def write_report(path: Path, data: dict) -> Path:
-    with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=float))
+def write_report(path: Path, data: dict, *, own_only: bool = True) -> Path:
+    """Write the fit's report.json (marked as pdtool's); by default it replaces only a
+    file that pdtool wrote."""
+    with atomic_output(path, own_only=own_only, what="the fit's report") as tmp:
+        tmp.write_text(json.dumps({"written_by": WRITTEN_BY, **data}, indent=2, default=float))
     return path
+
+
+def fit_output_paths(out_dir: str | Path, stem: str, *, preview: bool = True) -> dict[str, tuple[Path, str]]:
+    """The side outputs a fit writes beside its material file: {kind: (path, what it is)}.
+    The preview is listed as .mp4 (and as .gif too when no mp4 encoder is installed, the
+    fallback name)."""
+    out_dir = Path(out_dir)
+    paths = {
+        "loss_plot": (out_dir / f"{stem}.loss.png", "the fit's loss plot"),
+        "e_field_ply": (out_dir / f"{stem}.E.ply", "the fit's E field"),
+        "e_field_png": (out_dir / f"{stem}.E.png", "the fit's E field picture"),
+        "report": (out_dir / f"{stem}.report.json", "the fit's report"),
+    }
+    if preview:
+        paths["preview"] = (out_dir / f"{stem}.preview.mp4", "the fit's preview video")
+        try:
+            from pd_tool.preview import _ffmpeg_exe
+
+            _ffmpeg_exe()
+        except (ImportError, RuntimeError):
+            paths["preview_gif"] = (out_dir / f"{stem}.preview.gif", "the fit's preview video")
+    return paths
+
+
+def check_fit_outputs(out_dir: str | Path, stem: str, *, preview: bool = True,
+                      inputs: dict[str, str | Path | None] | None = None) -> None:
+    """Refuse (OutputError, one line naming the file), before a fit runs, side outputs
+    that would replace a file pdtool did not write or one of the fit's inputs (the scene,
+    a video). Nobody named these files, so unlike -o they never replace someone else's."""
+    from pd_tool.atomic import check_destination, check_outputs, check_own_file
+
+    paths = fit_output_paths(out_dir, stem, preview=preview)
+    check_outputs({f"{what}{' (gif)' if kind.endswith('gif') else ''}": p for kind, (p, what) in paths.items()}, {},
+                  inputs or {})
+    fix = "move or rename it, or write the fit elsewhere with -o"
+    for p, what in paths.values():
+        check_own_file(p, what, fix)
+    for p, what in paths.values():
+        check_destination(p)
 
 
 def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, videos: list, settings,
                       *, preview: bool = True) -> dict[str, Path]:
-    """Write every side output of a fit into out_dir; returns their paths by kind."""
+    """Write every side output of a fit into out_dir; returns their paths by kind.
+
+    Each one replaces only a file that pdtool wrote (they are checked together first, so
+    a refusal writes none of them) and none of the fit's inputs. Raises OutputError."""
     from pd_tool.io import save_ply
     from pd_tool.plots import line_plot
     from pd_tool.preview import save_png, write_preview_any
     from pd_tool.reference import simulate_reference
     from pd_tool.views import render_image
 
+    inputs: dict[str, str | Path | None] = {"SCENE": getattr(scene, "source", None)}
+    for i, v in enumerate(videos):
+        inputs[f"VIDEO {i}"] = getattr(v, "folder", None)
+        inputs[f"the camera of VIDEO {i}"] = getattr(v, "camera_path", None)
+    check_fit_outputs(out_dir, stem, preview=preview, inputs=inputs)
+    planned = fit_output_paths(out_dir, stem, preview=preview)
     paths: dict[str, Path] = {}
     L = result.losses
     n1 = len(L["velocity"])
@@ -66,12 +116,14 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
         n2 = n1 + len(L["material"])
         series["stage 3 (calibration)"] = (list(range(n2 + 1, n2 + 1 + len(L["calibrate"]))), L["calibrate"])
     if series:
-        paths["loss_plot"] = line_plot(out_dir / f"{stem}.loss.png", series, title="fit loss (lambda L1 + (1-lambda) D-SSIM)",
-                                       xlabel="iteration", ylabel="loss", logy=False)
+        paths["loss_plot"] = line_plot(planned["loss_plot"][0], series,
+                                       title="fit loss (lambda L1 + (1-lambda) D-SSIM)",
+                                       xlabel="iteration", ylabel="loss", logy=False, own_only=True)
     e_scene, e_range = e_field_scene(scene, result.prep.foreground, result.gaussian_E)
-    paths["e_field_ply"] = save_ply(e_scene, out_dir / f"{stem}.E.ply")
+    paths["e_field_ply"] = save_ply(e_scene, planned["e_field_ply"][0], own_only=True, what=planned["e_field_ply"][1])
     cam = videos[0].camera
-    paths["e_field_png"] = save_png(out_dir / f"{stem}.E.png", render_image(e_scene, cam, background=settings.background))
+    picture = render_image(e_scene, cam, background=settings.background)
+    paths["e_field_png"] = save_png(planned["e_field_png"][0], picture, own_only=True, what=planned["e_field_png"][1])
     if preview:
         v0 = np.asarray(result.driver_v0, np.float64)
         sim = simulate_reference(scene, result.prep, result.drivers, result.driver_E, v0, cam,
@@ -79,7 +131,7 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
                                  damping=settings.damping, device=settings.device, background=settings.background)
         ref = (videos[0].frames.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
         paths["preview"] = write_preview_any([np.concatenate([a, b], axis=1) for a, b in zip(ref, sim)],
-                                             out_dir / f"{stem}.preview.mp4", videos[0].fps)
+                                             planned["preview"][0], videos[0].fps, own_only=True)
     report = {
         "material": str(result.material_path),
         "losses": L,
@@ -90,5 +142,5 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
         "outputs": {k: str(v) for k, v in paths.items()},
         "settings": dataclasses.asdict(settings),
     }
-    paths["report"] = write_report(out_dir / f"{stem}.report.json", report)
+    paths["report"] = write_report(planned["report"][0], report)
     return paths

@@ -402,11 +402,13 @@ def write_video_folder(
     *,
     masks=None,
     overwrite: bool = False,
+    what: str | None = None,
 ) -> Path:
     """Write a reference video folder: frame_0000.png ..., camera.json (and masks/).
 
     The folder is built beside its destination and renamed into place, so a crash leaves
-    no half-written video.
+    no half-written video. It carries pdtool's manifest (pd_tool.atomic), so a later run
+    may replace it; a folder that pdtool did not make is never replaced.
 
     Args:
         folder: destination folder.
@@ -415,17 +417,23 @@ def write_video_folder(
             differs with the same aspect ratio. fps is written into camera.json.
         fps: frames per second.
         masks: optional [T, H, W] uint8 / bool / float 0-1 -> masks/mask_0000.png ...
-        overwrite: replace an existing folder (otherwise VideoError).
+        overwrite: replace an existing folder that pdtool made, or an empty one
+            (otherwise VideoError). A folder holding anything pdtool did not write is
+            refused with OutputError either way.
+        what: the option that named the folder (e.g. "--frames-out"), for messages.
     Returns:
-        the folder path.
+        the folder path. Raises OutputError when the folder cannot be written.
     """
     from pd_tool.atomic import atomic_output
     from pd_tool.cameras import save_camera_json
     import imageio.v3 as iio
 
+    from pd_tool.atomic import path_kind
+
     folder = Path(folder)
-    if folder.exists() and not overwrite:
-        raise VideoError(f"{folder}: already exists; choose a new folder or delete it first")
+    if path_kind(folder) is not None and not overwrite:
+        raise VideoError(f"{(what + ' ') if what else ''}{folder}: already exists; choose a new folder or delete it "
+                         f"first")
     rgb = _as_uint8(frames, "frames", 4)
     if rgb.shape[-1] != 3:
         raise ValueError(f"frames must be [T, H, W, 3], got {rgb.shape}")
@@ -443,7 +451,7 @@ def write_video_folder(
         camera = camera.resized(w, h)
     camera = dataclasses.replace(camera, fps=float(fps))
     digits = max(4, len(str(t - 1)))
-    with atomic_output(folder, directory=True) as tmp:
+    with atomic_output(folder, directory=True, what=what) as tmp:
         for i in range(t):
             iio.imwrite(tmp / f"frame_{i:0{digits}d}.png", rgb[i])
         if m8 is not None:

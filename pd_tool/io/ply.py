@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import MARK_TEXT, atomic_output
 from pd_tool.errors import PlyFormatError
 from pd_tool.scene import REQUIRED_PLY_PROPERTIES, GaussianScene, sh_coeff_count
 
@@ -220,17 +220,21 @@ def scene_to_records(scene: GaussianScene) -> np.ndarray:
     return rec
 
 
-def save_ply(scene: GaussianScene, path: str | Path, *, text: bool = False, byte_order: str = "<") -> Path:
+def save_ply(scene: GaussianScene, path: str | Path, *, text: bool = False, byte_order: str = "<",
+             own_only: bool = False, what: str = "a splat file") -> Path:
     """Write the scene as an INRIA-layout .ply; atomic (temporary file, then rename).
 
     A scene read by load_ply is written from its raw records, so a round trip is
-    bit-identical, extra properties included.
+    bit-identical in every value, extra properties included. The header carries the
+    comment "written by pdtool" (pd_tool.atomic's mark). own_only: replace an existing
+    file only when pdtool wrote it (a side output); `what` names it in that refusal.
+    Raises OutputError when the file cannot be written.
     """
     from plyfile import PlyData, PlyElement
 
     path = Path(path)
     records = scene_to_records(scene)
     el = PlyElement.describe(records, "vertex")
-    with atomic_output(path) as tmp:
-        PlyData([el], text=text, byte_order=byte_order).write(str(tmp))
+    with atomic_output(path, own_only=own_only, what=what) as tmp:
+        PlyData([el], text=text, byte_order=byte_order, comments=[MARK_TEXT]).write(str(tmp))
     return path
