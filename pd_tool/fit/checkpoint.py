@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from pd_tool.atomic import atomic_output
-from pd_tool.errors import PdToolError
+from pd_tool.errors import OutputError, PdToolError
 
 FORMAT = "pdtool-fit-checkpoint"
 VERSION = 1
@@ -138,6 +138,8 @@ def write_checkpoint(path: str | Path, state: dict[str, Any], problem: dict[str,
     try:
         with atomic_output(path) as tmp:
             tmp.write_bytes(data)
+    except OutputError:
+        raise  # already one line naming the path
     except OSError as e:
         raise CheckpointError(f"cannot write the fit checkpoint {path}: {e.strerror or type(e).__name__}; "
                               f"free some space or choose a writable folder for --out") from None

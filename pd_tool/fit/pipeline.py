@@ -919,25 +919,16 @@ def _check_learned(ckpt_path: Path, losses: dict[str, list[float]]) -> None:
 
 def _check_destination(out: Path, ckpt_path: Path) -> None:
     """Before any work: the checkpoint's path holds nothing but a pdtool checkpoint (a fit
-    replaces and deletes that file, so it must be pdtool's own), and out's folder, when it
-    exists, takes new files (a read-only folder is found now, not at the first checkpoint)."""
-    import os
-    import tempfile
-
-    from pd_tool.fit.checkpoint import CheckpointError, is_pdtool_checkpoint
+    replaces and deletes that file, so it must be pdtool's own), and out's folder takes new
+    files (a read-only folder is found now, not at the first checkpoint)."""
+    from pd_tool.atomic import check_destination
+    from pd_tool.fit.checkpoint import is_pdtool_checkpoint
 
     if ckpt_path.exists() or ckpt_path.is_symlink():
         ours, what = is_pdtool_checkpoint(ckpt_path)
         if not ours:
             raise _foreign_checkpoint(ckpt_path, what)
-    if out.parent.is_dir():
-        try:
-            fd, probe = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part.probe", dir=out.parent)
-            os.close(fd)
-            os.unlink(probe)
-        except OSError as e:
-            raise CheckpointError(f"cannot write in {out.parent} (for {out.name} and its checkpoint): "
-                                  f"{e.strerror or type(e).__name__}; choose a writable folder for --out") from None
+    check_destination(out)
 
 
 def _remove_own_checkpoint(path: Path) -> None:
