@@ -131,8 +131,13 @@ def _read_json(path: Path) -> Any:
             if (path / name).is_file():
                 return _read_json(path / name)
         raise CameraError(f"{path}: folder holds no camera.json, cameras.json or transforms.json; pass the camera file itself")
+    from pd_tool.inputs import MiB, read_small_file
+
+    # a transforms.json of thousands of frames is a few MiB
+    data = read_small_file(path, limit=256 * MiB, error=CameraError,
+                           fix="pass a cameras.json, transforms.json or camera.json file")
     try:
-        return json.loads(path.read_text(encoding="utf-8")), path
+        return json.loads(data.decode("utf-8")), path
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise CameraError(f"{path}: not valid JSON ({e}); fix the file or re-export the cameras") from None
     except RecursionError:  # json recurses per nesting level; a corrupt file can nest thousands deep

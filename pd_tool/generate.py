@@ -133,9 +133,11 @@ def require_video_extra() -> None:
 
 
 def _read_json(path: Path) -> dict:
+    from pd_tool.inputs import MiB, read_small_file
+
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+        data = json.loads(read_small_file(path, limit=16 * MiB, error=GenerateError, fix=MODEL_HINT).decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise GenerateError(f"{path}: unreadable ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
                             f"{MODEL_HINT}") from None
     if not isinstance(data, dict):

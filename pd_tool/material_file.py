@@ -319,10 +319,13 @@ def read_record(workdir: str | Path = ".") -> tuple[Path, Path] | None:
     path = Path(workdir) / RECORD_PATH
     if not path.is_file():
         return None
+    from pd_tool.inputs import MiB, read_small_file
+
+    fix = "delete it, or pass --scene and --material"
     try:
-        rec = json.loads(path.read_text())
+        rec = json.loads(read_small_file(path, limit=MiB, error=MaterialFileError, fix=fix).decode("utf-8"))
         scene, material = Path(rec["scene"]), Path(rec["material"])
-    except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError):
+    except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError, RecursionError):
         raise MaterialFileError(f"{path}: unreadable fit record; delete it, or pass --scene and --material") from None
     for p in (scene, material):
         if not p.is_file():

@@ -1,0 +1,45 @@
+"""Small files from elsewhere: only a regular file of bounded size is read."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from pd_tool.cameras import load_cameras
+from pd_tool.errors import CameraError, MaterialFileError, PdToolError
+from pd_tool.inputs import read_small_file
+
+
+def test_regular_file_within_the_limit_is_read(tmp_path: Path) -> None:
+    p = tmp_path / "a.json"
+    p.write_bytes(b"x" * 10)
+    assert read_small_file(p, limit=10, error=PdToolError, fix="fix") == b"x" * 10
+    with pytest.raises(PdToolError, match=r"a.json: is larger than .* MiB.*; fix$"):
+        read_small_file(p, limit=9, error=PdToolError, fix="fix")
+
+
+def test_pipe_device_folder_and_missing_file_are_one_line(tmp_path: Path) -> None:
+    fifo = tmp_path / "cameras.json"
+    os.mkfifo(fifo)  # opening it would block until a writer comes
+    with pytest.raises(CameraError, match="is not a regular file"):
+        load_cameras(fifo)
+    with pytest.raises(CameraError, match="is not a regular file"):
+        load_cameras("/dev/zero")  # would never end
+    with pytest.raises(MaterialFileError, match="no such file"):
+        read_small_file(tmp_path / "gone.json", limit=10, error=MaterialFileError, fix="fix")
+
+
+def test_cli_camera_from_a_device_is_one_line(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cli import main
+    from pd_tool.io import save_ply
+    from pd_tool.synthetic import make_plant
+
+    scene = save_ply(make_plant(200, seed=0), tmp_path / "p.ply")
+    res = CliRunner().invoke(main, ["render", str(scene), "--camera", "/dev/zero", "-o", str(tmp_path / "v.png")])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.splitlines() == ["Error: /dev/zero: is not a regular file (a pipe or a device?); pass a "
+                                       "cameras.json, transforms.json or camera.json file"]
+    assert not (tmp_path / "v.png").exists()
