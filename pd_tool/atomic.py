@@ -330,6 +330,20 @@ def _write_manifest(folder: Path, what: str | None) -> None:
     (folder / MANIFEST).write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
 
 
+def mark_folder(folder: str | Path, what: str) -> None:
+    """Write (or rewrite) the manifest of a folder that pdtool fills in place rather than
+    replacing whole (the demo's folder): it lists what the folder holds now, all pdtool's."""
+    _write_manifest(Path(folder), what)
+
+
+def folder_mark(folder: str | Path) -> str | None:
+    """The `what` of the folder's pdtool manifest, or None when it has none."""
+    if _read_manifest(Path(folder)) is None:
+        return None
+    what = json.loads((Path(folder) / MANIFEST).read_bytes().decode("utf-8")).get("what")
+    return what if isinstance(what, str) else None
+
+
 def _is_cache(rel: Path) -> bool:
     # Python writes __pycache__/*.pyc inside an add-on folder when Blender imports it
     return "__pycache__" in rel.parts and (rel.name == "__pycache__" or rel.suffix in (".pyc", ".pyo"))

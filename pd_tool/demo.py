@@ -13,12 +13,31 @@ from typing import Callable
 
 import numpy as np
 
+from pd_tool.atomic import mark_folder
 from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS
 
 # Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), and
 # fit iterations (velocity, material). The default demo must finish within 10 minutes on a
 # 2-core CPU, so it runs fewer iterations than `pdtool fit --quality default` (60, 40).
 DEMO_SIZES = {"draft": (2000, 10, 128, 20, 15), "default": (3000, 12, 144, 30, 20)}
+
+
+DEMO_MARK = "pdtool demo"  # the `what` of the demo folder's manifest
+# What the demo writes at fixed names: in a folder an earlier demo made, these are its own
+# even when that demo was stopped before it listed them.
+DEMO_NAMES = ("plant.ply", "plant.pdmat", "plant.pdmat.ckpt", "plant.report.json", "plant.loss.png",
+              "plant.E.ply", "plant.E.png", "plant.preview.mp4", "poke.usd", "poke.mp4", ".pdtool/last-fit.json")
+
+
+def _claim_folder(out: Path) -> None:
+    """The demo writes fixed names into `out`: refuse a folder holding anything pdtool did
+    not write (a user's own plant.ply would be replaced), then mark it as the demo's."""
+    from pd_tool.atomic import check_replaceable_folder, folder_mark
+
+    known = DEMO_NAMES if out.is_dir() and folder_mark(out) == DEMO_MARK else ()
+    check_replaceable_folder(out, "--out", known=known)
+    out.mkdir(parents=True, exist_ok=True)
+    mark_folder(out, DEMO_MARK)
 
 
 @dataclass
@@ -51,7 +70,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
         raise ValueError(f"demo quality must be one of {', '.join(DEMO_SIZES)}")
     n_gauss, n_frames, size, velocity_iters, material_iters = DEMO_SIZES[quality]
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    _claim_folder(out)
     paths: dict[str, Path] = {}
 
     # 1. the scene, as a user would have it on disk
@@ -91,6 +110,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     bake_s = time.perf_counter() - t0
     paths["usd"] = usd
     paths["bake_preview"] = out / "poke.mp4"
+    mark_folder(out, DEMO_MARK)
 
     labels = scene.labels[result.prep.foreground]
     recovered = {}

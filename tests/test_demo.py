@@ -21,7 +21,7 @@ def demo_dir(tmp_path_factory) -> Path:
     res = CliRunner().invoke(main, ["demo", "--quality", "draft", "--out", str(out), "--device", "cpu"],
                              catch_exceptions=False)
     assert res.exit_code == 0, res.output
-    (out / "stdout.txt").write_text(res.output)
+    (out.parent / f"{out.name}.stdout.txt").write_text(res.output)  # beside it: the folder is the demo's
     return out
 
 
@@ -29,8 +29,27 @@ def test_demo_outputs(demo_dir: Path) -> None:
     for name in ("plant.ply", "video/camera.json", "video/frame_0000.png", "plant.pdmat", "plant.report.json",
                  "plant.loss.png", "plant.E.png", "plant.E.ply", "plant.preview.mp4", "poke.usd", "poke.mp4"):
         assert (demo_dir / name).is_file(), name
-    text = (demo_dir / "stdout.txt").read_text()
+    text = (demo_dir.parent / f"{demo_dir.name}.stdout.txt").read_text()
     assert "fit " in text and "bake " in text and "truth" in text
+
+
+def test_demo_folder_is_the_demos_own(demo_dir: Path, tmp_path: Path) -> None:
+    """The demo writes fixed names: it may write again into a folder it made, never into
+    one that holds a user's file."""
+    from pd_tool.atomic import folder_mark
+    from pd_tool.demo import DEMO_MARK, _claim_folder
+
+    assert folder_mark(demo_dir) == DEMO_MARK
+    _claim_folder(demo_dir)  # a second demo into the same folder is allowed
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "plant.ply").write_text("my own scan")
+    res = CliRunner().invoke(main, ["demo", "--quality", "draft", "--out", str(mine), "--device", "cpu"])
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and "holds plant.ply, which pdtool did not write" in lines[0], lines
+    assert sorted(p.name for p in mine.iterdir()) == ["plant.ply"]
+    assert (mine / "plant.ply").read_text() == "my own scan"
 
 
 def test_demo_usd_validates(demo_dir: Path) -> None:
