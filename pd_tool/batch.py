@@ -232,7 +232,8 @@ def parse_jobs(data: dict[str, Any], cwd: str | Path = ".", source: str = "jobs 
         where = f"{source}: job {name!r}"
         command = t.get("command")
         if command not in COMMANDS:
-            raise JobsFileError(f"{where}: command must be one of {', '.join(COMMANDS)}, got {_line(repr(command), 80)}")
+            raise JobsFileError(f"{where}: command must be one of {', '.join(COMMANDS)}, "
+                                f"got {_line(repr(command), 80)}")
         args = t.get("args", [])
         if not isinstance(args, list) or not all(_scalar(a) for a in args):
             raise JobsFileError(f"{where}: args must be a list of strings, as on the command line")
@@ -999,6 +1000,24 @@ def ray_resources(job: Job, cluster_gpus: int, cpus_per_job: float = 1.0) -> dic
     return {"num_cpus": cpus_per_job, "num_gpus": 1 if on_gpu else 0}
 
 
+def _probe(address: str | None) -> None:
+    """For a HOST:PORT address, one TCP connection first: Ray itself retries an address
+    that nobody listens on for minutes, logging to stderr all the while."""
+    import socket
+
+    if address in (None, "auto", "local") or "://" in address or ":" not in address:
+        return
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=10).close()
+    except ValueError:
+        raise PdToolError(f"--ray {address}: not an address; give HOST:PORT (e.g. head:6379), ray://HOST:10001, "
+                          "auto or local") from None
+    except OSError as e:
+        raise PdToolError(f"--ray {address}: cannot connect ({e.strerror or e}); start a cluster there with "
+                          "`ray start --head`, or pass its address") from None
+
+
 class RayBackend:
     """One Ray task per job on a Ray cluster (`address`: 'auto', 'ray://host:10001', 'host:6379',
     or 'local' for a fresh single-node cluster). A CUDA job, or an `auto` one while the cluster
@@ -1014,11 +1033,15 @@ class RayBackend:
         self.ray = ray
         self._owns = False
         if not ray.is_initialized():
+            _probe(address)
             try:
-                if address == "local":
-                    ray.init(include_dashboard=False, log_to_driver=False)
-                else:
-                    ray.init(address=address, log_to_driver=False)
+                # Ray logs its connection attempts to stderr (a line a second while it retries);
+                # a refusal must be one line, and a success needs none.
+                with _capture_fds():
+                    if address == "local":
+                        ray.init(include_dashboard=False, log_to_driver=False)
+                    else:
+                        ray.init(address=address, log_to_driver=False)
             except (ConnectionError, RuntimeError, ValueError) as e:
                 raise PdToolError(f"--ray {address}: cannot connect ({' '.join(str(e).split())[:200]}); "
                                   "start one with `ray start --head`, or pass its address") from None
