@@ -776,6 +776,12 @@ def _init_worker(cuda_visible: str | None, driver: int | None = None) -> None:
     # job while the driver is shutting down.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_stop_signal)
+    # tqdm's default lock is a multiprocessing one; made in a spawned worker it is registered
+    # with the driver's resource tracker, which warns about it on stderr when a stopped or
+    # killed worker could not unregister it. A worker's bars need only a thread lock.
+    from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())
     _set_parent_death_signal()
     if os.getppid() != driver:  # the driver died before the signal was armed
         os._exit(1)
@@ -847,9 +853,12 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
         # The job's with-blocks removed their temporaries on the way here; a writer left to
         # its finalizer goes with the collection. Then this worker ends: the pool may hold
         # queued jobs, and none may start.
+        import atexit
         import gc
 
         gc.collect()
+        with contextlib.suppress(BaseException):
+            atexit._run_exitfuncs()  # what a normal exit runs: weakref finalizers, multiprocessing's
         os._exit(143)
     finally:
         _WORKER["running"] = False
