@@ -935,6 +935,24 @@ def stop_processes(procs: list[Any], grace: float = STOP_GRACE_S) -> None:
         wait_for(list(pending), timeout=5.0)
 
 
+def _start_resource_tracker_quietly() -> None:
+    """Start multiprocessing's resource tracker (the process that unlinks the pool's
+    semaphores once their owners are gone) with stderr on /dev/null. After a SIGKILL of the
+    driver it cleans up as it should, but also warns about "leaked semaphore objects" on
+    the terminal the user killed the batch from. Nothing to do when it already runs."""
+    from multiprocessing import resource_tracker
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            resource_tracker.ensure_running()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 class LocalBackend:
     """Spawned worker processes: `workers` for CPU jobs plus one per GPU for CUDA jobs.
 
@@ -961,6 +979,7 @@ class LocalBackend:
         # (docs/batch.md).
         self.threads = threads or 1
         ctx = mp.get_context("spawn")  # fork after torch/warp init is unsafe; spawn is the same everywhere
+        _start_resource_tracker_quietly()  # before the pools make their queues' semaphores
         me = os.getpid()
         self.cpu = cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker, initargs=("", me))
         self.gpu = [cf.ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(str(i), me))
