@@ -30,6 +30,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import sys
 import threading
 import time
@@ -66,6 +67,8 @@ HELP_ARGS = ("--help", "-h", "--version")
 STOP_GRACE_S = 10.0
 # How often a worker's watchdog looks for its driver, s.
 WATCHDOG_S = 0.5
+# Files of one input folder hashed for a fingerprint; a larger folder makes the job run every time.
+MAX_INPUT_FILES = 100_000
 # Characters kept of one log line or error in the summary.
 MAX_LINE_CHARS = 1000
 
@@ -498,8 +501,14 @@ def canonical(p: str | Path, cwd: str | Path) -> Path:
     p = Path(p)
     p = p if p.is_absolute() else Path(cwd) / p
     if p.name in ("", ".", ".."):
-        return p.resolve()
-    return p.parent.resolve() / p.name
+        return _real(p)
+    return _real(p.parent) / p.name
+
+
+def _real(p: Path) -> Path:
+    # os.path.realpath, not Path.resolve: a symlink loop stays unresolved instead of raising
+    # (writing through it then fails in the command, with its own message).
+    return Path(os.path.realpath(p))
 
 
 def _exists(p: Path) -> bool:
@@ -565,10 +574,10 @@ def outside(files: JobFiles, root: str | Path) -> list[Path]:
     """The paths of `files.written()` that are not strictly inside `root` (the jobs file's
     folder, resolved). A path is inside when its canonical form is below root and, if
     it is a symlink, so is its target. root itself is outside: no job replaces it."""
-    root = Path(root).resolve()
+    root = _real(Path(root))
     bad = []
     for p in files.written():
-        real = p.resolve()
+        real = _real(p)
         if not all(q != root and q.is_relative_to(root) for q in (p, real)):
             bad.append(p)
     return bad
@@ -605,29 +614,56 @@ def file_digest(p: Path) -> bytes:
     key = (str(p), st.st_size, st.st_mtime_ns)
     if key not in _DIGESTS:
         h = hashlib.sha256()
+        left = st.st_size  # no further: files of /proc say 0 and would go on for gigabytes
         with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
+            while left > 0:
+                chunk = f.read(min(left, 1 << 20))
+                if not chunk:
+                    break
                 h.update(chunk)
+                left -= len(chunk)
         _DIGESTS[key] = h.digest()
     return _DIGESTS[key]
 
 
+def _folder_files(folder: Path) -> list[Path] | None:
+    """The files in `folder` and below, sorted; symlinked folders are not followed (a link
+    back up would never end). None past MAX_INPUT_FILES."""
+    found = []
+    for root, _, names in os.walk(folder):
+        for n in names:
+            found.append(Path(root) / n)
+            if len(found) > MAX_INPUT_FILES:
+                return None
+    return sorted(found)
+
+
 def _hash_path(h: "hashlib._Hash", p: Path) -> None:
-    if p.is_dir():
-        for f in sorted(q for q in p.rglob("*") if q.is_file()):
-            _hash_path(h, f)
-        return
     h.update(str(p).encode() + b"\0")
-    h.update(file_digest(p) if p.is_file() else b"<missing>")
+    try:
+        regular = stat.S_ISREG(p.stat().st_mode)
+    except OSError:
+        regular = False
+    # Only regular files are read: a FIFO or a device named as an input would block or never end.
+    h.update(file_digest(p) if regular else b"<missing>")
 
 
-def fingerprint(job: Job, files: JobFiles) -> str:
+def fingerprint(job: Job, files: JobFiles) -> str | None:
     """sha256 (hex) of the command, its args and the bytes of every input file (folders:
-    every file inside, sorted)."""
+    every file inside, sorted). None when the inputs cannot be read, or a folder holds
+    more than MAX_INPUT_FILES files: such a job runs every time."""
     h = hashlib.sha256()
     h.update(json.dumps([job.command, list(job.args)]).encode())
-    for p in sorted(set(files.inputs)):
-        _hash_path(h, p)
+    try:
+        for p in sorted(set(files.inputs)):
+            inside = _folder_files(p) if p.is_dir() else [p]
+            if inside is None:
+                return None
+            for f in inside:
+                if f.is_file() or f == p:
+                    _hash_path(h, f)
+    except OSError:
+        return None
     return h.hexdigest()
 
 
