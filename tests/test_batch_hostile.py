@@ -380,3 +380,18 @@ def test_a_ray_refusal_is_one_line_with_no_progress_bar_before_it(tmp_path: Path
     # progress bar has not started. Without Ray installed the one line says how to get it.
     r, lines = _cli(["batch", str(_help_job_file(tmp_path)), "--ray", "127.0.0.1:1"])
     _one_error_line(r, lines, "--ray")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs /proc")
+def test_fingerprints_read_inputs_only_up_to_their_size(tmp_path: Path) -> None:
+    # A jobs file may name any existing path as an input; files of /proc say 0 bytes and
+    # some would stream gigabytes (pagemap), and a FIFO would block the driver.
+    import hashlib
+
+    assert B.file_digest(Path("/proc/self/status")) == hashlib.sha256(b"").digest()
+    os.mkfifo(tmp_path / "fifo")
+    (tmp_path / "plant.ply").write_bytes(b"x")
+    (job,) = parse_jobs({"job": [{"name": "a", "command": "bake",
+                                  "args": [*BAKE, "--camera", "fifo", "out.usd"]}]}, cwd=tmp_path)
+    files = B.job_files(job)
+    assert tmp_path / "fifo" in files.inputs and len(B.fingerprint(job, files)) == 64

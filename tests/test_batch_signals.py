@@ -170,7 +170,8 @@ def test_the_watchdog_ends_a_worker_whose_driver_died() -> None:
     driver = ("import os, subprocess, sys, time\n"
               f"w = subprocess.Popen([sys.executable, '-c', {worker!r}, str(os.getpid())])\n"
               "print(w.pid, flush=True)\n"
-              "time.sleep(600)\n")
+              "while w.poll() is None:\n"  # until this process is killed, or the watcher fails
+              "    time.sleep(0.1)\n")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", driver], stdout=subprocess.PIPE, env=env, start_new_session=True)
     pid = int(proc.stdout.readline())
