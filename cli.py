@@ -705,7 +705,6 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
     failed job does not stop the others; a job whose args hold --help, -h or --version
     fails. Exit code 1 when any job failed, 2 for a refused jobs file.
 
-    \b
     Limits: the file at most 1 MiB and nested at most 16 deep; at most 10,000 jobs after
     sweeps, 512 args per job, 4,096 characters per argument, 200 per job name.
 
@@ -725,10 +724,8 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
     """
     if workers is not None and ray_address is not None:
         raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
-    import signal
-
     with user_errors():
-        from pd_tool.batch import check_writable, load_jobs, run_batch, write_summary
+        from pd_tool.batch import BatchInterrupted, check_writable, load_jobs, run_batch, write_summary
 
         jobs = load_jobs(jobs_file)
         if json_out is not None:
@@ -736,12 +733,11 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
         try:
             result = run_batch(jobs, workers=workers, ray_address=ray_address, resume=resume,
                                allow_outside=allow_outside)
-        except KeyboardInterrupt as e:
-            signum = getattr(e, "signum", signal.SIGINT)
-            click.echo(f"Error: pdtool batch stopped by {signal.Signals(signum).name}: the running jobs were stopped "
-                       "and their temporaries removed; finished jobs keep their outputs (run it again with --resume "
-                       "for the rest)", err=True)
-            raise click.exceptions.Exit(128 + signum) from None
+        except BatchInterrupted as e:
+            click.echo(f"Error: pdtool batch stopped by {e.args[0]}: the running jobs were stopped and their "
+                       "temporaries removed; finished jobs keep their outputs (run it again with --resume for "
+                       "the rest)", err=True)
+            raise click.exceptions.Exit(128 + e.signum) from None
     click.echo(result.table())
     if json_out is not None:
         with user_errors():

@@ -82,7 +82,7 @@ class BatchOutputError(PdToolError):
 
 
 class BatchInterrupted(KeyboardInterrupt):
-    """Ctrl-C or SIGTERM reached the driver; `signum` says which."""
+    """Ctrl-C or SIGTERM reached the driver while the jobs ran; `signum` says which."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
@@ -1265,20 +1265,24 @@ def _outside_message(job: Job, path: Path) -> str:
 
 @contextlib.contextmanager
 def _driver_signals():
-    """SIGTERM raises BatchInterrupted in the driver, so that it stops like on Ctrl-C
-    (only in the main thread, where Python runs signal handlers)."""
+    """SIGTERM, and Ctrl-C where Python's default handler has it, raise BatchInterrupted in
+    the driver, so that both stop the batch the same way (only in the main thread, where
+    Python runs signal handlers)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def on_term(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: Any) -> None:
         raise BatchInterrupted(signum)
 
-    old = signal.signal(signal.SIGTERM, on_term)
+    old = {signal.SIGTERM: signal.signal(signal.SIGTERM, on_signal)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, on_signal)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 @contextlib.contextmanager
@@ -1308,8 +1312,9 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
     a JobsFileError before anything runs).
     A failed job never stops the others; the jobs that wait for it end as 'blocked'.
 
-    Ctrl-C or SIGTERM (BatchInterrupted) stops the running jobs, removes their temporaries
-    and re-raises; finished jobs keep their outputs and records.
+    Ctrl-C or SIGTERM while the jobs run stops the running jobs, removes their temporaries
+    and raises BatchInterrupted (a KeyboardInterrupt); finished jobs keep their outputs and
+    records.
     """
     t0 = time.perf_counter()
     results: dict[str, JobResult] = {}
