@@ -710,6 +710,14 @@ def help_error(job: Job, arg: str) -> str:
 
 
 _TMP_RAND = r"[a-z0-9_]{8}"  # tempfile's random part (mkstemp / mkdtemp)
+# A writer may keep only the first bytes of a long output name, and of a long suffix, in its
+# temporary's name (NAME_MAX is 255 bytes); both forms are recognised.
+_TEMP_NAME_BYTES = 96
+_TEMP_SUFFIX_CHARS = 16
+
+
+def _shortened(name: str) -> str:
+    return os.fsdecode(os.fsencode(name)[:_TEMP_NAME_BYTES]).rstrip("\ufffd")
 
 
 def temporaries(p: Path) -> list[Path]:
@@ -717,8 +725,10 @@ def temporaries(p: Path) -> list[Path]:
     `.NAME.XXXXXXXX.part.EXT` (pd_tool.atomic, a file), `.NAME.XXXXXXXX.part` (a folder),
     `.NAME.XXXXXXXX.old` (the folder being replaced) and `.NAME.tmp-PID-HEX.usdc|usda`
     (usd_export's writer). Nothing else in the folder matches."""
-    name, suffix = re.escape(p.name), re.escape(p.suffix)
-    pattern = re.compile(rf"\.{name}\.(?:{_TMP_RAND}\.(?:part{suffix}|part|old)|tmp-\d+-[0-9a-f]{{8}}\.usd[ac])")
+    names = "|".join(re.escape(n) for n in sorted({p.name, _shortened(p.name)}))
+    suffixes = "|".join(re.escape(x) for x in sorted({p.suffix, p.suffix[:_TEMP_SUFFIX_CHARS]}))
+    pattern = re.compile(rf"\.(?:{names})\.(?:{_TMP_RAND}\.(?:part(?:{suffixes})|part|old)"
+                         rf"|tmp-\d+-[0-9a-f]{{8}}\.usd[ac])")
     try:
         entries = os.listdir(p.parent)
     except OSError:

@@ -288,8 +288,9 @@ def test_the_worker_refuses_help_too(tmp_path: Path) -> None:
 def test_remove_temporaries_takes_only_the_writers_temporaries(tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
+    long = "é" * 60 + ".usd"  # 124 bytes: a writer keeps the first 96 in its temporaries' names
     mine = [".x.usd.ab_cd123.part.usd", ".x.usd.tmp-4242-0a1b2c3d.usdc", ".x.usd.tmp-4242-0a1b2c3d.usda",
-            ".p.mp4.zzzzzzzz.part.mp4"]
+            ".p.mp4.zzzzzzzz.part.mp4", f".{'é' * 48}.abcdefgh.part.usd", f".{long}.abcdefgh.part.usd"]
     folders = [".frames.q1w2e3r4.part", ".frames.a1b2c3d4.old"]
     others = ["x.usd", ".x.usd.notes", ".x.usd.ab_cd123.part.usda", ".x.usd.ab_cd12.part.usd",
               "x.usd.ab_cd123.part.usd",
@@ -302,7 +303,7 @@ def test_remove_temporaries_takes_only_the_writers_temporaries(tmp_path: Path) -
     # the folder replace was cut between its renames: the previous frames wait in .old/
     (out / ".frames.a1b2c3d4.old" / "frames").mkdir()
     (out / ".frames.a1b2c3d4.old" / "frames" / "camera.json").write_text("{}")
-    files = B.JobFiles(outputs=[out / "x.usd", out / "p.mp4", out / "frames"], folders=[out / "frames"])
+    files = B.JobFiles(outputs=[out / "x.usd", out / "p.mp4", out / "frames", out / long], folders=[out / "frames"])
     removed = B.remove_temporaries([files])
     assert sorted(p.name for p in removed) == sorted(mine + folders)
     assert sorted(p.name for p in out.iterdir()) == sorted(others + ["frames"])
