@@ -705,8 +705,8 @@ def asks_for_help(args: Iterable[str]) -> str | None:
 
 def help_error(job: Job, arg: str) -> str:
     return (f"its args ask for {arg}, which prints help or version text instead of running the command; "
-            f"remove {arg} from "
-            f"job {job.name!r} (run `pdtool {job.command} --help` in a terminal to read the options)")
+            f"remove {arg} from job {job.name!r} (run `pdtool {job.command} --help` in a terminal to read the "
+            "options)")
 
 
 _TMP_RAND = r"[a-z0-9_]{8}"  # tempfile's random part (mkstemp / mkdtemp)
