@@ -690,13 +690,27 @@ def demo(out_dir: Path, quality: str, device: str) -> None:
                    "local: a fresh single-node one). Needs `pip install 'pdtool[ray]'`.")
 @click.option("--resume", is_flag=True, help="Skip jobs whose outputs exist and whose inputs and args are unchanged.")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Also write the summary here.")
-def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume: bool, json_out: Path | None) -> None:
+@click.option("--allow-outside", is_flag=True,
+              help="Let the jobs write outside the jobs file's folder (absolute or ../ output paths). "
+                   "Only for jobs files you trust.")
+def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume: bool, json_out: Path | None,
+          allow_outside: bool) -> None:
     """Run many bake/fit jobs from a TOML file, on local processes or a Ray cluster.
 
     Each [[job]] has a name, a command (bake or fit), args exactly as on the command
     line, optional after = ["other job"], and optional [job.sweep] lists that expand into
-    every combination ({key} in name/args). Relative paths are read from the jobs file's
-    folder. A failed job does not stop the others. Exit code 1 when any job failed.
+    every combination. Templates take {key} (the raw value), {key:slug} (file-safe) and
+    {name}; {{ and }} are literal braces; nothing else. Relative paths are read from the
+    jobs file's folder, and every output must stay inside it (unless --allow-outside). A
+    failed job does not stop the others; a job whose args hold --help, -h or --version
+    fails. Exit code 1 when any job failed, 2 for a refused jobs file.
+
+    Limits: the file at most 1 MiB and nested at most 16 deep; at most 10,000 jobs after
+    sweeps, 512 args per job, 4,096 characters per argument, 200 per job name.
+
+    Ctrl-C or SIGTERM stops the running jobs and removes their temporaries (exit 130 or
+    143); finished jobs keep their outputs, so `--resume` goes on from there. Workers
+    die with this process, also when it is killed.
 
     \b
     Example (4 bakes):
@@ -711,12 +725,23 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
     if workers is not None and ray_address is not None:
         raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
     with user_errors():
-        from pd_tool.batch import load_jobs, run_batch, write_summary
+        from pd_tool.batch import BatchInterrupted, check_writable, load_jobs, run_batch, write_summary
 
-        result = run_batch(load_jobs(jobs_file), workers=workers, ray_address=ray_address, resume=resume)
+        jobs = load_jobs(jobs_file)
         if json_out is not None:
-            write_summary(result, json_out)
+            check_writable(json_out)  # before the jobs run, not after
+        try:
+            result = run_batch(jobs, workers=workers, ray_address=ray_address, resume=resume,
+                               allow_outside=allow_outside)
+        except BatchInterrupted as e:
+            click.echo(f"Error: pdtool batch stopped by {e.args[0]}: the running jobs were stopped and their "
+                       "temporaries removed; finished jobs keep their outputs (run it again with --resume for "
+                       "the rest)", err=True)
+            raise click.exceptions.Exit(128 + e.signum) from None
     click.echo(result.table())
+    if json_out is not None:
+        with user_errors():
+            write_summary(result, json_out)
     if not result.ok:
         raise click.exceptions.Exit(1)
 

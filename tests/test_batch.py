@@ -273,6 +273,16 @@ def test_resume_after_kill_runs_only_the_missing_jobs(killed_then_resumed) -> No
     assert any("/ref" in p for p in json.loads((root / "local" / "fits" / "plant.pdmat.batch.json").read_text())["inputs"])
 
 
+def test_a_fits_side_outputs_are_known_to_the_batch(killed_then_resumed) -> None:
+    # Clash checks and the clean-up after Ctrl-C cover what a fit writes beside its material:
+    # every file the real fit left in fits/ (but the batch's own record) is in its list.
+    root = killed_then_resumed[0]
+    (fit,) = [j for j in load_jobs(root / "local" / "jobs.toml") if j.name == "fit"]
+    written = set(job_files(fit).written())
+    left = {p for p in (root / "local" / "fits").iterdir() if not p.name.endswith(".batch.json")}
+    assert left and left <= written, left - written
+
+
 def test_bad_input_fails_alone(killed_then_resumed) -> None:
     _, _, _, summary, table = killed_then_resumed
     by = {r["name"]: r for r in summary["jobs"]}
