@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pd_tool.atomic import atomic_output
+from pd_tool.atomic import atomic_output, check_destination
 from pd_tool.errors import PdToolError
 
 COMMANDS = ("bake", "fit")
@@ -75,10 +75,6 @@ MAX_LINE_CHARS = 1000
 
 class JobsFileError(PdToolError):
     """The jobs file is unreadable or inconsistent (unknown key, bad sweep, cycle...)."""
-
-
-class BatchOutputError(PdToolError):
-    """The batch cannot write its own outputs (the --json summary)."""
 
 
 class BatchInterrupted(KeyboardInterrupt):
@@ -1220,37 +1216,18 @@ class BatchResult:
         return "\n".join(lines)
 
 
-def _cannot_write(path: Path, e: OSError) -> BatchOutputError:
-    return BatchOutputError(f"cannot write {path}: {e.strerror or e}; free some space or choose a writable "
-                            "folder for --json")
-
-
 def check_writable(path: str | Path) -> None:
-    """Refuse a summary destination that cannot be written, before any job runs: the folder
-    must take a new file (a probe made and removed at once, as atomic_output names it)."""
-    import tempfile
-
-    path = Path(path)
-    if path.is_dir():
-        raise BatchOutputError(f"{path}: is a folder; give --json a file name such as summary.json")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise _cannot_write(path, e) from None
+    """Refuse a summary destination that cannot be written (OutputError, one line), before
+    any job runs."""
+    check_destination(path, "--json")
 
 
 def write_summary(result: BatchResult, path: str | Path) -> Path:
-    """Write `result.to_json()` to `path`, atomically. Raises BatchOutputError (one line,
-    no temporary left) when the destination cannot take it."""
+    """Write `result.to_json()` to `path`, atomically. Raises OutputError (one line, no
+    temporary left) when the destination cannot take it."""
     path = Path(path)
-    try:
-        with atomic_output(path) as tmp:
-            tmp.write_text(json.dumps(result.to_json(), indent=2))
-    except OSError as e:
-        raise _cannot_write(path, e) from None
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(result.to_json(), indent=2))
     return path
 
 

@@ -9,7 +9,6 @@ import errno
 import json
 import os
 import subprocess
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -337,15 +336,12 @@ def test_json_to_a_read_only_folder_is_refused_before_the_jobs(tmp_path: Path, m
     jobs = _help_job_file(tmp_path)
     ro = tmp_path / "ro"
     with _tmpfs(ro, "ro") as mounted:
-        if not mounted:
-            real = tempfile.mkstemp
+        if not mounted:  # what statvfs would say of a read-only mount
+            from pd_tool import atomic
 
-            def mkstemp(*a, dir=None, **kw):
-                if dir is not None and Path(dir) == ro:
-                    raise OSError(errno.EROFS, os.strerror(errno.EROFS))
-                return real(*a, dir=dir, **kw)
-
-            monkeypatch.setattr(tempfile, "mkstemp", mkstemp)
+            real = atomic.destination_problem
+            monkeypatch.setattr(atomic, "destination_problem",
+                                lambda p: errno.EROFS if Path(p).parent == ro else real(p))
         r, lines = _cli(["batch", str(jobs), "--json", str(ro / "summary.json")])
         _one_error_line(r, lines, str(ro / "summary.json"), "writable")
         assert "1 jobs" not in r.output  # refused before running anything
@@ -356,24 +352,28 @@ def test_json_to_a_full_disk_is_one_line_and_leaves_no_temporary(tmp_path: Path,
     jobs = _help_job_file(tmp_path)
     full = tmp_path / "full"
     with _tmpfs(full, "size=64k") as mounted:
-        if mounted:
+        if mounted:  # a disk already full is refused before the jobs run
             with contextlib.suppress(OSError), open(full / "filler", "wb") as f:
                 f.write(b"\0" * (1 << 20))
-        else:
-            real = Path.write_text
+            r, lines = _cli(["batch", str(jobs), "--json", str(full / "summary.json")])
+            _one_error_line(r, lines, str(full / "summary.json"), "No space left on device")
+            assert "1 jobs" not in r.output
+            assert sorted(os.listdir(full)) == ["filler"]
+            (full / "filler").unlink()
+        # a disk that fills up while the jobs run: the summary's failure is the last line
+        real = Path.write_text
 
-            def write_text(self, *a, **kw):
-                if self.parent == full:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-                return real(self, *a, **kw)
+        def write_text(self, *a, **kw):
+            if self.parent == full:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return real(self, *a, **kw)
 
-            monkeypatch.setattr(Path, "write_text", write_text)
+        monkeypatch.setattr(Path, "write_text", write_text)
         r, lines = _cli(["batch", str(jobs), "--json", str(full / "summary.json")])
-        # the jobs ran (their progress is on stderr); the summary file's failure is the last line
         assert [line for line in lines if line.startswith("Error")] == lines[-1:]
-        _one_error_line(r, lines[-1:], str(full / "summary.json"))
+        _one_error_line(r, lines[-1:], str(full / "summary.json"), "No space left on device")
         assert "1 jobs: 0 ok, 1 failed" in r.stdout  # the jobs ran; only the summary file failed
-        assert sorted(os.listdir(full)) == (["filler"] if mounted else [])
+        assert os.listdir(full) == []  # no temporary
 
 
 def test_a_ray_refusal_is_one_line_with_no_progress_bar_before_it(tmp_path: Path) -> None:
