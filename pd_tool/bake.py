@@ -201,6 +201,12 @@ def bake(
     else:
         nu, damping = material.nu, material.damping
         opts.density_kg_m3 = material.density
+    flat = ~(scene.scales > 0).all(dim=1).cpu().numpy()
+    if flat.any():  # USD needs a positive size; found here, the message can name the user's file
+        raise PreparationError(
+            f"{scene.source or 'the scene'}: {int(flat.sum())} Gaussians have a size of 0 (a scale_* log-scale "
+            f"below about -100), first at index {int(np.flatnonzero(flat)[0])}; remove them in your splat editor "
+            f"or export the scene again")
     prep = prepare_scene(scene, opts)
     dev = settings.device
     frame_dt = 1.0 / settings.fps
@@ -226,10 +232,9 @@ def bake(
     E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
     push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
     speed = float(np.linalg.norm(prep.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
-    work = check_bake_work(prep, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(prep.positions_sim)))),
-                           frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
-                           speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px,
-                           device=dev)
+    check_bake_work(prep, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(prep.positions_sim)))),
+                    frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
+                    speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
     drivers = prep.build_drivers(ratio=ratio, seed=seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
@@ -341,7 +346,6 @@ def bake(
         bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
         report=list(prep.report) + ([sim_note] if sim_note else []), timings=timings,
     )
-    result.report.append(f"work estimate up to {work.describe()} on {dev}; took {timings['total']:.1f} s")
     if simulated < n_frames - 1:
         result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
     if preview is not None:

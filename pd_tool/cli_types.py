@@ -223,7 +223,7 @@ class OutputFile(click.Path):
         if why:
             self.fail(f"{str(value)[:80]!r}: {why}", param, ctx)
         if path.suffix.lower() not in self.exts:
-            want = " or ".join(self.exts)
+            want = self.exts[0] if len(self.exts) == 1 else ", ".join(self.exts[:-1]) + " or " + self.exts[-1]
             self.fail(f"{str(value)[:80]!r} must end in {want} ({self.what}); name the file with that extension",
                       param, ctx)
         if path.is_dir():
@@ -254,6 +254,7 @@ TIME = FiniteFloat(0.0, SECONDS_MAX, unit="s")
 FRAMES = BoundedInt(1, FRAMES_MAX)
 SUBSTEPS = BoundedInt(1, SUBSTEPS_MAX)
 SEED = BoundedInt(0, SEED_MAX)
+ITERATIONS = BoundedInt(0, 10000)  # the quality presets' bound; the work estimate bounds the time
 METERS_PER_UNIT = FiniteFloat(*MPU_RANGE, unit="m")
 HEIGHT = FiniteFloat(-COORD_MAX, COORD_MAX, unit="scene units")
 RADIUS = FiniteFloat(0.0, COORD_MAX, lo_open=True, unit="scene units")
