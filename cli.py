@@ -36,7 +36,9 @@ class InputError(click.ClickException):
 
 # The writers' hidden temporaries: `.NAME.XXXXXXXX.part[.EXT]` (pd_tool.atomic) and
 # `.NAME.tmp-XXXXXXXX.usd[ac]` (the USD writer). A message names NAME, the user's file.
-_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?:[A-Za-z0-9_]{8}\.part(?:\.[^.]*)?|tmp-[^.]+\.usd[ac]?|[A-Za-z0-9_]{8}\.old)$")
+_TEMP_SUFFIX = r"\.(?:[a-z0-9_]{8}\.part(?:\.[A-Za-z0-9]+)?|tmp-[0-9]+-[0-9a-f]{8}\.usd[ac]?|[a-z0-9_]{8}\.old)"
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)" + _TEMP_SUFFIX + "$")
+_TEMP_IN_TEXT = re.compile(r"(?P<dir>[^\s'\"(]*/)?\.(?P<name>[^/\s'\"]+?)" + _TEMP_SUFFIX + r"(?=$|[\s'\":;,)])")
 
 _OS_REASONS = {
     errno.ENOSPC: ("the disk is full", "free some space or write to another disk"),
@@ -59,6 +61,11 @@ def user_file(path: str | os.PathLike) -> str:
     return str(p.with_name(m.group("name"))) if m else str(p)
 
 
+def untemp(text: str) -> str:
+    """`text` with every hidden temporary's path replaced by the output it stands for."""
+    return _TEMP_IN_TEXT.sub(lambda m: (m.group("dir") or "") + m.group("name"), text)
+
+
 def os_error_line(e: OSError) -> str:
     """One line for an OSError that carries a file name: the user's file, why, the fix."""
     why, fix = _OS_REASONS.get(e.errno, (e.strerror or type(e).__name__, "check the path and the disk"))
@@ -75,7 +82,7 @@ def user_errors() -> Iterator[None]:
     try:
         yield
     except PdToolError as e:
-        raise InputError(str(e)) from None
+        raise InputError(untemp(str(e))) from None
     except MemoryError:
         raise InputError("out of memory; lower --quality, the driver ratio or the grid resolution") from None
     except OSError as e:
@@ -405,8 +412,8 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
       pdtool fit plant.ply video/video_2/
     """
     if seed + count - 1 > T.SEED_MAX:
-        raise click.BadParameter(f"{seed} + {count} videos passes the largest seed {T.SEED_MAX}; give a smaller --seed",
-                                 param_hint="'--seed'")
+        raise T.OptionError(f"with --count {count} the last video's seed passes {T.SEED_MAX}; give a smaller --seed",
+                            None, None, seed, "--seed")
     with user_errors():
         from pd_tool.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
                                       generation_camera, inspect_model, require_video_extra)
@@ -614,12 +621,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         raise click.UsageError("give --box or --at/--radius, not both")
     n_seconds = (frames - 1) / fps if frames is not None else (seconds if seconds is not None else 2.0)
     if n_seconds > T.SECONDS_MAX:
-        raise click.BadParameter(f"{frames} frames at {fps:g} fps last {n_seconds:,.0f} s; at most "
-                                 f"{T.SECONDS_MAX:g} s of animation: fewer --frames or a higher --fps",
-                                 param_hint="'--frames'")
+        raise T.OptionError(f"at --fps {fps:g} that is {n_seconds:,.0f} s of animation, over {T.SECONDS_MAX:g} s; "
+                            "give fewer --frames or a higher --fps", None, None, frames, "--frames")
     if start is not None and start >= n_seconds:
-        raise click.BadParameter(f"{start:g} s is not before the animation's end ({n_seconds:g} s); start the "
-                                 "force earlier or make the animation longer", param_hint="'--start'")
+        raise T.OptionError(f"the force would start at or after the animation's end ({n_seconds:g} s); start it "
+                            "earlier or make the animation longer", None, None, start, "--start")
     with user_errors():
         from pd_tool.bake import BakeSettings, ForceSpec, bake as run_bake
         from pd_tool.device import resolve_device

@@ -46,6 +46,35 @@ NAME_MAX_BYTES = 255  # a file name on every common file system (ext4, APFS, NTF
 _TEMP_OVERHEAD = len(".") + len(".XXXXXXXX.part") + 8
 
 
+class OptionError(click.BadParameter):
+    """A bad option value, shown as `--option VALUE: what is wrong; the fix` (one line)."""
+
+    def __init__(self, message: str, ctx: click.Context | None, param: click.Parameter | None, value: Any,
+                 hint: str | None = None) -> None:
+        super().__init__(message, ctx=ctx, param=param, param_hint=hint)
+        self.value = value
+
+    def format_message(self) -> str:
+        p = self.param
+        if self.param_hint is not None:
+            hint = str(self.param_hint)
+        elif isinstance(p, click.Option):
+            hint = max(p.opts, key=len)
+        elif p is not None:
+            hint = p.human_readable_name
+        else:
+            hint = ""
+        text = str(self.value)
+        shown = repr(text) if (not text or any(c.isspace() or ord(c) < 32 for c in text)) else text
+        if len(shown) > 60:
+            shown = shown[:40] + f"...({len(text)} characters)"
+        return f"{hint} {shown}: {self.message}".strip()
+
+
+def _fail(message: str, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> None:
+    raise OptionError(message, ctx, param, value)
+
+
 def _num(v: float) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
 
@@ -67,14 +96,14 @@ class FiniteFloat(click.FloatRange):
         try:
             rv = float(value)
         except (TypeError, ValueError, OverflowError):
-            self.fail(f"{str(value)[:40]!r} is not a number; give {self._wanted()}", param, ctx)
+            _fail(f"not a number; give {self._wanted()}", value, param, ctx)
         if not math.isfinite(rv):
-            self.fail(f"{str(value)[:40]} is not a finite number; give {self._wanted()}", param, ctx)
+            _fail(f"not a finite number; give {self._wanted()}", value, param, ctx)
         lo, hi = self.min, self.max
         low = lo is not None and (rv <= lo if self.min_open else rv < lo)
         high = hi is not None and (rv >= hi if self.max_open else rv > hi)
         if low or high:
-            self.fail(f"{rv:g} is out of range; give {self._wanted()}", param, ctx)
+            _fail(f"out of range; give {self._wanted()}", value, param, ctx)
         return rv
 
     def _wanted(self) -> str:
@@ -109,18 +138,16 @@ class BoundedInt(click.IntRange):
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> int:
         if isinstance(value, bool):
-            self.fail(f"{value!r} is not a whole number", param, ctx)
+            _fail("not a whole number", value, param, ctx)
         if isinstance(value, int):
             rv = value
         else:
             try:
                 rv = int(str(value).strip())
             except ValueError:
-                self.fail(f"{str(value)[:40]!r} is not a whole number; give one from {self.min} to {self.max}",
-                          param, ctx)
+                _fail(f"not a whole number; give one from {self.min} to {self.max}", value, param, ctx)
         if (self.min is not None and rv < self.min) or (self.max is not None and rv > self.max):
-            shown = str(rv) if len(str(rv)) <= 24 else f"{str(rv)[:12]}...({len(str(rv))} digits)"
-            self.fail(f"{shown} is out of range; give a whole number from {self.min} to {self.max}", param, ctx)
+            _fail(f"out of range; give a whole number from {self.min} to {self.max}", value, param, ctx)
         return rv
 
 
@@ -143,11 +170,11 @@ class Vector(click.ParamType):
             return value
         vals = _floats(value)
         if vals is None or len(vals) != self.n:
-            self.fail(f"expected {self.n} comma-separated {self.what}, got {str(value)[:60]!r}", param, ctx)
+            _fail(f"expected {self.n} comma-separated {self.what}", value, param, ctx)
         if not all(math.isfinite(v) for v in vals):
-            self.fail(f"{str(value)[:60]!r} holds NaN or inf; give {self.n} finite {self.what}", param, ctx)
+            _fail(f"holds NaN or inf; give {self.n} finite {self.what}", value, param, ctx)
         if any(abs(v) > self.bound for v in vals):
-            self.fail(f"{str(value)[:60]!r}: each number must lie within +-{self.bound:g}", param, ctx)
+            _fail(f"each number must lie within +-{self.bound:g}", value, param, ctx)
         return tuple(vals)
 
 
@@ -161,9 +188,9 @@ class Colour(click.ParamType):
             return value
         vals = _floats(value)
         if vals is None or len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-            self.fail(f"expected r,g,b (three numbers in 0-1), got {str(value)[:60]!r}", param, ctx)
+            _fail("expected r,g,b: three numbers in 0-1", value, param, ctx)
         if not all(0.0 <= v <= 1.0 for v in vals):
-            self.fail(f"{str(value)[:60]!r}: each channel must lie in 0-1 (e.g. 1,1,1 for white)", param, ctx)
+            _fail("each channel must lie in 0-1 (e.g. 1,1,1 for white)", value, param, ctx)
         return tuple(vals)
 
 
@@ -177,14 +204,13 @@ class BoxType(click.ParamType):
             return value
         vals = _floats(value)
         if vals is None or len(vals) != 6:
-            self.fail(f"expected six comma-separated numbers x0,y0,z0,x1,y1,z1, got {str(value)[:60]!r}", param, ctx)
+            _fail("expected six comma-separated numbers x0,y0,z0,x1,y1,z1", value, param, ctx)
         if not all(math.isfinite(v) and abs(v) <= COORD_MAX for v in vals):
-            self.fail(f"{str(value)[:60]!r}: every corner coordinate must be a finite number within "
-                      f"+-{COORD_MAX:g}", param, ctx)
+            _fail(f"every corner coordinate must be a finite number within +-{COORD_MAX:g}", value, param, ctx)
         for axis, lo, hi in zip("xyz", vals[:3], vals[3:]):
             if not hi > lo:
-                self.fail(f"{str(value)[:60]!r} has no volume: {axis}1 ({hi:g}) must be greater than {axis}0 "
-                          f"({lo:g}); give the low corner first, then the high corner", param, ctx)
+                _fail(f"the box has no volume: {axis}1 ({hi:g}) must be greater than {axis}0 ({lo:g}); give the "
+                      "low corner first, then the high corner", value, param, ctx)
         return tuple(vals)
 
 
@@ -194,14 +220,14 @@ def check_name(path: Path, *, directory: bool = False) -> str | None:
     beside it (`.NAME.XXXXXXXX.part.EXT`) to stay within NAME_MAX_BYTES."""
     text = str(path)
     if any(ord(c) < 32 or ord(c) == 127 for c in text):
-        return "holds a control character (a newline or tab?); choose a plain file name"
+        return "the name holds a control character (a newline or tab?); choose a plain file name"
     name = path.name
     if name in ("", ".", ".."):
         return f"needs a {'folder' if directory else 'file'} name, not {text!r}"
     try:
         n = len(os.fsencode(name))
     except UnicodeError:
-        return "cannot be encoded for this file system; choose a plain file name"
+        return "the name cannot be encoded for this file system; choose a plain file name"
     room = NAME_MAX_BYTES - _TEMP_OVERHEAD - (0 if directory else len(os.fsencode(path.suffix)))
     if n > room:
         return f"the name is {n} bytes long; at most {room} fit beside the writer's temporary file"
@@ -221,13 +247,12 @@ class OutputFile(click.Path):
         path = Path(value) if not isinstance(value, Path) else value
         why = check_name(path)
         if why:
-            self.fail(f"{str(value)[:80]!r}: {why}", param, ctx)
+            _fail(why, value, param, ctx)
         if path.suffix.lower() not in self.exts:
             want = self.exts[0] if len(self.exts) == 1 else ", ".join(self.exts[:-1]) + " or " + self.exts[-1]
-            self.fail(f"{str(value)[:80]!r} must end in {want} ({self.what}); name the file with that extension",
-                      param, ctx)
+            _fail(f"the file name must end in {want}", value, param, ctx)
         if path.is_dir():
-            self.fail(f"{str(value)[:80]!r} is a folder; give a file name ending in {self.exts[0]}", param, ctx)
+            _fail(f"is a folder; give a file name ending in {self.exts[0]} ({self.what})", value, param, ctx)
         return path
 
 
@@ -241,9 +266,9 @@ class OutputDir(click.Path):
         path = Path(value) if not isinstance(value, Path) else value
         why = check_name(path.resolve() if path.name in ("", ".", "..") else path, directory=True)
         if why:
-            self.fail(f"{str(value)[:80]!r}: {why}", param, ctx)
+            _fail(why, value, param, ctx)
         if path.exists() and not path.is_dir():
-            self.fail(f"{str(value)[:80]!r} is a file; give a folder", param, ctx)
+            _fail("is a file; give a folder", value, param, ctx)
         return path
 
 
