@@ -41,9 +41,10 @@ SUBSTEPS_MAX = 5000
 MPU_RANGE = (1e-6, 1e6)
 NAME_MAX_BYTES = 255  # a file name on every common file system (ext4, APFS, NTFS: 255)
 # The atomic writers create `.NAME.XXXXXXXX.part.EXT` (folders: `.NAME.XXXXXXXX.part`)
-# beside the output, and the USD writer `.NAME.tmp-XXXXXXXX.usda`: the longest of
-# these must fit too.
-_TEMP_OVERHEAD = len(".") + len(".XXXXXXXX.part") + 8
+# beside the output, and the USD writer `.NAME.tmp-PID-XXXXXXXX.usdc` (a PID has at most
+# 7 digits on Linux): the longest of these must fit too.
+_ATOMIC_OVERHEAD = len(".") + len(".XXXXXXXX.part")  # + the extension again
+_USD_OVERHEAD = len(".") + len(".tmp-1234567-XXXXXXXX.usdc")
 
 
 class OptionError(click.BadParameter):
@@ -216,8 +217,8 @@ class BoxType(click.ParamType):
 
 def check_name(path: Path, *, directory: bool = False) -> str | None:
     """Why `path` cannot be an output name, or None. Checks the last part only: no control
-    characters, not '.', '..' or empty, and short enough for the writers' hidden temporary
-    beside it (`.NAME.XXXXXXXX.part.EXT`) to stay within NAME_MAX_BYTES."""
+    characters, not '.', '..' or empty, and short enough for the writers' hidden temporaries
+    beside it to stay within NAME_MAX_BYTES."""
     text = str(path)
     if any(ord(c) < 32 or ord(c) == 127 for c in text):
         return "the name holds a control character (a newline or tab?); choose a plain file name"
@@ -228,7 +229,8 @@ def check_name(path: Path, *, directory: bool = False) -> str | None:
         n = len(os.fsencode(name))
     except UnicodeError:
         return "the name cannot be encoded for this file system; choose a plain file name"
-    room = NAME_MAX_BYTES - _TEMP_OVERHEAD - (0 if directory else len(os.fsencode(path.suffix)))
+    over = _ATOMIC_OVERHEAD if directory else max(_USD_OVERHEAD, _ATOMIC_OVERHEAD + len(os.fsencode(path.suffix)))
+    room = NAME_MAX_BYTES - over
     if n > room:
         return f"the name is {n} bytes long; at most {room} fit beside the writer's temporary file"
     return None
