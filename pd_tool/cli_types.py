@@ -67,8 +67,8 @@ class OptionError(click.BadParameter):
             hint = ""
         text = str(self.value)
         shown = repr(text) if (not text or any(c.isspace() or ord(c) < 32 for c in text)) else text
-        if len(shown) > 60:
-            shown = shown[:40] + f"...({len(text)} characters)"
+        if len(shown) > 200:  # a pasted file or a runaway name: its start is enough to find it
+            shown = shown[:60] + f"...({len(text)} characters)"
         return f"{hint} {shown}: {self.message}".strip()
 
 
