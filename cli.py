@@ -1,15 +1,27 @@
 """pdtool command line: thin. Parses, validates, calls pd_tool, maps errors to exit code 2.
 
-Heavy imports (torch, warp, pxr) happen inside the commands, after argument checks.
+Every option is checked where it enters (pd_tool/cli_types.py: finite numbers in documented
+ranges, colours, vectors, boxes with a volume, output names with their format's
+extension). Every refusal is one stderr line `Error: ...` with exit code 2, click's usage
+errors included (PdtoolGroup). Heavy imports (torch, warp, pxr) happen inside the
+commands, after the argument checks.
 """
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
+import os
+import re
+import signal
+import sys
+import threading
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import click
+
+from pd_tool import cli_types as T
 
 
 class InputError(click.ClickException):
@@ -22,17 +34,214 @@ class InputError(click.ClickException):
         return " ".join(self.message.split())
 
 
+# The writers' hidden temporaries: `.NAME.XXXXXXXX.part[.EXT]` (pd_tool.atomic) and
+# `.NAME.tmp-XXXXXXXX.usd[ac]` (the USD writer). A message names NAME, the user's file.
+_TEMP_SUFFIX = r"\.(?:[a-z0-9_]{8}\.part(?:\.[A-Za-z0-9]+)?|tmp-[0-9]+-[0-9a-f]{8}\.usd[ac]?|[a-z0-9_]{8}\.old)"
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)" + _TEMP_SUFFIX + "$")
+_TEMP_IN_TEXT = re.compile(r"(?P<dir>[^\s'\"(]*/)?\.(?P<name>[^/\s'\"]+?)" + _TEMP_SUFFIX + r"(?=$|[\s'\":;,)])")
+
+_OS_REASONS = {
+    errno.ENOSPC: ("the disk is full", "free some space or write to another disk"),
+    errno.EDQUOT: ("the disk quota is exhausted", "free some space or write to another disk"),
+    errno.EROFS: ("the file system is read-only", "write to a folder you can write to"),
+    errno.EACCES: ("permission denied", "write to a folder you can write to, or change its permissions"),
+    errno.EPERM: ("not permitted", "write to a folder you can write to, or change its permissions"),
+    errno.ENAMETOOLONG: ("the name is too long for the file system", "choose a shorter name"),
+    errno.ENOENT: ("no such file or folder", "check the path"),
+    errno.ENOTDIR: ("a part of the path is a file, not a folder", "check the path"),
+    errno.EISDIR: ("is a folder", "give a file name"),
+    errno.EEXIST: ("already exists", "choose another name"),
+}
+
+
+def user_file(path: str | os.PathLike) -> str:
+    """The name to show for `path`: the user's file for one of the writers' hidden temporaries."""
+    p = Path(os.fsdecode(path))
+    m = _TEMP_NAME.match(p.name)
+    return str(p.with_name(m.group("name"))) if m else str(p)
+
+
+def untemp(text: str) -> str:
+    """`text` with every hidden temporary's path replaced by the output it stands for."""
+    return _TEMP_IN_TEXT.sub(lambda m: (m.group("dir") or "") + m.group("name"), text)
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an OSError that carries a file name: the user's file, why, the fix."""
+    why, fix = _OS_REASONS.get(e.errno, (e.strerror or type(e).__name__, "check the path and the disk"))
+    return f"{user_file(e.filename)}: {why}; {fix}"
+
+
 @contextlib.contextmanager
 def user_errors() -> Iterator[None]:
-    """Turn library errors a user can fix into InputError (exit 2, one line)."""
+    """Turn library errors a user can fix into InputError (exit 2, one line). An OSError
+    that names a file (a full disk, a read-only folder, a name too long) is the last resort:
+    one line naming the user's file, not a traceback."""
     from pd_tool.errors import PdToolError
 
     try:
         yield
     except PdToolError as e:
-        raise InputError(str(e)) from None
+        raise InputError(untemp(str(e))) from None
     except MemoryError:
         raise InputError("out of memory; lower --quality, the driver ratio or the grid resolution") from None
+    except OSError as e:
+        if e.filename is None:
+            raise
+        raise InputError(os_error_line(e)) from None
+
+
+# ----------------------------------------------------------------------------- one line per refusal
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C, so that every writer's cleanup runs."""
+
+
+class _Stopped(Exception):
+    """Ctrl-C or SIGTERM reached the command: exit `code` with one line."""
+
+    def __init__(self, code: int, line: str) -> None:
+        super().__init__(line)
+        self.code, self.line = code, line
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    # a second SIGTERM must not interrupt the cleanup that the first one started
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise _Terminated()
+
+
+def error_line(e: click.ClickException) -> str:
+    """click's error as one line: the message, and for a usage error where to read the
+    command's options (click prints usage, a hint, a blank line and the message)."""
+    msg = " ".join(e.format_message().split())
+    if isinstance(e, click.UsageError) and (not isinstance(e, click.BadParameter)
+                                            or isinstance(e, click.MissingParameter)):
+        ctx = e.ctx
+        if ctx is not None and "--help" not in msg:
+            msg = msg.rstrip(".") + f" (see `{ctx.command_path} --help`)"
+    return f"Error: {msg}"
+
+
+class PdtoolGroup(click.Group):
+    """click.Group whose refusals are one stderr line `Error: ...`, and which handles
+    SIGTERM as Ctrl-C (exit 143 and 130, one line, temporaries removed).
+
+    Called with standalone_mode=False (batch's workers) it behaves as click.Group."""
+
+    _standalone = False
+
+    def main(self, args: Any = None, prog_name: str | None = None, complete_var: str | None = None,
+             standalone_mode: bool = True, **extra: Any) -> Any:
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        sys.exit(self._run(args, prog_name, complete_var, **extra))
+
+    def _run(self, args: Any, prog_name: str | None, complete_var: str | None, **extra: Any) -> int:
+        main_thread = threading.current_thread() is threading.main_thread()
+        old = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+        self._standalone = True
+        try:
+            try:
+                rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+            except _Stopped as e:
+                click.echo(f"Error: {e.line}", err=True)
+                return e.code
+            except click.exceptions.NoArgsIsHelpError as e:  # bare `pdtool`: the help, on stdout
+                click.echo(e.ctx.get_help())
+                return 0
+            except click.ClickException as e:
+                click.echo(error_line(e), err=True)
+                return e.exit_code
+            except click.exceptions.Abort:
+                click.echo("Error: aborted", err=True)
+                return 1
+            return rv if isinstance(rv, int) else 0
+        finally:
+            self._standalone = False
+            if main_thread:
+                signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as e:
+            # click would print a blank line and "Aborted!": one line instead, after the
+            # writers' cleanup (it ran while the interrupt unwound)
+            if not self._standalone:
+                raise
+            if isinstance(e, _Terminated):
+                raise _Stopped(143, "stopped by SIGTERM; unfinished outputs were not written") from None
+            raise _Stopped(130, "interrupted; unfinished outputs were not written") from None
+
+
+# ----------------------------------------------------------------------------- progress
+def progress_enabled() -> bool:
+    """Progress bars go to a terminal only: on a pipe or file the bar's carriage-return
+    updates would be lines before an `Error:` line. PDTOOL_PROGRESS=1 forces them on (the
+    Blender add-on reads them), =0 off."""
+    force = os.environ.get("PDTOOL_PROGRESS", "").strip().lower()
+    if force in ("1", "on", "yes", "true"):
+        return True
+    if force in ("0", "off", "no", "false"):
+        return False
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+class LazyBar:
+    """A tqdm bar that appears on its first update (after every check has passed) and, when
+    closed after an error, is erased instead of left on the screen."""
+
+    def __init__(self, desc: str, unit: str) -> None:
+        self.desc, self.unit = desc, unit
+        self.note = ""
+        self._bar = None
+
+    def update_to(self, n: int, total: int, **postfix: str) -> None:
+        if self._bar is None:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=self.desc + self.note, unit=self.unit, dynamic_ncols=True,
+                             leave=True, disable=not progress_enabled(), file=sys.stderr)
+        if postfix:
+            self._bar.set_postfix(**postfix, refresh=False)
+        self._bar.update(n - self._bar.n)
+
+    def close(self, ok: bool = True) -> None:
+        if self._bar is not None:
+            if not ok:
+                self._bar.leave = False
+            self._bar.close()
+            self._bar = None
+
+
+@contextlib.contextmanager
+def bars() -> Iterator[dict[str, LazyBar]]:
+    """Bars by name, closed on the way out: kept on success, erased on an error."""
+    held: dict[str, LazyBar] = {}
+    ok = False
+    try:
+        yield held
+        ok = True
+    finally:
+        for b in held.values():
+            b.close(ok)
+
+
+def parse_view(view: str | None) -> str | int | None:
+    """--view: a camera index when it is a number, else an image/camera name."""
+    return int(view) if view is not None and view.isdigit() else view
+
+
+class _PointOrTop(click.ParamType):
+    name = "x,y,z|top"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and value.strip().lower() == "top":
+            return "top"
+        return T.POINT.convert(value, param, ctx)
 
 
 SCENE_PATH = click.Path(exists=True, dir_okay=False, path_type=Path)
@@ -41,29 +250,16 @@ DEVICE_OPTION = click.option(
     "--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
     help="Where kernels run; auto picks CUDA when a GPU is visible.",
 )
+MAX_MINUTES_OPTION = click.option(
+    "--max-minutes", type=T.MAX_MINUTES, default=60.0, show_default=True,
+    help="Refuse the run when its work estimate (shown with the progress bar) is longer than this. "
+         "PDTOOL_SKIP_WORK_CHECK=1 turns the refusal off.",
+)
+PNG_OUT = T.OutputFile([".png"], "a PNG image")
 
 
-def parse_view(view: str | None) -> str | int | None:
-    """--view: a camera index when it is a number, else an image/camera name."""
-    return int(view) if view is not None and view.isdigit() else view
-
-
-def parse_vector(text: str | None, param: str, n: int = 3) -> tuple[float, ...] | None:
-    """'1,2,3' -> (1.0, 2.0, 3.0), with a usage error naming the option otherwise."""
-    if text is None:
-        return None
-    try:
-        vals = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        vals = ()
-    import math
-
-    if len(vals) != n or not all(math.isfinite(v) for v in vals):
-        raise click.BadParameter(f"expected {n} comma-separated numbers, got {text!r}", param_hint=param)
-    return vals
-
-
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.group(cls=PdtoolGroup, name="pdtool",
+             context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="pdtool")
 def main() -> None:
     """pdtool: make a static Gaussian-splat scan move like the real object.
@@ -104,25 +300,24 @@ def info(scene: Path, as_json: bool) -> None:
 
 @main.command()
 @click.argument("scene", type=SCENE_PATH)
-@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Output image (.png).")
+@click.option("-o", "--out", type=PNG_OUT, required=True, help="Output image (.png).")
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="cameras.json (INRIA 3DGS), transforms.json (NeRF) or camera.json (pdtool). "
                    "Default: an automatic 3/4 view that frames the object.")
 @click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
-@click.option("--width", type=click.IntRange(8, 8192), help="Output width, pixels (keeps the field of view).")
-@click.option("--height", type=click.IntRange(8, 8192), help="Output height, pixels.")
+@click.option("--width", type=T.BoundedInt(8, 8192), help="Output width, pixels (keeps the field of view).")
+@click.option("--height", type=T.BoundedInt(8, 8192), help="Output height, pixels.")
 @click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
               help="Scene up axis, for the automatic camera (COLMAP scenes are often -y).")
-@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
-@click.option("--write-camera", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--background", type=T.COLOUR, default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
+@click.option("--write-camera", type=T.OutputDir(),
               help="Also write the camera as DIR/camera.json, ready for the reference-video folder.")
-@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True,
+@click.option("--fps", type=T.FPS, default=30.0, show_default=True,
               help="Frame rate stored in the written camera.json (the reference video's rate).")
 @DEVICE_OPTION
 def render(scene: Path, out: Path, camera: Path | None, view: str | None, width: int | None,
-           height: int | None, up: str, background: str, write_camera: Path | None, fps: float,
-           device: str) -> None:
+           height: int | None, up: str, background: tuple[float, float, float], write_camera: Path | None,
+           fps: float, device: str) -> None:
     """Render one view of a splat to a PNG.
 
     This is how you make frame I_0 for an image-to-video model: render the view, animate
@@ -135,9 +330,6 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
       pdtool render scene.ply --camera cameras.json --view 0 --width 1024 --height 576 \\
           -o video/frame_0000.png --write-camera video/
     """
-    if out.suffix.lower() != ".png":
-        raise click.BadParameter("must end in .png", param_hint="--out")
-    bg = parse_vector(background, "--background")
     with user_errors():
         import dataclasses
 
@@ -151,7 +343,7 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         splats = load_splats(scene, device=dev)
         view_id = parse_view(view)
         cam = scene_camera(splats, camera, view_id, width=width, height=height, up_axis=up)
-        save_png(out, render_image(splats, cam, background=bg))
+        save_png(out, render_image(splats, cam, background=background))
         click.echo(f"wrote {out} ({cam.width}x{cam.height}, camera '{cam.name}')")
         if write_camera is not None:
             write_camera.mkdir(parents=True, exist_ok=True)
@@ -164,44 +356,48 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
 @click.option("--model", type=click.Path(path_type=Path), required=True,
               help="Local diffusers folder of an image-to-video model (model_index.json inside), e.g. a "
                    "download of stabilityai/stable-video-diffusion-img2vid. Read from disk only, never downloaded.")
-@click.option("-o", "--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+@click.option("-o", "--out", type=T.OutputDir(), required=True,
               help="Output folder: a video folder for pdtool fit, or with --count K the folders video_0/ ... "
                    "video_{K-1}/ and contact_sheet.png.")
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="cameras.json (INRIA 3DGS), transforms.json (NeRF) or camera.json (pdtool). "
                    "Default: an automatic 3/4 view that frames the object.")
 @click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
-@click.option("--width", type=click.IntRange(8, 8192), default=1024, show_default=True,
+@click.option("--width", type=T.BoundedInt(8, 8192), default=1024, show_default=True,
               help="Frame width, px; a multiple of the model's (64 for SVD). A camera of another aspect is "
                    "widened, not stretched.")
-@click.option("--height", type=click.IntRange(8, 8192), default=576, show_default=True, help="Frame height, px.")
-@click.option("--frames", type=click.IntRange(3, 1024), default=14, show_default=True,
+@click.option("--height", type=T.BoundedInt(8, 8192), default=576, show_default=True, help="Frame height, px.")
+@click.option("--frames", type=T.BoundedInt(3, 1024), default=14, show_default=True,
               help="Frames per video, frame 0 included.")
-@click.option("--motion-bucket", type=click.IntRange(0, 255), default=8, show_default=True,
+@click.option("--motion-bucket", type=T.BoundedInt(0, 255), default=8, show_default=True,
               help="The model's motion conditioning; low values keep the camera still (the paper used 5-8).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first video; video k uses SEED+k.")
-@click.option("--count", type=click.IntRange(1, 64), default=1, show_default=True,
+@click.option("--seed", type=T.SEED, default=0, show_default=True, help="Seed of the first video; video k uses SEED+k.")
+@click.option("--count", type=T.BoundedInt(1, 64), default=1, show_default=True,
               help="Candidate videos to choose from (video_0/ ... and a contact sheet).")
-@click.option("--steps", type=click.IntRange(1, 1000), default=25, show_default=True, help="Denoising steps.")
-@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True,
+@click.option("--steps", type=T.BoundedInt(1, 1000), default=25, show_default=True, help="Denoising steps.")
+@click.option("--fps", type=T.FPS, default=30.0, show_default=True,
               help="Frame rate written to camera.json (the time between frames that fit assumes).")
-@click.option("--max-camera-motion", type=click.FloatRange(min=0), default=1.0, show_default=True, metavar="PCT",
+@click.option("--max-camera-motion", type=T.FiniteFloat(0.0, 100.0, unit="%"), default=1.0, show_default=True,
+              metavar="PCT",
               help="Bound on the camera motion against the rendered view, % of the frame's long side.")
 @click.option("--reject-moving-camera", is_flag=True,
               help="Leave out videos over --max-camera-motion (default: write them and warn).")
-@click.option("--static-below", type=float, metavar="H",
+@click.option("--static-below", type=T.HEIGHT, metavar="H",
               help="Gaussians below height H along --up stay still (a pot, a table): the camera motion is "
                    "measured where they are. Default: on the whole frame.")
-@click.option("--static-box", metavar="X0,Y0,Z0,X1,Y1,Z1", help="Gaussians in this box stay still. Scene units.")
+@click.option("--static-box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
+              help="Gaussians in this box stay still (low corner, then high corner). Scene units.")
 @click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
               help="Scene up axis, for the automatic camera and --static-below.")
-@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
+@click.option("--background", type=T.COLOUR, default="1,1,1", show_default=True,
+              help="Background colour r,g,b in 0-1.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @DEVICE_OPTION
 def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str | None, width: int, height: int,
              frames: int, motion_bucket: int, seed: int, count: int, steps: int, fps: float,
              max_camera_motion: float, reject_moving_camera: bool, static_below: float | None,
-             static_box: str | None, up: str, background: str, overwrite: bool, device: str) -> None:
+             static_box: tuple[float, ...] | None, up: str, background: tuple[float, float, float], overwrite: bool,
+             device: str) -> None:
     """Make the reference video with a local image-to-video model (Stable Video Diffusion).
 
     Renders the view as `pdtool render` does, animates it with the model, measures how far
@@ -215,7 +411,9 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
           --frames 14 --motion-bucket 8 --count 4 -o video/
       pdtool fit plant.ply video/video_2/
     """
-    bg = parse_vector(background, "--background")
+    if seed + count - 1 > T.SEED_MAX:
+        raise T.OptionError(f"with --count {count} the last video's seed passes {T.SEED_MAX}; give a smaller --seed",
+                            None, None, seed, "--seed")
     with user_errors():
         from pd_tool.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
                                       generation_camera, inspect_model, require_video_extra)
@@ -240,7 +438,7 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
         settings = GenerateSettings(frames=frames, motion_bucket=motion_bucket, seed=seed, count=count, steps=steps,
                                     fps=fps, max_camera_motion=max_camera_motion,
                                     reject_moving_camera=reject_moving_camera)
-        result = generate_reference_videos(splats, cam, out, info, settings, device=dev, background=bg,
+        result = generate_reference_videos(splats, cam, out, info, settings, device=dev, background=background,
                                            static=static, overwrite=overwrite, say=click.echo)
     for c in result.candidates:
         where = "not written" if c.folder is None else out if c.folder == "." else out / c.folder
@@ -256,17 +454,20 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
 def prepare_options_decorator(f):
     """Foreground, static-region and scale options shared by bake and fit."""
     opts = [
-        click.option("--foreground-box", metavar="X0,Y0,Z0,X1,Y1,Z1",
-                     help="Simulate only the Gaussians in this box (scene units). Default: all."),
-        click.option("--min-opacity", type=click.FloatRange(0, 1), default=None,
+        click.option("--foreground-box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                     help="Simulate only the Gaussians in this box (low corner, then high corner; scene units). "
+                          "Default: all."),
+        click.option("--min-opacity", type=T.UNIT_INTERVAL, default=None,
                      help="Leave out Gaussians fainter than this.  [default: 0.02]"),
-        click.option("--static-box", metavar="X0,Y0,Z0,X1,Y1,Z1",
-                     help="Gaussians in this box stay fixed (a pot, a table). Scene units."),
-        click.option("--static-below", type=float, metavar="H",
+        click.option("--static-box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                     help="Gaussians in this box stay fixed (a pot, a table). Low corner, then high corner; "
+                          "scene units."),
+        click.option("--static-below", type=T.HEIGHT, metavar="H",
                      help="Gaussians below height H along the up axis stay fixed."),
         click.option("--up", type=UP_CHOICE, default=None, help="Scene up axis.  [default: +z]"),
-        click.option("--meters-per-unit", type=click.FloatRange(min=0, min_open=True), default=None,
-                     help="Real size of one scene unit, metres. Default: the object's longest side is 1 m."),
+        click.option("--meters-per-unit", type=T.METERS_PER_UNIT, default=None,
+                     help="Real size of one scene unit, metres (a micrometre to a thousand kilometres). "
+                          "Default: the object's longest side is 1 m."),
         click.option("--fill", type=click.Choice(["auto", "on", "off"]), default=None,
                      help="Fill the inside of closed shells with simulated particles (a scan is a shell; a solid "
                           "object would move like a balloon). auto decides from how closed the shell is and "
@@ -294,12 +495,6 @@ def build_prepare_options(base=None, **kw):
     return opts
 
 
-def _tqdm(total: int, desc: str, unit: str):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=True)
-
-
 def _fmt_size(n: int) -> str:
     from pd_tool.info import format_bytes
 
@@ -308,10 +503,10 @@ def _fmt_size(n: int) -> str:
 
 @main.command()
 @click.argument("scene", type=SCENE_PATH)
-@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+@click.option("-o", "--out", type=T.OutputFile([".ply"], "a splat PLY"), required=True,
               help="Coloured copy of the scene (.ply): red = left out, blue = static, others as they are.")
-@click.option("--png", type=click.Path(dir_okay=False, path_type=Path), help="Also render it to this PNG.")
-@click.option("--grid-res", type=click.IntRange(10, 512), default=32, show_default=True,
+@click.option("--png", type=PNG_OUT, help="Also render it to this PNG.")
+@click.option("--grid-res", type=T.BoundedInt(10, 256), default=32, show_default=True,
               help="Grid cells along the simulation box's longest side (for the report).")
 @prepare_options_decorator
 @DEVICE_OPTION
@@ -326,8 +521,6 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
     Example:
       pdtool select donut.ply --static-below 0.005 -o selection.ply --png selection.png
     """
-    if out.suffix.lower() != ".ply":
-        raise click.BadParameter("must end in .ply", param_hint="--out")
     with user_errors():
         from pd_tool.device import resolve_device
         from pd_tool.io import load_splats, save_ply
@@ -352,38 +545,40 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
 
 
 @main.command()
-@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("out", type=T.OutputFile([".usd", ".usda", ".usdc"], "a USD file"))
 @click.option("--scene", type=SCENE_PATH, help="Splat to animate (.ply/.splat). Default: the last fit's scene.")
 @click.option("--material", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Fitted material file (.pdmat) from `pdtool fit`. Default: the last fit in this folder.")
 @click.option("--preset", help="Material preset instead of a fit: flower, leafy-plant, fabric-hat, rubber-cord, "
                                "jelly, or your own TOML file (see `pdtool presets materials`).")
-@click.option("--force", "force_vec", required=True, metavar="FX,FY,FZ",
-              help="Acceleration in scene units per s^2, e.g. 0,0,1 pushes up at 1 unit/s^2.")
+@click.option("--force", "force_vec", type=T.FORCE, required=True, metavar="FX,FY,FZ",
+              help="Acceleration in scene units per s^2, e.g. 0,0,1 pushes up at 1 unit/s^2 (each within +-1e9).")
 @click.option("--interaction", metavar="NAME|FILE",
               help="Force preset: poke (short tap at the top), gust (whole object), drag (long pull), "
                    "or a TOML file. Sets --at/--radius/--start/--duration; explicit options win.")
-@click.option("--at", "at_point", metavar="X,Y,Z|top", help="Centre of the pushed region, scene units, or 'top'. "
-              "Default: the whole free object.")
-@click.option("--radius", type=click.FloatRange(min=0, min_open=True),
+@click.option("--at", "at_point", type=_PointOrTop(), metavar="X,Y,Z|top",
+              help="Centre of the pushed region, scene units, or 'top'. Default: the whole free object.")
+@click.option("--radius", type=T.RADIUS,
               help="Radius of the pushed region around --at, scene units.  [default: 0.15 x object size]")
-@click.option("--box", "force_box", metavar="X0,Y0,Z0,X1,Y1,Z1", help="Push the free particles in this box instead.")
-@click.option("--start", type=click.FloatRange(min=0), default=None, help="When the force starts, s.  [default: 0]")
-@click.option("--duration", type=click.FloatRange(min=0), default=None,
+@click.option("--box", "force_box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
+              help="Push the free particles in this box instead (low corner, then high corner).")
+@click.option("--start", type=T.TIME, default=None, help="When the force starts, s.  [default: 0]")
+@click.option("--duration", type=T.FiniteFloat(0.0, T.SECONDS_MAX, lo_open=True, unit="s"), default=None,
               help="How long the force lasts, s.  [default: 0.25]")
-@click.option("--seconds", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Animation length, s.  [default: 2]")
-@click.option("--frames", type=click.IntRange(min=1), default=None, help="Animation length in frames instead of --seconds.")
-@click.option("--fps", type=click.FloatRange(min=1e-3), default=30.0, show_default=True, help="Frames per second.")
+@click.option("--seconds", type=T.SECONDS, default=None,
+              help="Animation length, s (ten minutes at most).  [default: 2]")
+@click.option("--frames", type=T.FRAMES, default=None,
+              help="Animation length in frames instead of --seconds (frame 0 included; ten minutes at most).")
+@click.option("--fps", type=T.FPS, default=30.0, show_default=True, help="Frames per second.")
 @click.option("--quality", default=None,
               help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio. Default: "
                    "with a fitted material, the fit's own (its E is calibrated to them); with --preset, default.")
 @click.option("--format", "fmt", type=click.Choice(["instancer", "splat", "both"]), default="both", show_default=True,
               help="instancer: UsdGeom.PointInstancer of spheres (every DCC); splat: UsdVol 3D Gaussian splat "
                    "schema (usd 26.03+); both.")
-@click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--preview", type=T.OutputFile([".mp4", ".gif"], "a video"),
               help="Also render the animation to a video (.mp4 or .gif) from an automatic camera.")
-@click.option("--frames-out", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--frames-out", type=T.OutputDir(),
               help="Also write the rendered frames and their camera.json into this folder "
                    "(a reference-video folder that `pdtool fit` reads).")
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -391,22 +586,25 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
 @click.option("--view", help="View id or name in --camera.")
 @click.option("--gravity/--no-gravity", default=False, show_default=True,
               help="Simulate gravity. Off by default: a scan already shows the object at rest under gravity.")
-@click.option("--substeps", type=click.IntRange(min=1), help="Fix the substeps per frame. Default: from the CFL bound.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for driver selection.")
+@click.option("--substeps", type=T.SUBSTEPS, help="Fix the substeps per frame. Default: from the CFL bound.")
+@click.option("--seed", type=T.SEED, default=0, show_default=True, help="Seed for driver selection.")
+@MAX_MINUTES_OPTION
 @prepare_options_decorator
 @DEVICE_OPTION
-def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: str,
-         interaction: str | None, at_point: str | None, radius: float | None, force_box: str | None,
-         start: float | None, duration: float | None, seconds: float | None, frames: int | None, fps: float,
-         quality: str | None, fmt: str, preview: Path | None, frames_out: Path | None, camera: Path | None,
-         view: str | None, gravity: bool, substeps: int | None, seed: int, device: str, **prep_kw) -> None:
+def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: tuple[float, ...],
+         interaction: str | None, at_point: tuple[float, ...] | str | None, radius: float | None,
+         force_box: tuple[float, ...] | None, start: float | None, duration: float | None, seconds: float | None,
+         frames: int | None, fps: float, quality: str | None, fmt: str, preview: Path | None,
+         frames_out: Path | None, camera: Path | None, view: str | None, gravity: bool, substeps: int | None,
+         seed: int, max_minutes: float, device: str, **prep_kw) -> None:
     """Simulate the object under a force and write an animated USD to OUT.
 
     The material comes from --preset, from --material, or, with neither, from the
     last `pdtool fit` run in this folder. The force is an acceleration (scene units per
     s^2) applied to the free particles within --radius of --at (or in --box, or the
     whole object) from --start for --duration seconds. The output appears whole or
-    not at all.
+    not at all. A bake whose work estimate exceeds --max-minutes is refused before it
+    starts.
 
     \b
     Examples:
@@ -415,27 +613,27 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
       pdtool bake --scene donut.ply --preset jelly --static-below 0.01 \\
           --interaction poke --force 0,0,-40 --preview poke.mp4 poke.usd
     """
-    if out.suffix.lower() not in (".usd", ".usda", ".usdc"):
-        raise click.BadParameter("must end in .usd, .usda or .usdc", param_hint="OUT")
-    if preview is not None and preview.suffix.lower() not in (".mp4", ".gif"):
-        raise click.BadParameter("must end in .mp4 or .gif", param_hint="--preview")
     if material is not None and preset is not None:
         raise click.UsageError("give --material or --preset, not both")
     if seconds is not None and frames is not None:
         raise click.UsageError("give --seconds or --frames, not both")
     if force_box is not None and (at_point is not None or radius is not None):
         raise click.UsageError("give --box or --at/--radius, not both")
-    accel = parse_vector(force_vec, "--force")
-    at: tuple[float, ...] | str | None = None
-    if at_point is not None:
-        at = "top" if at_point.strip().lower() == "top" else parse_vector(at_point, "--at")
+    n_seconds = (frames - 1) / fps if frames is not None else (seconds if seconds is not None else 2.0)
+    if n_seconds > T.SECONDS_MAX:
+        raise T.OptionError(f"at --fps {fps:g} that is {n_seconds:,.0f} s of animation, over {T.SECONDS_MAX:g} s; "
+                            "give fewer --frames or a higher --fps", None, None, frames, "--frames")
+    if start is not None and start >= n_seconds:
+        raise T.OptionError(f"the force would start at or after the animation's end ({n_seconds:g} s); start it "
+                            "earlier or make the animation longer", None, None, start, "--start")
     with user_errors():
         from pd_tool.bake import BakeSettings, ForceSpec, bake as run_bake
         from pd_tool.device import resolve_device
         from pd_tool.io import load_splats
         from pd_tool.material_file import MaterialFile, read_record
-        from pd_tool.prepare import Box, PrepareOptions
+        from pd_tool.prepare import PrepareOptions
         from pd_tool.presets import Material, load_preset
+        from pd_tool.work import work_policy
 
         mat_file = None
         mat = None
@@ -460,17 +658,14 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
             load_preset("quality", quality)
         base = PrepareOptions.from_dict(mat_file.prepare) if mat_file is not None else None
         opts = build_prepare_options(base, **prep_kw)
-        overrides = dict(at=at, radius=radius, start=start, duration=duration,
-                         box=None if force_box is None else (*Box.parse(force_box, "--box").lo,
-                                                             *Box.parse(force_box, "--box").hi))
+        overrides = dict(at=at_point, radius=radius, start=start, duration=duration, box=force_box)
         if interaction is not None:
-            spec = ForceSpec.from_interaction(interaction, accel, **overrides)
+            spec = ForceSpec.from_interaction(interaction, force_vec, **overrides)
         else:
-            spec = ForceSpec(accel=accel)
+            spec = ForceSpec(accel=force_vec)
             for k, v in overrides.items():
                 if v is not None:
                     setattr(spec, k, v)
-        n_seconds = (frames - 1) / fps if frames is not None else (seconds if seconds is not None else 2.0)
         dev = resolve_device(device)
         settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=dev,
                                 gravity=gravity, substeps=substeps, seed=seed)
@@ -480,16 +675,24 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
             from pd_tool.views import scene_camera
 
             cam = scene_camera(splats, camera, parse_view(view))
-        bar = _tqdm(settings.frames, "bake", "frame")
-        try:
-            result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
-                              prepare_options=opts, settings=settings, preview=preview,
-                              frames_dir=frames_out, camera=cam,
-                              progress=lambda done, total: bar.update(done - bar.n))
-        finally:
-            bar.close()
+        estimates = []
+        with bars() as held:
+            bar = held["bake"] = LazyBar("bake", "frame")
+
+            def on_estimate(est) -> None:
+                estimates.append(est)
+                bar.note = f" (up to {est.describe()})"
+
+            with work_policy(max_minutes, on_estimate):
+                result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
+                                  prepare_options=opts, settings=settings, preview=preview,
+                                  frames_dir=frames_out, camera=cam,
+                                  progress=lambda done, total: bar.update_to(done, total))
     for line in result.report:
         click.echo(line)
+    if estimates:
+        click.echo(f"work estimate up to {estimates[-1].describe()} on {estimates[-1].device} "
+                   f"(--max-minutes {max_minutes:g})")
     click.echo(
         f"wrote {result.out}: {result.frames} frames ({result.simulated_frames} simulated), "
         f"{result.substeps_per_frame} substeps/frame, {result.gaussians:,} Gaussians driven by "
@@ -500,25 +703,25 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @main.command()
 @click.argument("scene", type=SCENE_PATH)
 @click.argument("videos", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
-@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--out", type=T.OutputFile([".pdmat"], "a pdtool material file"),
               help="Material file to write (.pdmat). Default: SCENE's name + .pdmat beside it.")
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Camera file to use instead of each video folder's camera.json.")
 @click.option("--view", help="View id or name in --camera.")
-@click.option("--fps", type=click.FloatRange(min=1e-3), help="Video frame rate. Default: camera.json's, else the .mp4's own, else 30.")
+@click.option("--fps", type=T.FPS, help="Video frame rate. Default: camera.json's, else the .mp4's own, else 30.")
 @click.option("--quality", default="default", show_default=True,
               help="draft | default | final or a TOML file: grid, CFL safety, driver ratio, iterations.")
-@click.option("--velocity-iters", type=click.IntRange(min=0), help="Stage 1 iterations. Default: from --quality.")
-@click.option("--material-iters", type=click.IntRange(min=0), help="Stage 2 iterations. Default: from --quality.")
-@click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--velocity-iters", type=T.ITERATIONS, help="Stage 1 iterations. Default: from --quality.")
+@click.option("--material-iters", type=T.ITERATIONS, help="Stage 2 iterations. Default: from --quality.")
+@click.option("--rounds", type=T.BoundedInt(1, 20), default=1, show_default=True,
               help="Rounds of (stage 1, stage 2); each later round refits the initial velocity under the fitted "
                    "stiffness. With two videos, 2 brought every region of the recovery benchmark within 10% "
                    "on every seed, and moved worse under a new force than 1; see docs/benchmarks.md.")
-@click.option("--horizon", type=click.IntRange(min=0), default=1, show_default=True,
+@click.option("--horizon", type=T.BoundedInt(0, 1024), default=1, show_default=True,
               help="Frames each stage-2 loss back-propagates through (the paper's 1; 0 = every frame). 3 brought "
                    "every region of the recovery benchmark within 10%, with the motion under a new force as good "
                    "with one video and worse with two; see docs/benchmarks.md.")
-@click.option("--polish", type=click.IntRange(min=0), default=0, show_default=True,
+@click.option("--polish", type=T.ITERATIONS, default=0, show_default=True,
               help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
                    "that the one-frame horizon stops short of. A lower loss moved the recovery benchmark "
                    "better with one video and worse with two; see docs/fitting.md.")
@@ -527,28 +730,32 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
                    "new force it moved the recovery benchmark closer on eight of nine seeds; see "
                    "docs/benchmarks.md.")
-@click.option("--diffusion", type=click.FloatRange(min=0), default=0.02, show_default=True,
+@click.option("--diffusion", type=T.FiniteFloat(0.0, 10.0, unit="grid cells squared"), default=0.02, show_default=True,
               help="How strongly neighbouring parts share their stiffness: smoothing of the per-part "
                    "stiffness after every stage-2 iteration, in fit-grid cells squared (0 = off). It keeps a "
                    "few parts from turning much stiffer than their neighbours, and carries a change out to parts "
                    "the video hardly shows (leaf tips). See docs/fitting.md.")
-@click.option("--working-size", type=click.IntRange(min=16), default=256, show_default=True,
+@click.option("--working-size", type=T.BoundedInt(16, 4096), default=256, show_default=True,
               help="Long side, px, that reference frames are resized to.")
-@click.option("--init-e", "init_e", type=click.FloatRange(min=0, min_open=True), default=1e6, show_default=True,
-              help="Starting Young's modulus, Pa (uniform); stage 1 rescales it unless --no-level.")
-@click.option("--nu", type=click.FloatRange(0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
-@click.option("--density", type=click.FloatRange(min=0, min_open=True), default=1000.0, show_default=True,
-              help="Density, kg/m^3.")
-@click.option("--background", default="1,1,1", show_default=True, help="Background colour r,g,b behind the Gaussians.")
+@click.option("--init-e", "init_e", type=T.FiniteFloat(1e3, 1e8, unit="Pa"), default=1e6, show_default=True,
+              help="Starting Young's modulus, Pa (uniform), within the fitted field's bounds; stage 1 rescales "
+                   "it unless --no-level.")
+@click.option("--nu", type=T.FiniteFloat(0.0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
+@click.option("--density", type=T.FiniteFloat(1e-3, 1e5, unit="kg/m^3"), default=1000.0, show_default=True,
+              help="Density, kg/m^3 (the material presets' range).")
+@click.option("--background", type=T.COLOUR, default="1,1,1", show_default=True,
+              help="Background colour r,g,b in 0-1 behind the Gaussians.")
 @click.option("--resume", is_flag=True, help="Continue from the checkpoint an interrupted fit left beside --out.")
 @click.option("--no-preview", is_flag=True, help="Skip the side-by-side preview video.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=T.SEED, default=0, show_default=True, help="Seed of the drivers and the fields.")
+@MAX_MINUTES_OPTION
 @prepare_options_decorator
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, level: bool, diffusion: float, working_size: int, init_e: float,
-        nu: float, density: float, background: str, resume: bool, no_preview: bool, seed: int, device: str, **prep_kw) -> None:
+        nu: float, density: float, background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int,
+        max_minutes: float, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
     Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
@@ -564,10 +771,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
       pdtool fit plant.ply video/ --quality draft
       pdtool bake --force 0,0,1 out.usd
     """
-    bg = parse_vector(background, "--background")
-    out = out or scene.with_suffix(".pdmat")
-    if out.suffix != ".pdmat":
-        raise click.BadParameter("must end in .pdmat", param_hint="--out")
+    out = out or T.OutputFile([".pdmat"], "a pdtool material file").convert(scene.with_suffix(".pdmat"), None, None)
     with user_errors():
         from pd_tool.device import resolve_device
         from pd_tool.fit.outputs import write_fit_outputs
@@ -576,6 +780,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         from pd_tool.io import load_splats
         from pd_tool.material_file import write_record
         from pd_tool.presets import load_preset
+        from pd_tool.work import work_policy
 
         load_preset("quality", quality)
         dev = resolve_device(device)
@@ -587,27 +792,22 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
                                stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
                                nu=nu, density=density,
-                               working_long_side=working_size, background=bg, seed=seed, device=dev)
+                               working_long_side=working_size, background=background, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
-        bar = None
-        stage_now = [""]
+        estimates = []
+        with bars() as held:
+            def progress(stage: str, it: int, total: int, loss: float) -> None:
+                if stage not in held:
+                    for b in held.values():
+                        b.close()
+                    held[stage] = LazyBar(f"fit {stage}", "it")
+                    if estimates:
+                        held[stage].note = f" (whole fit about {estimates[-1].describe()})"
+                held[stage].update_to(it, total, loss=f"{loss:.4f}")
 
-        def progress(stage: str, it: int, total: int, loss: float) -> None:
-            nonlocal bar
-            if stage != stage_now[0]:
-                if bar is not None:
-                    bar.close()
-                bar = _tqdm(total, f"fit {stage}", "it")
-                stage_now[0] = stage
-            bar.set_postfix(loss=f"{loss:.4f}")
-            bar.update(it - bar.n)
-
-        try:
-            result = run_fit(splats, scene, refs, out, prepare_options=opts, settings=settings,
-                             progress=progress, resume=resume)
-        finally:
-            if bar is not None:
-                bar.close()
+            with work_policy(max_minutes, estimates.append):
+                result = run_fit(splats, scene, refs, out, prepare_options=opts, settings=settings,
+                                 progress=progress, resume=resume)
         side = write_fit_outputs(out.parent, out.stem, splats, result, refs, settings.resolved(),
                                  preview=not no_preview)
         write_record(scene, out, ".")
@@ -615,6 +815,9 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 
     for line in result.report:
         click.echo(line)
+    if estimates:
+        click.echo(f"work estimate about {estimates[-1].describe()} on {estimates[-1].device} "
+                   f"(--max-minutes {max_minutes:g})")
     L = result.losses
     first = (L["velocity"] or L["material"] or [float("nan")])[0]
     last = (L["material"] or L["velocity"] or [float("nan")])[-1]
@@ -627,7 +830,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 
 
 @main.command()
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("pdtool-demo"),
+@click.option("--out", "out_dir", type=T.OutputDir(), default=Path("pdtool-demo"),
               show_default=True, help="Folder for everything the demo writes.")
 @click.option("--quality", type=click.Choice(["draft", "default"]), default="default", show_default=True,
               help="draft: about a minute on a laptop CPU; default: a few minutes.")
@@ -649,31 +852,22 @@ def demo(out_dir: Path, quality: str, device: str) -> None:
         from pd_tool.device import resolve_device
 
         dev = resolve_device(device)
-        bars: dict[str, object] = {}
+        with bars() as held:
+            def bar(name: str, desc: str, unit: str) -> LazyBar:
+                if name not in held:
+                    for b in held.values():
+                        b.close()
+                    held[name] = LazyBar(desc, unit)
+                return held[name]
 
-        def fit_progress(stage: str, it: int, total: int, loss: float) -> None:
-            bar = bars.get(stage)
-            if bar is None:
-                for b in bars.values():
-                    b.close()
-                bar = bars[stage] = _tqdm(total, f"fit {stage}", "it")
-            bar.set_postfix(loss=f"{loss:.4f}")
-            bar.update(it - bar.n)
+            def fit_progress(stage: str, it: int, total: int, loss: float) -> None:
+                bar(stage, f"fit {stage}", "it").update_to(it, total, loss=f"{loss:.4f}")
 
-        def bake_progress(done: int, total: int) -> None:
-            bar = bars.get("bake")
-            if bar is None:
-                for b in bars.values():
-                    b.close()
-                bar = bars["bake"] = _tqdm(total, "bake", "frame")
-            bar.update(done - bar.n)
+            def bake_progress(done: int, total: int) -> None:
+                bar("bake", "bake", "frame").update_to(done, total)
 
-        try:
             result = run_demo(out_dir, quality=quality, device=dev, say=click.echo,
                               fit_progress=fit_progress, bake_progress=bake_progress)
-        finally:
-            for b in bars.values():
-                b.close()
     click.echo("")
     for kind, path in result.paths.items():
         click.echo(f"{kind:<16} {path}")
@@ -772,9 +966,9 @@ def presets(kind: str | None) -> None:
 
 
 @main.command("blender-addon")
-@click.option("--install-to", type=click.Path(file_okay=False, path_type=Path), metavar="DIR",
+@click.option("--install-to", type=T.OutputDir(), metavar="DIR",
               help="Copy the add-on to DIR/pdtool_blender (e.g. Blender's scripts/addons folder).")
-@click.option("--zip", "zip_out", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.zip",
+@click.option("--zip", "zip_out", type=T.OutputFile([".zip"], "a zip archive"), metavar="OUT.zip",
               help="Write the add-on as a zip for Blender's Install from Disk (extension, 4.2+).")
 def blender_addon(install_to: Path | None, zip_out: Path | None) -> None:
     """Package the Blender add-on (panel in the 3D view sidebar that runs pdtool bake).

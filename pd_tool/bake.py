@@ -50,6 +50,7 @@ class ForceSpec:
     box: tuple[float, ...] | None = None
     start: float = 0.0
     duration: float = DEFAULT_DURATION_S
+    magnitude: float = 1.0  # accel / --force: a force preset's factor, to quote limits in --force's units
 
     @classmethod
     def from_interaction(cls, name_or_path: str | Path, accel: tuple[float, float, float], **overrides: Any) -> "ForceSpec":
@@ -57,7 +58,8 @@ class ForceSpec:
         p = load_preset("forces", name_or_path)
         at = None if p["at"] == "all" else p["at"]
         spec = cls(accel=tuple(float(a) * p["magnitude"] for a in accel), at=at,
-                   radius_fraction=p["radius"], start=p["start"], duration=p["duration"])
+                   radius_fraction=p["radius"], start=p["start"], duration=p["duration"],
+                   magnitude=float(p["magnitude"]) or 1.0)
         for k, v in overrides.items():
             if v is not None:
                 setattr(spec, k, v)
@@ -136,6 +138,16 @@ def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np
             f"enlarge --radius, or check the static region"
         )
     return mask
+
+
+def _free_space(prep: PreparedScene) -> float:
+    """Least distance, m, between the simulated particles' bounding box and the grid cells
+    the solver keeps for its walls, over the three axes."""
+    from pd_tool.prepare import WALL_CELLS
+
+    lo = prep.positions_sim.min(axis=0) - WALL_CELLS * prep.dx
+    hi = np.asarray(prep.domain) - WALL_CELLS * prep.dx - prep.positions_sim.max(axis=0)
+    return float(max(min(lo.min(), hi.min()), prep.dx))
 
 
 def _usd_frame(prep: PreparedScene) -> tuple[np.ndarray, str]:
@@ -230,6 +242,12 @@ def bake(
     else:
         nu, damping = material.nu, material.damping
         opts.density_kg_m3 = material.density
+    flat = ~(scene.scales > 0).all(dim=1).cpu().numpy()
+    if flat.any():  # USD needs a positive size; found here, the message can name the user's file
+        raise PreparationError(
+            f"{scene.source or 'the scene'}: {int(flat.sum())} Gaussians have a size of 0 (a scale_* log-scale "
+            f"below about -100), first at index {int(np.flatnonzero(flat)[0])}; remove them in your splat editor "
+            f"or export the scene again")
     prep = prepare_scene(scene, opts)
     dev = settings.device
     frame_dt = 1.0 / settings.fps
@@ -248,6 +266,16 @@ def bake(
         what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
         resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by "
                    f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
+    # refuse now too when the run would take longer than allowed (substeps from the CFL
+    # rule at the stiffest material and the speed the force can give)
+    from pd_tool.work import check_bake_work
+
+    E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
+    push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
+    speed = float(np.linalg.norm(prep.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
+    check_bake_work(prep, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(prep.positions_sim)))),
+                    frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
+                    speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
     drivers = prep.build_drivers(ratio=ratio, seed=seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
@@ -268,7 +296,8 @@ def bake(
     free_E = E[~d_static] if (~d_static).any() else E
     check_force(float(np.linalg.norm(accel_sim)), min(force.duration, max(settings.seconds - force.start, 0.0)),
                 float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx, opts.density_kg_m3,
-                float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale))
+                float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale), nu=nu,
+                gap_m=_free_space(prep), magnitude=force.magnitude)
     solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
     force_end = force.start + force.duration
 

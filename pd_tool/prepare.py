@@ -20,6 +20,9 @@ from pd_tool.scene import GaussianScene
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 DEFAULT_OBJECT_SIZE_M = 1.0  # longest object extent when no --meters-per-unit is given
+# Longest object extent, m, that the float32 simulation can hold: its squared distances,
+# cell volumes and masses stay normal numbers (a micrometre to a thousand kilometres).
+OBJECT_SIZE_RANGE_M = (1e-6, 1e6)
 WALL_CELLS = 3  # grid cells at each face that the solver reserves for domain walls
 OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
 
@@ -42,6 +45,9 @@ class Box:
         if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
             raise PreparationError(f"{what} '{text}' needs six finite numbers: x0,y0,z0,x1,y1,z1")
         a, b = np.array(vals[:3]), np.array(vals[3:])
+        if np.any(a == b):
+            # a flat box holds (almost) nothing, and what it holds depends on rounding
+            raise PreparationError(f"{what} '{text}' has no volume: give two corners that differ on every axis")
         return cls(tuple(np.minimum(a, b).tolist()), tuple(np.maximum(a, b).tolist()))
 
     def contains(self, points: np.ndarray) -> np.ndarray:
@@ -289,6 +295,12 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
     mpu = options.meters_per_unit or DEFAULT_OBJECT_SIZE_M / longest
     if not (mpu > 0 and math.isfinite(mpu)):
         raise PreparationError(f"--meters-per-unit {options.meters_per_unit} must be a positive number")
+    lo_m, hi_m = OBJECT_SIZE_RANGE_M
+    if not lo_m <= longest * mpu <= hi_m:
+        raise PreparationError(
+            f"--meters-per-unit {mpu:g} makes the object {longest * mpu:.3g} m long; pdtool simulates objects "
+            f"of {lo_m:g} m to {hi_m:g} m: give --meters-per-unit between {lo_m / longest:.3g} and "
+            f"{hi_m / longest:.3g}, or leave it out (the object is then 1 m long)")
     res = int(options.grid_res)
     if res < 2 * WALL_CELLS + 4:
         raise PreparationError(f"grid resolution {res} is too small; use at least {2 * WALL_CELLS + 4}")

@@ -201,6 +201,7 @@ class BakeJob:
         env = dict(os.environ)
         env.pop("PYTHONHOME", None)  # Blender's bundled Python must not leak into pdtool's
         env["PYTHONUNBUFFERED"] = "1"
+        env["PDTOOL_PROGRESS"] = "1"  # pdtool draws its bar on a terminal only; the panel reads it from the file
         self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=self._out, stderr=self._err,
                                      cwd=str(out.parent), env=env)
 

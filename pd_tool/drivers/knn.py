@@ -19,6 +19,7 @@ DEFAULT_CHUNK = 1 << 22  # (query, candidate) pairs held in memory at once
 _SAMPLE = 256  # queries whose k-th neighbour distance sets the cell size
 _SAMPLE_QUANTILE = 0.8  # of those distances: most queries finish in the first pass
 _MIN_CELL = 1e-4  # cell size floor relative to the refs' extent (duplicate points)
+_SAFE_SPAN = 1e15  # coordinates spanning more (or less than its inverse) are rescaled first
 _OFFSETS = torch.tensor(
     [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=torch.long
 )  # [27, 3] neighbour cell offsets
@@ -189,6 +190,17 @@ def knn(
         raise ValueError(f"knn: k={k} neighbours asked among only {q_count} reference points")
     if n == 0 or k == 0:
         return queries.new_zeros((n, k)), torch.zeros((n, k), dtype=torch.long, device=queries.device)
+    if not (bool(torch.isfinite(queries).all()) and bool(torch.isfinite(refs).all())):
+        raise ValueError("knn: the points hold NaN or inf")
+    lo = torch.minimum(refs.min(0).values, queries.min(0).values)
+    span = float((torch.maximum(refs.max(0).values, queries.max(0).values) - lo).max())
+    if span > _SAFE_SPAN or 0.0 < span < 1.0 / _SAFE_SPAN:
+        # squared distances overflow (or underflow) float32 here, and with them the cell
+        # choice (NaN cells never grow): search in coordinates scaled to the span, which
+        # keeps the order of the distances, and scale the distances back
+        f = 1.0 / span
+        d2, i = knn((queries - lo) * f, (refs - lo) * f, k, chunk=chunk, cell=None if cell is None else cell * f)
+        return d2.double().mul(span * span).to(d2.dtype), i
     if cell is None:
         cell = _pick_cell(queries, refs, k, chunk)
     dist = torch.empty((n, k), dtype=queries.dtype, device=queries.device)
@@ -211,6 +223,12 @@ def knn(
             missed.append(ids[~exact])
         pending = torch.cat(missed)
         cell *= 2.0
+        if pending.numel() > 0 and not cell <= 4.0 * max(span, 1e-30):
+            # a block already spans every point, so nothing is left but rounding: finish
+            # those queries by brute force instead of growing cells forever
+            d_b, i_b = knn_brute(queries[pending], refs, k, chunk)
+            dist[pending], idx[pending] = d_b, i_b
+            break
     return dist, idx
 
 

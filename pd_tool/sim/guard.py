@@ -1,6 +1,8 @@
 """Stability guard: turns the kernels' per-frame counters into one clear error."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from pd_tool.errors import SimulationUnstable
@@ -40,31 +42,61 @@ def check_stats(stats: np.ndarray, frame: int, time_s: float, substeps: int) -> 
 # speed sets the CFL substep count (tens of thousands per frame) before the per-frame
 # guard can see the NaN.
 HOPELESS_STRAIN = 10.0
+# The push the refusal suggests instead: one whose speed stays below this fraction of the
+# material's wave speed and whose free flight during the push stays within the free space
+# around the object. Both keep a body away from the two ways a push ends unstable here
+# (a shock faster than the material can carry, and an impact on the box's wall); on the
+# test plant a jelly pushed whole ran at 1.4x its wave speed and collapsed at 1.9x.
+SAFE_MACH = 0.8
+
+
+def safe_acceleration(duration_s: float, wave_speed_m_s: float, gap_m: float) -> float:
+    """m/s^2 of a push that stays stable: speed after `duration_s` at most SAFE_MACH x the
+    wave speed, and a free flight of at most `gap_m` (the free space around the object)."""
+    return min(SAFE_MACH * wave_speed_m_s / duration_s, 2.0 * gap_m / duration_s ** 2)
+
+
+def _round_down(x: float) -> float:
+    """x rounded down to two significant digits (a suggested limit must not round up)."""
+    if not (x > 0 and math.isfinite(x)):
+        return 0.0
+    step = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return math.floor(x / step * (1 + 1e-12)) * step
 
 
 def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, density: float,
-                E_max: float, box_m: float, scale: float) -> None:
+                E_max: float, box_m: float, scale: float, *, nu: float = 0.3, gap_m: float | None = None,
+                magnitude: float = 1.0) -> None:
     """Raise SimulationUnstable before simulating when a force cannot end stable.
+
+    The message names a --force length that simulates stably (safe_acceleration).
 
     Args:
         accel_m_s2: |acceleration| the force applies, m/s^2.
         duration_s: how long it pushes, s (already clipped to the animation).
         pushed_extent_m: size of the pushed region (longest side), m.
-        density: kg/m^3.  E_max: stiffest free particle's Young's modulus, Pa.
+        density: kg/m^3.  E_max: stiffest free particle's Young's modulus, Pa.  nu: Poisson's ratio.
         box_m: longest side of the simulation box, m.
         scale: metres per scene unit, to quote the limit in the user's units.
+        gap_m: free space between the object and the box's walls, m (None: a fifth of box_m).
+        magnitude: the force preset's factor between --force and the acceleration.
     """
     if accel_m_s2 <= 0 or duration_s <= 0:
         return
     travel = 0.5 * accel_m_s2 * duration_s ** 2  # a free particle's displacement, m
     strain = density * accel_m_s2 * max(pushed_extent_m, 1e-9) / E_max  # stress needed / E
     if travel > box_m and strain > HOPELESS_STRAIN:
-        # the larger of the two accelerations at which either test would pass
-        ok = max(2.0 * box_m / duration_s ** 2, HOPELESS_STRAIN * E_max / (density * max(pushed_extent_m, 1e-9)))
+        from pd_tool.sim.cfl import lame_np
+
+        mu, lam = lame_np(E_max, nu)
+        c = math.sqrt(float(lam + 2.0 * mu) / density)
+        ok = safe_acceleration(duration_s, c, box_m / 5.0 if gap_m is None else gap_m)
+        hint = _round_down(ok / (scale * magnitude))
         raise SimulationUnstable(
             f"the force cannot end stable: {accel_m_s2 / scale:.3g} scene units/s^2 for {duration_s:g} s would "
             f"carry the object {travel:.3g} m (the simulation box is {box_m:.3g} m) and needs {strain:.3g}x the "
-            f"stress E = {E_max:.3g} Pa can give; lower --force below about {ok / scale:.3g} or raise E")
+            f"stress E = {E_max:.3g} Pa can give; lower --force below about {hint:g} (a push of that length "
+            f"simulates stably), shorten --duration, or raise E")
 
 
 def fold_stat_lanes(stats: np.ndarray) -> np.ndarray:
