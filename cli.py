@@ -339,6 +339,13 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         from pd_tool.preview import save_png
         from pd_tool.views import render_image, scene_camera
 
+        from pd_tool.atomic import check_destination, check_own_file
+
+        check_destination(out)
+        if write_camera is not None:  # the camera.json nobody named replaces only pdtool's own
+            check_own_file(write_camera / "camera.json", "pdtool's camera",
+                           "move or rename it, or give --write-camera another folder")
+            check_destination(write_camera / "camera.json")
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
         view_id = parse_view(view)
@@ -346,7 +353,6 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         save_png(out, render_image(splats, cam, background=background))
         click.echo(f"wrote {out} ({cam.width}x{cam.height}, camera '{cam.name}')")
         if write_camera is not None:
-            write_camera.mkdir(parents=True, exist_ok=True)
             save_camera_json(write_camera / "camera.json", dataclasses.replace(cam, fps=fps))
             click.echo(f"wrote {write_camera / 'camera.json'}")
 
@@ -686,7 +692,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
             with work_policy(max_minutes, on_estimate):
                 result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
                                   prepare_options=opts, settings=settings, preview=preview,
-                                  frames_dir=frames_out, camera=cam,
+                                  frames_dir=frames_out, camera=cam, inputs={"--material": material},
                                   progress=lambda done, total: bar.update_to(done, total))
     for line in result.report:
         click.echo(line)
@@ -771,6 +777,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
       pdtool fit plant.ply video/ --quality draft
       pdtool bake --force 0,0,1 out.usd
     """
+    out_given = out is not None
     out = out or T.OutputFile([".pdmat"], "a pdtool material file").convert(scene.with_suffix(".pdmat"), None, None)
     with user_errors():
         from pd_tool.device import resolve_device
@@ -785,6 +792,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         load_preset("quality", quality)
         dev = resolve_device(device)
         view_id = parse_view(view)
+        _check_fit_destinations(scene, videos, out, named=out_given, preview=not no_preview)
         refs = [load_reference_video(v, camera_path=camera, view=view_id, fps=fps, working_size=working_size,
                                      device=dev) for v in videos]
         splats = load_splats(scene, device=dev)
@@ -827,6 +835,23 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                f"{sum(result.seconds.values()):.0f} s")
     for kind, path in side.items():
         click.echo(f"  {kind:<12} {path}")
+
+
+def _check_fit_destinations(scene: Path, videos: tuple[Path, ...], out: Path, *, named: bool, preview: bool) -> None:
+    """Before a fit runs: its side outputs and the last-fit record replace only pdtool's
+    own files, and a material file nobody named (SCENE.pdmat) only a pdtool material file."""
+    from pd_tool.atomic import check_outputs
+    from pd_tool.errors import OutputError
+    from pd_tool.fit.outputs import check_fit_outputs
+    from pd_tool.material_file import check_record, is_material_file
+
+    inputs = {"SCENE": scene, **{f"VIDEO {i}": v for i, v in enumerate(videos)}}
+    check_outputs({"--out": out}, {}, inputs)
+    if not named and (out.exists() or out.is_symlink()) and not is_material_file(out):
+        raise OutputError(f"{out}: exists and is not a pdtool material file, which the fit would replace; move or "
+                          f"rename it, or name the material file with -o", path=out)
+    check_fit_outputs(out.parent, out.stem, preview=preview, inputs=inputs)
+    check_record(".")
 
 
 @main.command()

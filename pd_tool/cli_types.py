@@ -43,8 +43,6 @@ NAME_MAX_BYTES = 255  # a file name on every common file system (ext4, APFS, NTF
 # The atomic writers create `.NAME.XXXXXXXX.part.EXT` (folders: `.NAME.XXXXXXXX.part`)
 # beside the output, and the USD writer `.NAME.tmp-PID-XXXXXXXX.usdc` (a PID has at most
 # 7 digits on Linux): the longest of these must fit too.
-_ATOMIC_OVERHEAD = len(".") + len(".XXXXXXXX.part")  # + the extension again
-_USD_OVERHEAD = len(".") + len(".tmp-1234567-XXXXXXXX.usdc")
 
 
 class OptionError(click.BadParameter):
@@ -217,8 +215,8 @@ class BoxType(click.ParamType):
 
 def check_name(path: Path, *, directory: bool = False) -> str | None:
     """Why `path` cannot be an output name, or None. Checks the last part only: no control
-    characters, not '.', '..' or empty, and short enough for the writers' hidden temporaries
-    beside it to stay within NAME_MAX_BYTES."""
+    characters, not '.', '..' or empty, at most NAME_MAX_BYTES (the writers shorten the
+    name inside their hidden temporaries, so any such name can be written)."""
     text = str(path)
     if any(ord(c) < 32 or ord(c) == 127 for c in text):
         return "the name holds a control character (a newline or tab?); choose a plain file name"
@@ -229,10 +227,8 @@ def check_name(path: Path, *, directory: bool = False) -> str | None:
         n = len(os.fsencode(name))
     except UnicodeError:
         return "the name cannot be encoded for this file system; choose a plain file name"
-    over = _ATOMIC_OVERHEAD if directory else max(_USD_OVERHEAD, _ATOMIC_OVERHEAD + len(os.fsencode(path.suffix)))
-    room = NAME_MAX_BYTES - over
-    if n > room:
-        return f"the name is {n} bytes long; at most {room} fit beside the writer's temporary file"
+    if n > NAME_MAX_BYTES:
+        return f"the name is {n} bytes long; a file name holds at most {NAME_MAX_BYTES}: choose a shorter one"
     return None
 
 

@@ -283,6 +283,20 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
 _RECORD_FIX = "move it away, or fit in another folder"
 
 
+def is_material_file(path: str | Path) -> bool:
+    """Whether `path` is a material file pdtool wrote (of any version): a regular file
+    whose header names pdtool's format. Reads no pickle; a damaged one is not."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        meta = _read_npz(path).get("meta")
+        head = json.loads(meta.tobytes().decode("utf-8")) if meta is not None and meta.dtype == np.uint8 else None
+    except (MaterialFileError, UnicodeDecodeError, ValueError, RecursionError):
+        return False
+    return isinstance(head, dict) and head.get("format") == FORMAT
+
+
 def check_record(workdir: str | Path = ".") -> None:
     """Refuse (OutputError), before a fit runs, a fit record that cannot be written in
     `workdir`: .pdtool is a file or a link, or .pdtool/last-fit.json is not a record pdtool wrote

@@ -558,7 +558,7 @@ def test_cli_long_output_name_is_one_line(plant: Path, tmp_path: Path) -> None:
         gc.collect()
     finally:
         sys.unraisablehook = old_hook
-    _refused(res, "File name too long", bar=True)
+    _refused(res, "the name is 304 bytes long", bar=True)
     assert unraisable == [] and list(tmp_path.iterdir()) == []
 
 
@@ -627,13 +627,35 @@ def test_cli_fit_replaces_its_own_side_outputs_and_no_one_elses(fit_dir: Path, t
     for name in ("fit.loss.png", "fit.E.ply", "fit.E.png", "fit.report.json", "fit.preview.mp4",
                  ".pdtool/last-fit.json"):
         assert is_own_file(tmp_path / name), name
+    material = (tmp_path / "fit.pdmat").stat().st_mtime_ns
     (tmp_path / "fit.E.ply").write_text("my own E field")
     res = _cli(args, tmp_path)
-    _refused(res, "fit.E.ply: exists and was not written by pdtool", bar=True)
+    _refused(res, "fit.E.ply: exists and was not written by pdtool")  # before the fit: no bar yet
     assert (tmp_path / "fit.E.ply").read_text() == "my own E field"
     (tmp_path / "fit.E.ply").unlink()
     (tmp_path / ".pdtool" / "last-fit.json").write_text("{}")
     res = _cli(args, tmp_path)
-    _refused(res, "last-fit.json: exists and was not written by pdtool", bar=True)
+    _refused(res, "last-fit.json: exists and was not written by pdtool")
     assert (tmp_path / ".pdtool" / "last-fit.json").read_text() == "{}"
+    assert (tmp_path / "fit.pdmat").stat().st_mtime_ns == material  # refused before the fit wrote anything
     assert _leftovers(tmp_path) == []
+
+
+def test_cli_fit_default_material_name_replaces_only_a_material_file(fit_dir: Path, tmp_path: Path) -> None:
+    """Without -o the material goes to SCENE.pdmat, a name nobody gave: a file there that
+    is not a pdtool material file is the user's."""
+    import shutil
+
+    shutil.copy(fit_dir / "plant.ply", tmp_path / "p.ply")
+    (tmp_path / "p.pdmat").write_text("my notes")
+    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
+    _refused(res, "p.pdmat: exists and is not a pdtool material file")
+    assert (tmp_path / "p.pdmat").read_text() == "my notes"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.pdmat", "p.ply"]
+    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", "-o", "p.pdmat", *FIT], tmp_path)
+    assert res.exit_code == 0, res.output  # named with -o, it is replaced as asked
+    from pd_tool.material_file import is_material_file
+
+    assert is_material_file(tmp_path / "p.pdmat")
+    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
+    assert res.exit_code == 0, res.output  # and now it is pdtool's own
