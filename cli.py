@@ -339,8 +339,9 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         from pd_tool.preview import save_png
         from pd_tool.views import render_image, scene_camera
 
-        from pd_tool.atomic import check_destination, check_own_file
+        from pd_tool.atomic import check_destination, check_outputs, check_own_file
 
+        check_outputs({"--out": out}, {}, {"SCENE": scene, "--camera": camera})
         check_destination(out)
         if write_camera is not None:  # the camera.json nobody named replaces only pdtool's own
             check_own_file(write_camera / "camera.json", "pdtool's camera",
@@ -531,8 +532,13 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
         from pd_tool.device import resolve_device
         from pd_tool.io import load_splats, save_ply
         from pd_tool.prepare import prepare_scene
+        from pd_tool.atomic import check_destination, check_outputs
         from pd_tool.selection import selection_scene
 
+        check_outputs({"--out": out, "--png": png}, {}, {"SCENE": scene})
+        for path in (out, png):
+            if path is not None:
+                check_destination(path)
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
         opts = build_prepare_options(None, **prep_kw)
@@ -840,7 +846,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 def _check_fit_destinations(scene: Path, videos: tuple[Path, ...], out: Path, *, named: bool, preview: bool) -> None:
     """Before a fit runs: its side outputs and the last-fit record replace only pdtool's
     own files, and a material file nobody named (SCENE.pdmat) only a pdtool material file."""
-    from pd_tool.atomic import check_outputs
+    from pd_tool.atomic import check_destination, check_outputs
     from pd_tool.errors import OutputError
     from pd_tool.fit.outputs import check_fit_outputs
     from pd_tool.material_file import check_record, is_material_file
@@ -850,6 +856,7 @@ def _check_fit_destinations(scene: Path, videos: tuple[Path, ...], out: Path, *,
     if not named and (out.exists() or out.is_symlink()) and not is_material_file(out):
         raise OutputError(f"{out}: exists and is not a pdtool material file, which the fit would replace; move or "
                           f"rename it, or name the material file with -o", path=out)
+    check_destination(out)
     check_fit_outputs(out.parent, out.stem, preview=preview, inputs=inputs)
     check_record(".")
 

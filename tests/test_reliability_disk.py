@@ -140,8 +140,8 @@ def test_render_write_camera(plant, dest, tmp_path):
     kind, d = dest
     res = _run(["render", plant, "-o", "x.png", "--width", "32", "--height", "32", "--write-camera", "dest"],
                tmp_path)
-    # the PNG, written first elsewhere, stays: it was asked for and is whole
-    assert res.stdout.startswith("wrote x.png")
+    # refused before rendering: the PNG is not written either
+    assert res.stdout == "" and not (tmp_path / "x.png").exists()
     _check(res, kind, d, "dest/camera.json")
 
 
@@ -153,6 +153,8 @@ def test_select_ply(plant, dest, tmp_path):
 def test_select_png(plant, dest, tmp_path):
     kind, d = dest
     _check(_run(["select", plant, "-o", "s.ply", "--png", "dest/s.png"], tmp_path), kind, d, "dest/s.png")
+    if kind != "tight":  # both destinations are checked before either is written (a tight disk fills later)
+        assert not (tmp_path / "s.ply").exists()
 
 
 def test_blender_addon_zip(dest, tmp_path):
