@@ -34,3 +34,14 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real captures not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def fit_dir(tmp_path_factory) -> Path:
+    """A 300-Gaussian plant and a 3-frame 24-px reference video of it (plant.ply, video/):
+    the smallest fit that runs the whole command."""
+    from _plant import tiny_plant_video
+
+    folder = tmp_path_factory.mktemp("fit")
+    tiny_plant_video(folder, 300, seed=0, size=24, n_frames=3)
+    return folder

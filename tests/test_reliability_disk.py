@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from _cli import invoke, refusal_line
 
 from pd_tool.atomic import atomic_output
 from pd_tool.errors import OutputError
@@ -90,34 +90,13 @@ def dest(request, tmp_path: Path, monkeypatch):
         yield kind, where
 
 
-def _visible_lines(text: str) -> list[str]:
-    return [ln.rsplit("\r", 1)[-1] for ln in text.splitlines() if ln.rsplit("\r", 1)[-1].strip()]
-
-
-def _run(args: list, cwd: Path):
-    from cli import main
-
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
-        return CliRunner().invoke(main, [str(a) for a in args])
-    finally:
-        os.chdir(old)
-
-
 def _check(res, kind: str, folder: Path, named: str, bar: bool = False) -> None:
-    assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
-    lines = _visible_lines(res.stderr)
-    errors = [ln for ln in lines if ln.startswith("Error:")]
-    assert len(errors) == 1 and lines[-1] == errors[0], res.stderr
-    if not bar:
-        assert len(lines) == 1, res.stderr
-    assert "Traceback" not in res.output and "Exception ignored" not in res.stderr
+    line = refusal_line(res, bar=bar)
     if named.endswith("*"):  # the fit's checkpoint or its material file, whichever comes first
-        assert errors[0].startswith(f"Error: cannot write {named[:-1]}"), errors[0]
-        assert errors[0].endswith(f": {REASON[kind]}; {FIX}"), errors[0]
+        assert line.startswith(f"Error: cannot write {named[:-1]}"), line
+        assert line.endswith(f": {REASON[kind]}; {FIX}"), line
     else:
-        assert errors[0] == f"Error: cannot write {named}: {REASON[kind]}; {FIX}", errors[0]
+        assert line == f"Error: cannot write {named}: {REASON[kind]}; {FIX}", line
     left = sorted(p.name for p in folder.rglob("*") if p.name != "filler")
     assert left == [], left  # no temporaries (.*.part*, .*.tmp-*, .*.old) and no partial output
 
@@ -132,13 +111,13 @@ def plant(tmp_path_factory) -> Path:
 
 def test_render_png(plant, dest, tmp_path):
     kind, d = dest
-    _check(_run(["render", plant, "-o", "dest/x.png"], tmp_path), kind, d, "dest/x.png")
+    _check(invoke(["render", plant, "-o", "dest/x.png"], tmp_path), kind, d, "dest/x.png")
 
 
 @pytest.mark.parametrize("dest", ["full", "read-only"], indirect=True)  # camera.json fits in 8 KiB
 def test_render_write_camera(plant, dest, tmp_path):
     kind, d = dest
-    res = _run(["render", plant, "-o", "x.png", "--width", "32", "--height", "32", "--write-camera", "dest"],
+    res = invoke(["render", plant, "-o", "x.png", "--width", "32", "--height", "32", "--write-camera", "dest"],
                tmp_path)
     # refused before rendering: the PNG is not written either
     assert res.stdout == "" and not (tmp_path / "x.png").exists()
@@ -147,52 +126,43 @@ def test_render_write_camera(plant, dest, tmp_path):
 
 def test_select_ply(plant, dest, tmp_path):
     kind, d = dest
-    _check(_run(["select", plant, "-o", "dest/s.ply"], tmp_path), kind, d, "dest/s.ply")
+    _check(invoke(["select", plant, "-o", "dest/s.ply"], tmp_path), kind, d, "dest/s.ply")
 
 
 def test_select_png(plant, dest, tmp_path):
     kind, d = dest
-    _check(_run(["select", plant, "-o", "s.ply", "--png", "dest/s.png"], tmp_path), kind, d, "dest/s.png")
+    _check(invoke(["select", plant, "-o", "s.ply", "--png", "dest/s.png"], tmp_path), kind, d, "dest/s.png")
     if kind != "tight":  # both destinations are checked before either is written (a tight disk fills later)
         assert not (tmp_path / "s.ply").exists()
 
 
 def test_blender_addon_zip(dest, tmp_path):
     kind, d = dest
-    _check(_run(["blender-addon", "--zip", "dest/a.zip"], tmp_path), kind, d, "dest/a.zip")
+    _check(invoke(["blender-addon", "--zip", "dest/a.zip"], tmp_path), kind, d, "dest/a.zip")
 
 
 def test_blender_addon_install(dest, tmp_path):
     kind, d = dest
-    _check(_run(["blender-addon", "--install-to", "dest/addons"], tmp_path), kind, d, "dest/addons/pdtool_blender")
+    _check(invoke(["blender-addon", "--install-to", "dest/addons"], tmp_path), kind, d, "dest/addons/pdtool_blender")
 
 
 def test_bake_usd(plant, dest, tmp_path):
     kind, d = dest
-    _check(_run(["bake", "--scene", plant, *BAKE, "dest/o.usd"], tmp_path), kind, d, "dest/o.usd", bar=True)
+    _check(invoke(["bake", "--scene", plant, *BAKE, "dest/o.usd"], tmp_path), kind, d, "dest/o.usd", bar=True)
 
 
 @pytest.mark.parametrize("suffix", [".gif", ".mp4"])
 def test_bake_preview(plant, dest, tmp_path, suffix):
     kind, d = dest
     frames = ["--frames", "24"] if suffix == ".mp4" else []  # 4 frames of H.264 fit in 8 KiB, 24 do not
-    res = _run(["bake", "--scene", plant, *BAKE, *frames, "o.usd", "--preview", f"dest/p{suffix}"], tmp_path)
+    res = invoke(["bake", "--scene", plant, *BAKE, *frames, "o.usd", "--preview", f"dest/p{suffix}"], tmp_path)
     _check(res, kind, d, f"dest/p{suffix}", bar=True)
 
 
 def test_bake_frames_out(plant, dest, tmp_path):
     kind, d = dest
-    res = _run(["bake", "--scene", plant, *BAKE, "o.usd", "--frames-out", "dest/frames"], tmp_path)
+    res = invoke(["bake", "--scene", plant, *BAKE, "o.usd", "--frames-out", "dest/frames"], tmp_path)
     _check(res, kind, d, "dest/frames", bar=True)
-
-
-@pytest.fixture(scope="module")
-def fit_dir(tmp_path_factory) -> Path:
-    from _plant import tiny_plant_video
-
-    folder = tmp_path_factory.mktemp("fit")
-    tiny_plant_video(folder, 300, seed=0, size=24, n_frames=3)
-    return folder
 
 
 FIT = ["--quality", "draft", "--velocity-iters", "1", "--material-iters", "1", "--working-size", "24",
@@ -201,7 +171,7 @@ FIT = ["--quality", "draft", "--velocity-iters", "1", "--material-iters", "1", "
 
 def test_fit_material(fit_dir, dest, tmp_path):
     kind, d = dest
-    res = _run(["fit", fit_dir / "plant.ply", fit_dir / "video", "-o", "dest/f.pdmat", *FIT], tmp_path)
+    res = invoke(["fit", fit_dir / "plant.ply", fit_dir / "video", "-o", "dest/f.pdmat", *FIT], tmp_path)
     _check(res, kind, d, "dest/f.pdmat*", bar=True)
 
 
@@ -209,7 +179,7 @@ def test_fit_material(fit_dir, dest, tmp_path):
 def test_fit_record(fit_dir, dest, tmp_path):
     """The working folder (where .pdtool/last-fit.json goes) is the bad one."""
     kind, d = dest
-    res = _run(["fit", fit_dir / "plant.ply", fit_dir / "video", "-o", tmp_path / "f.pdmat", *FIT], d)
+    res = invoke(["fit", fit_dir / "plant.ply", fit_dir / "video", "-o", tmp_path / "f.pdmat", *FIT], d)
     _check(res, kind, d, ".pdtool/last-fit.json", bar=True)
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli import invoke, refusal_line
 from click.testing import CliRunner
 
 from pd_tool.atomic import (MANIFEST, atomic_output, check_outputs, check_own_file, check_replaceable_folder,
@@ -38,37 +39,6 @@ def _leftovers(folder: Path) -> list[str]:
 
 def _tree(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
-def _visible_lines(text: str) -> list[str]:
-    """stderr as a terminal shows it: the text after the last carriage return of each line."""
-    return [ln.rsplit("\r", 1)[-1] for ln in text.splitlines() if ln.rsplit("\r", 1)[-1].strip()]
-
-
-def _cli(args: list, cwd: Path):
-    from cli import main
-
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
-        return CliRunner().invoke(main, [str(a) for a in args])
-    finally:
-        os.chdir(old)
-
-
-def _refused(res, *words: str, bar: bool = False) -> str:
-    """Exit 2 with exactly one `Error:` line (the only line, unless a progress bar ran
-    before it), no traceback; returns the line."""
-    assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
-    lines = _visible_lines(res.stderr)
-    errors = [ln for ln in lines if ln.startswith("Error:")]
-    assert len(errors) == 1 and lines[-1] == errors[0], res.stderr
-    if not bar:
-        assert len(lines) == 1, res.stderr
-    assert "Traceback" not in res.output and "Exception ignored" not in res.stderr
-    for w in words:
-        assert w in errors[0], (w, errors[0])
-    return errors[0]
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +141,7 @@ def test_known_files_and_python_caches_count_as_pdtools(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- outputs against each other
 
 
-def test_outputs_that_destroy_inputs_or_each_other_are_refused(tmp_path: Path, monkeypatch) -> None:
+def test_outputs_that_destroy_inputs_or_each_other_arerefusal_line(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
     (tmp_path / "res").mkdir()
     scene = tmp_path / "res" / "plant.ply"
@@ -491,17 +461,17 @@ def test_long_names(tmp_path: Path) -> None:
 def test_cli_frames_out_onto_a_users_folder_refuses_before_any_work(plant: Path, tmp_path: Path) -> None:
     (tmp_path / "mydata").mkdir()
     (tmp_path / "mydata" / "precious.txt").write_text("mine")
-    res = _cli(["bake", "--scene", plant, *BAKE, "--frames-out", "mydata", "out.usd"], tmp_path)
-    _refused(res, "--frames-out mydata", "precious.txt", bar=True)
+    res = invoke(["bake", "--scene", plant, *BAKE, "--frames-out", "mydata", "out.usd"], tmp_path)
+    refusal_line(res, "--frames-out mydata", "precious.txt", bar=True)
     assert (tmp_path / "mydata" / "precious.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mydata"]  # no out.usd: refused before writing
 
 
 def test_cli_frames_out_holding_the_other_outputs_refuses(plant: Path, tmp_path: Path) -> None:
     (tmp_path / "res").mkdir()
-    res = _cli(["bake", "--scene", plant, *BAKE, "--frames-out", "res", "--preview", "res/p.mp4", "res/out.usd"],
+    res = invoke(["bake", "--scene", plant, *BAKE, "--frames-out", "res", "--preview", "res/p.mp4", "res/out.usd"],
                tmp_path)
-    _refused(res, "--frames-out res", "OUT res/out.usd", bar=True)
+    refusal_line(res, "--frames-out res", "OUT res/out.usd", bar=True)
     assert list((tmp_path / "res").iterdir()) == []
 
 
@@ -509,8 +479,8 @@ def test_cli_frames_out_holding_the_other_outputs_refuses(plant: Path, tmp_path:
 def test_cli_frames_out_current_folder_refuses(plant: Path, tmp_path: Path, where: str) -> None:
     work = tmp_path / "work"
     work.mkdir()
-    res = _cli(["bake", "--scene", plant, *BAKE, "--frames-out", where, "out.usd"], work)
-    _refused(res, f"--frames-out {where}", "current folder", bar=True)
+    res = invoke(["bake", "--scene", plant, *BAKE, "--frames-out", where, "out.usd"], work)
+    refusal_line(res, f"--frames-out {where}", "current folder", bar=True)
     assert list(work.iterdir()) == []
 
 
@@ -518,19 +488,19 @@ def test_cli_frames_out_holding_the_scene_refuses(plant: Path, tmp_path: Path) -
     import shutil
 
     shutil.copy(plant, tmp_path / "plant.ply")
-    res = _cli(["bake", "--scene", "plant.ply", *BAKE, "--frames-out", ".", "out.usd"], tmp_path)
-    _refused(res, "--frames-out", bar=True)
+    res = invoke(["bake", "--scene", "plant.ply", *BAKE, "--frames-out", ".", "out.usd"], tmp_path)
+    refusal_line(res, "--frames-out", bar=True)
     sub = tmp_path / "sub"
     sub.mkdir()
-    res = _cli(["bake", "--scene", "../plant.ply", *BAKE, "--frames-out", "..", "out.usd"], sub)
-    _refused(res, "--frames-out ..", bar=True)
+    res = invoke(["bake", "--scene", "../plant.ply", *BAKE, "--frames-out", "..", "out.usd"], sub)
+    refusal_line(res, "--frames-out ..", bar=True)
     assert (tmp_path / "plant.ply").read_bytes() == plant.read_bytes()
 
 
 def test_cli_frames_out_replaces_its_own_folder(plant: Path, tmp_path: Path) -> None:
     (tmp_path / "frames").mkdir()  # empty: fine
     for _ in range(2):
-        res = _cli(["bake", "--scene", plant, *BAKE, "--frames-out", "frames", "out.usd"], tmp_path)
+        res = invoke(["bake", "--scene", plant, *BAKE, "--frames-out", "frames", "out.usd"], tmp_path)
         assert res.exit_code == 0, res.output
     names = sorted(p.name for p in (tmp_path / "frames").iterdir())
     assert names == [MANIFEST, "camera.json", "frame_0000.png", "frame_0001.png", "frame_0002.png"]
@@ -540,10 +510,10 @@ def test_cli_frames_out_replaces_its_own_folder(plant: Path, tmp_path: Path) -> 
 def test_cli_frames_out_replaces_the_render_it_started_from(plant: Path, tmp_path: Path) -> None:
     """docs/tutorial.md's stand-in for a video model: render I_0 and its camera into video/,
     then bake frames from that camera over the same folder."""
-    res = _cli(["render", plant, "--width", "32", "--height", "32", "-o", "video/frame_0000.png",
+    res = invoke(["render", plant, "--width", "32", "--height", "32", "-o", "video/frame_0000.png",
                 "--write-camera", "video/"], tmp_path)
     assert res.exit_code == 0, res.output
-    res = _cli(["bake", "--scene", plant, *BAKE, "--camera", "video/camera.json", "--frames-out", "video/",
+    res = invoke(["bake", "--scene", plant, *BAKE, "--camera", "video/camera.json", "--frames-out", "video/",
                 "out.usd"], tmp_path)
     assert res.exit_code == 0, res.output
     assert (tmp_path / "video" / "frame_0002.png").is_file() and (tmp_path / "video" / MANIFEST).is_file()
@@ -554,27 +524,27 @@ def test_cli_long_output_name_is_one_line(plant: Path, tmp_path: Path) -> None:
     old_hook = sys.unraisablehook
     sys.unraisablehook = unraisable.append
     try:
-        res = _cli(["bake", "--scene", plant, *BAKE, "a" * 300 + ".usd"], tmp_path)
+        res = invoke(["bake", "--scene", plant, *BAKE, "a" * 300 + ".usd"], tmp_path)
         gc.collect()
     finally:
         sys.unraisablehook = old_hook
-    _refused(res, "the name is 304 bytes long", bar=True)
+    refusal_line(res, "the name is 304 bytes long", bar=True)
     assert unraisable == [] and list(tmp_path.iterdir()) == []
 
 
 def test_cli_render_write_camera_keeps_a_users_camera_json(plant: Path, tmp_path: Path) -> None:
     (tmp_path / "video").mkdir()
     (tmp_path / "video" / "camera.json").write_text('{"mine": true}')
-    res = _cli(["render", plant, "-o", "x.png", "--width", "32", "--height", "32", "--write-camera", "video"], tmp_path)
-    _refused(res, "video/camera.json: exists and was not written by pdtool")
+    res = invoke(["render", plant, "-o", "x.png", "--width", "32", "--height", "32", "--write-camera", "video"], tmp_path)
+    refusal_line(res, "video/camera.json: exists and was not written by pdtool")
     assert (tmp_path / "video" / "camera.json").read_text() == '{"mine": true}'
 
 
 def test_cli_blender_addon_install_keeps_a_foreign_folder(tmp_path: Path) -> None:
     (tmp_path / "pdtool_blender").mkdir()
     (tmp_path / "pdtool_blender" / "notes.txt").write_text("mine")
-    res = _cli(["blender-addon", "--install-to", tmp_path], tmp_path)
-    _refused(res, "notes.txt", "--install-to")
+    res = invoke(["blender-addon", "--install-to", tmp_path], tmp_path)
+    refusal_line(res, "notes.txt", "--install-to")
     assert sorted(p.name for p in (tmp_path / "pdtool_blender").iterdir()) == ["notes.txt"]
 
 
@@ -597,22 +567,13 @@ def test_cli_generate_overwrite_keeps_a_foreign_folder(plant: Path, tmp_path: Pa
     model = _fake_model(tmp_path / "model")
     (tmp_path / "taken").mkdir()
     (tmp_path / "taken" / "keep.txt").write_text("mine")
-    res = _cli(["generate", plant, "--model", model, "--width", "64", "--height", "48", "-o", "taken", "--overwrite"],
+    res = invoke(["generate", plant, "--model", model, "--width", "64", "--height", "48", "-o", "taken", "--overwrite"],
                tmp_path)
-    _refused(res, "keep.txt", "--overwrite replaces only")
+    refusal_line(res, "keep.txt", "--overwrite replaces only")
     assert (tmp_path / "taken" / "keep.txt").read_text() == "mine"
-    res = _cli(["generate", plant, "--model", model, "--width", "64", "--height", "48", "-o", ".", "--overwrite"],
+    res = invoke(["generate", plant, "--model", model, "--width", "64", "--height", "48", "-o", ".", "--overwrite"],
                tmp_path / "taken")
-    _refused(res, "current folder")
-
-
-@pytest.fixture(scope="module")
-def fit_dir(tmp_path_factory) -> Path:
-    from _plant import tiny_plant_video
-
-    folder = tmp_path_factory.mktemp("fit")
-    tiny_plant_video(folder, 300, seed=0, size=24, n_frames=3)
-    return folder
+    refusal_line(res, "current folder")
 
 
 FIT = ["--quality", "draft", "--velocity-iters", "1", "--material-iters", "1", "--working-size", "24",
@@ -622,20 +583,20 @@ FIT = ["--quality", "draft", "--velocity-iters", "1", "--material-iters", "1", "
 def test_cli_fit_replaces_its_own_side_outputs_and_no_one_elses(fit_dir: Path, tmp_path: Path) -> None:
     args = ["fit", fit_dir / "plant.ply", fit_dir / "video", "-o", "fit.pdmat", *FIT]
     for _ in range(2):  # the second run replaces the first one's files
-        res = _cli(args, tmp_path)
+        res = invoke(args, tmp_path)
         assert res.exit_code == 0, res.output
     for name in ("fit.loss.png", "fit.E.ply", "fit.E.png", "fit.report.json", "fit.preview.mp4",
                  ".pdtool/last-fit.json"):
         assert is_own_file(tmp_path / name), name
     material = (tmp_path / "fit.pdmat").stat().st_mtime_ns
     (tmp_path / "fit.E.ply").write_text("my own E field")
-    res = _cli(args, tmp_path)
-    _refused(res, "fit.E.ply: exists and was not written by pdtool")  # before the fit: no bar yet
+    res = invoke(args, tmp_path)
+    refusal_line(res, "fit.E.ply: exists and was not written by pdtool")  # before the fit: no bar yet
     assert (tmp_path / "fit.E.ply").read_text() == "my own E field"
     (tmp_path / "fit.E.ply").unlink()
     (tmp_path / ".pdtool" / "last-fit.json").write_text("{}")
-    res = _cli(args, tmp_path)
-    _refused(res, "last-fit.json: exists and was not written by pdtool")
+    res = invoke(args, tmp_path)
+    refusal_line(res, "last-fit.json: exists and was not written by pdtool")
     assert (tmp_path / ".pdtool" / "last-fit.json").read_text() == "{}"
     assert (tmp_path / "fit.pdmat").stat().st_mtime_ns == material  # refused before the fit wrote anything
     assert _leftovers(tmp_path) == []
@@ -648,14 +609,14 @@ def test_cli_fit_default_material_name_replaces_only_a_material_file(fit_dir: Pa
 
     shutil.copy(fit_dir / "plant.ply", tmp_path / "p.ply")
     (tmp_path / "p.pdmat").write_text("my notes")
-    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
-    _refused(res, "p.pdmat: exists and is not a pdtool material file")
+    res = invoke(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
+    refusal_line(res, "p.pdmat: exists and is not a pdtool material file")
     assert (tmp_path / "p.pdmat").read_text() == "my notes"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.pdmat", "p.ply"]
-    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", "-o", "p.pdmat", *FIT], tmp_path)
+    res = invoke(["fit", tmp_path / "p.ply", fit_dir / "video", "-o", "p.pdmat", *FIT], tmp_path)
     assert res.exit_code == 0, res.output  # named with -o, it is replaced as asked
     from pd_tool.material_file import is_material_file
 
     assert is_material_file(tmp_path / "p.pdmat")
-    res = _cli(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
+    res = invoke(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)
     assert res.exit_code == 0, res.output  # and now it is pdtool's own
