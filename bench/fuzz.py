@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import io
 import json
 import math
@@ -249,8 +250,8 @@ def mutate_tree(rng: random.Random, obj: Any, pool: list[Any], n_ops: int | None
         op = rng.randrange(7)
         if op == 0:  # delete
             del parent[key]
-        elif op == 1:
-            parent[key] = rng.choice(pool)
+        elif op == 1:  # a copy: the same pool list inserted into itself would make a cycle
+            parent[key] = copy.deepcopy(rng.choice(pool))
         elif op == 2:
             parent[key] = number(rng)
         elif op == 3 and isinstance(val, (int, float)) and not isinstance(val, bool):
@@ -261,7 +262,7 @@ def mutate_tree(rng: random.Random, obj: Any, pool: list[Any], n_ops: int | None
         elif op == 5 and isinstance(parent, dict):
             parent[rng.choice(["x", key.upper() if isinstance(key, str) else "k", "", " " + str(key)])] = parent.pop(key)
         elif op == 6 and isinstance(parent, list):
-            parent.insert(key, val if rng.random() < 0.5 else rng.choice(pool))
+            parent.insert(key, copy.deepcopy(val if rng.random() < 0.5 else rng.choice(pool)))
     return obj
 
 

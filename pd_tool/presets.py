@@ -104,8 +104,11 @@ def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
         path = Path(text)
         if not path.is_file():
             raise PresetError(f"{path}: no such preset file")
+        from pd_tool.inputs import MiB, read_small_file
+
+        raw = read_small_file(path, limit=MiB, error=PresetError, fix="a preset is a small TOML file")
         try:
-            data = _parse_toml(path.read_text(encoding="utf-8"), str(path))
+            data = _parse_toml(raw.decode("utf-8"), str(path))
         except UnicodeDecodeError:
             raise PresetError(f"{path}: not a text file; a preset is a TOML file") from None
         # one flat table, or a file with exactly one named table

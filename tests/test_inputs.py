@@ -43,3 +43,13 @@ def test_cli_camera_from_a_device_is_one_line(tmp_path: Path) -> None:
     assert res.stderr.splitlines() == ["Error: /dev/zero: is not a regular file (a pipe or a device?); pass a "
                                        "cameras.json, transforms.json or camera.json file"]
     assert not (tmp_path / "v.png").exists()
+
+
+def test_a_huge_preset_file_is_one_line(tmp_path: Path) -> None:
+    from pd_tool.errors import PresetError
+    from pd_tool.presets import load_preset
+
+    big = tmp_path / "q.toml"
+    big.write_text("# " + "x" * (2 << 20) + "\ngrid_res = 16\n")
+    with pytest.raises(PresetError, match="q.toml: is larger than 1 MiB"):
+        load_preset("quality", big)
