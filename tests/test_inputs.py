@@ -53,3 +53,11 @@ def test_a_huge_preset_file_is_one_line(tmp_path: Path) -> None:
     big.write_text("# " + "x" * (2 << 20) + "\ngrid_res = 16\n")
     with pytest.raises(PresetError, match="q.toml: is larger than 1 MiB"):
         load_preset("quality", big)
+
+
+def test_a_device_as_the_reference_video_is_one_line() -> None:
+    from pd_tool.errors import VideoError
+    from pd_tool.fit.video import load_reference_video
+
+    with pytest.raises(VideoError, match="/dev/zero: is not a regular file or a folder"):
+        load_reference_video("/dev/zero")

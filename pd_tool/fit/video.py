@@ -226,6 +226,9 @@ def _find_source(path: Path) -> tuple[Path, list[Path], Path | None]:
         if path.suffix.lower() in VIDEO_EXTS:
             return path.parent, [], path
         raise VideoError(f"{path}: not a folder or a video file; pass the folder holding the frames and camera.json")
+    if not path.is_dir():  # a pipe or a device
+        raise VideoError(f"{path}: is not a regular file or a folder (a pipe or device?); pass the folder holding "
+                         f"the frames and camera.json, or one .mp4")
     frames = _list_files(path, FRAME_EXTS)
     videos = _list_files(path, VIDEO_EXTS)
     if frames and videos:
