@@ -1,4 +1,4 @@
-"""Fuzz every pdtool loader with generated malformed inputs (issue 10, item 1).
+"""Fuzz every pdtool loader with generated malformed inputs.
 
 Each *target* turns a random source into one input on disk (a mutated copy of a valid
 file or folder) and loads it with the real loader. The property checked for every input:

@@ -1,4 +1,4 @@
-"""Fuzzed inputs through the real command line (issue 10, item 1).
+"""Fuzzed inputs through the real command line.
 
 Each generated input goes to the pdtool command that reads it: `info` for splats, `render
 --camera` for camera files, `fit` for video folders, `bake --material / --preset /

@@ -1,4 +1,4 @@
-"""Memory estimate and check before a bake or fit (issue 10, item 5).
+"""Memory estimate and check before a bake or fit.
 
 The estimate (pd_tool.memory) is compared with the peak RSS of a bake in fresh
 subprocesses at three sizes (bench/memory_estimate.py does the measuring: the baseline is
