@@ -357,6 +357,11 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
         f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
     )
+    from pd_tool.thickness import thin_parts
+
+    thin = thin_parts(pos_sim, ~static, dx, max(dims))
+    if thin is not None and thin.thin:
+        report.append(thin.line(max(dims)))
     return PreparedScene(
         scene=scene, options=options, foreground=fg, static=static, transform=transform,
         positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,

@@ -61,32 +61,39 @@ def _stem(rng, n):
     return np.stack([r * np.cos(th) + bend, r * np.sin(th), z], 1)
 
 
-def _leaves(rng, n):
+LEAF_THICKNESS = 0.02  # metres: the plant's leaves, as the tests and fit benchmarks use it
+THIN_THICKNESS = 0.003  # metres: leaves and petals of the thin plant, as real ones are
+
+
+def _leaves(rng, n, thickness=LEAF_THICKNESS):
     out = []
     for k, (zc, ang) in enumerate(((0.42, 0.3), (0.56, 0.3 + np.pi))):
         m = n // 2 if k == 0 else n - n // 2
-        # an ellipse 16 cm x 6 cm, rising 25 degrees, 2 cm thick
+        # an ellipse 16 cm x 6 cm, rising 25 degrees, `thickness` thick
         u = rng.uniform(0, 1, m)
         v = rng.uniform(-1, 1, m) * np.sqrt(np.clip(1 - (2 * u - 1) ** 2, 0, 1))
         along = STEM_RADIUS + 0.16 * u
         across = 0.03 * v
-        up = along * np.tan(np.radians(25)) + rng.uniform(-0.01, 0.01, m)
+        up = along * np.tan(np.radians(25)) + rng.uniform(-thickness / 2, thickness / 2, m)
         c, s = np.cos(ang), np.sin(ang)
         out.append(np.stack([along * c - across * s, along * s + across * c, zc + up], 1))
     return np.concatenate(out)
 
 
-def _flower(rng, n):
-    # a flat head: a disc of petals of radius 13 cm, 4 cm thick, cupped
+def _flower(rng, n, thickness=0.04):
+    # a flat head: a disc of petals of radius 13 cm, `thickness` thick (4 cm), cupped
     rr = 0.13 * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
-    z = STEM_TOP + 0.02 + rng.uniform(-0.02, 0.02, n) + 0.15 * rr
+    z = STEM_TOP + 0.02 + rng.uniform(-thickness / 2, thickness / 2, n) + 0.15 * rr
     return np.stack([rr * np.cos(th) + 0.03, rr * np.sin(th), z], 1)
 
 
-def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | torch.device = "cpu") -> GaussianScene:
+def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | torch.device = "cpu",
+               thin: bool = False) -> GaussianScene:
     """The procedural plant with about `n` Gaussians (exactly n), seeded and deterministic.
 
+    thin: leaves and petals THIN_THICKNESS thick (a real plant's), far below a cell at the
+    draft and default grids; otherwise 2 and 4 cm, which MPM nearly resolves.
     Returns a GaussianScene whose `labels` [n] index REGIONS and whose `label_names` is
     REGIONS. Scene units are metres, +z is up, the pot is below z = POT_TOP.
     """
@@ -95,7 +102,11 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
     rng = np.random.default_rng(seed)
     counts = [int(n * s) for s in _SHARES]
     counts[-1] = n - sum(counts[:-1])
-    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), _leaves(rng, counts[2]), _flower(rng, counts[3])]
+    if thin:
+        leaves, flower = _leaves(rng, counts[2], THIN_THICKNESS), _flower(rng, counts[3], THIN_THICKNESS)
+    else:
+        leaves, flower = _leaves(rng, counts[2]), _flower(rng, counts[3])
+    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), leaves, flower]
     pos = np.concatenate(parts)
     labels = np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(counts)])
     # splat size from the local spacing of each region: about half the mean neighbour gap
@@ -134,3 +145,44 @@ def driver_regions(scene: GaussianScene, prep, drivers) -> np.ndarray:
 def driver_truth_E(scene: GaussianScene, prep, drivers) -> np.ndarray:
     """Each driver's true E (Pa): that of its region (driver_regions)."""
     return np.array([REGION_TRUTH_E[n] for n in REGIONS])[driver_regions(scene, prep, drivers)]
+
+
+STRIP_REGIONS = ("base", "strip")
+
+
+def make_strip(n: int = 4000, *, length: float = 0.8, width: float = 0.3, thickness: float = 0.02,
+               base: float = 0.1, seed: int = 0, device: str | torch.device = "cpu") -> GaussianScene:
+    """A thin strip standing on a block: the analytic thin case of the convergence benchmark.
+
+    The strip rises along +z from z = 0 to `length`, `width` along y and `thickness` along x
+    (metres), filled uniformly; the block below z = 0 (`base` deep, wider than the strip)
+    is meant to be static, which clamps the strip's foot. Labels index STRIP_REGIONS.
+    """
+    rng = np.random.default_rng(seed)
+    n_base = max(n // 8, 10)
+    n_strip = n - n_base
+    strip = np.stack([rng.uniform(-thickness / 2, thickness / 2, n_strip), rng.uniform(-width / 2, width / 2, n_strip),
+                      rng.uniform(0.0, length, n_strip)], 1)
+    block = np.stack([rng.uniform(-width / 2, width / 2, n_base), rng.uniform(-width / 2, width / 2, n_base),
+                      rng.uniform(-base, 0.0, n_base)], 1)
+    pos = np.concatenate([block, strip])
+    labels = np.concatenate([np.zeros(n_base, np.int32), np.ones(n_strip, np.int32)])
+    spacing = (length * width * thickness / n_strip) ** (1 / 3)
+    scales = np.full((n, 3), 0.5 * spacing)
+    colors = np.where(labels[:, None] == 0, [0.5, 0.5, 0.5], [0.3, 0.7, 0.25])
+
+    def t(a):
+        return torch.as_tensor(a, dtype=torch.float32, device=device)
+
+    return GaussianScene(
+        positions=t(pos), quats=t(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))), scales=t(scales),
+        opacities=t(np.full(n, 0.9)), sh=t(rgb_to_sh(torch.from_numpy(colors))[:, None].numpy()),
+        source_format="synthetic", labels=labels, label_names=STRIP_REGIONS,
+    )
+
+
+def clamped_strip_frequency(E: float, nu: float, density: float, length: float, thickness: float) -> float:
+    """First bending frequency (Hz) of a clamped-free strip, Kirchhoff plate theory:
+    f1 = 1.8751^2 / (2 pi L^2) sqrt(D / (rho t)), D = E t^3 / (12 (1 - nu^2)). SI units."""
+    D = E * thickness ** 3 / (12.0 * (1.0 - nu ** 2))
+    return 1.8751 ** 2 / (2.0 * np.pi * length ** 2) * float(np.sqrt(D / (density * thickness)))

@@ -67,6 +67,12 @@ def _alive(pid: int) -> bool:
     return st is not None and st[0] != "Z"  # a zombie has ended; only its parent's wait is missing
 
 
+def _interactive_sigint() -> None:
+    # A shell starts background commands with SIGINT ignored, and a Python started so keeps
+    # ignoring it (as `nohup pdtool batch &` should); a terminal's Ctrl-C is what is tested.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture
 def running_batch(tmp_path: Path):
     """Start `pdtool batch --workers 1` in its own session and wait until the slow bake is
@@ -83,7 +89,8 @@ def running_batch(tmp_path: Path):
     err = tmp_path / "stderr.txt"
     with open(err, "wb") as e:
         proc = subprocess.Popen([sys.executable, "-m", "cli", "batch", "jobs.toml", "--workers", "1"], cwd=project,
-                                env=env, stdout=subprocess.DEVNULL, stderr=e, start_new_session=True)
+                                env=env, stdout=subprocess.DEVNULL, stderr=e, start_new_session=True,
+                                preexec_fn=_interactive_sigint)
     workers: set[int] = set()
     try:
         deadline = time.monotonic() + 600  # a slow, shared CI machine: spawn + imports + preparation

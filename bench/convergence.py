@@ -1,0 +1,264 @@
+"""Does a bake's motion depend on its quality? Each scene's poke, baked at the quality
+presets, against a converged reference, and the thin strip against plate theory.
+
+Scenes: `strip` (a clamped strip well under a cell thick at the default quality, first
+frequency from Kirchhoff plate theory), `plant` (the procedural plant with thin leaves and
+petals), and the real captures `udon`, `donut` and `tree` from ../shared/data. Each gets one
+uniform material and one poke (a short push sideways at the top, the bottom tenth static),
+simulated at draft, default and final (the presets' grid, CFL safety and driver ratio), and
+at the reference: `--reference` cells with every Gaussian a particle and CFL safety
+`--reference-cfl`. `--check-grid` adds a finer run that shows whether the reference has
+converged.
+
+Reported per scene and setting, against the reference (error of the reference itself is
+the finer run's):
+  peak   largest displacement (99th percentile over the moving Gaussians, max over frames),
+         as a ratio to the reference's;
+  rms    RMS over frames and moving Gaussians of |x - x_ref|, divided by the reference's peak;
+  f1     first oscillation frequency (Hz) of the most moving Gaussians' mean displacement
+         along the push, from the spacing of its extrema after the push; "-" when it does
+         not swing twice. For the strip, f1 against theory.
+
+Targets (issue: thin parts): default peak within 10 % and rms at most 15 %, draft within
+25 %, final within 5 %; the strip's f1 within 5 % of theory at default.
+
+    python bench/convergence.py --quick                       # CPU, CI scale, minutes
+    python bench/convergence.py --device cuda --gaussians 50000 --reference 128 \\
+        --check-grid 160 --json docs/gpu-runs/convergence.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DATA = ROOT.parent / "shared" / "data"
+QUALITIES = ("draft", "default", "final")
+
+
+@dataclass(frozen=True)
+class Case:
+    """One scene's set-up: where it comes from, its up axis, its material and its poke.
+    E in Pa, density kg/m^3, accel m/s^2 along `push` (scene axes) for `duration` s."""
+
+    name: str
+    up: str
+    E: float
+    density: float
+    accel: float
+    push: tuple[float, float, float]
+    duration: float = 0.1
+    nu: float = 0.3
+    seconds: float = 1.0
+
+
+STRIP = dict(length=0.9, width=0.25, thickness=0.04, base=0.1)
+CASES = {
+    # the strip: 1.6 Hz in theory, 4 cm thick (0.43 of a default cell, 5 cells at 192);
+    # pushed across its thickness (x)
+    "strip": Case("strip", "+z", 2.5e7, 700.0, 6.0, (1.0, 0.0, 0.0), duration=0.1, seconds=2.0),
+    "plant": Case("plant", "+z", 2.0e5, 700.0, 1.5, (1.0, 0.0, 0.0)),
+    "udon": Case("udon", "-y", 2.0e5, 1000.0, 1.5, (1.0, 0.0, 0.0)),
+    "donut": Case("donut", "-y", 5.0e4, 1000.0, 1.5, (1.0, 0.0, 0.0)),
+    "tree": Case("tree", "-y", 1.0e6, 700.0, 1.5, (1.0, 0.0, 0.0)),
+}
+
+
+@dataclass
+class Run:
+    scene: str
+    setting: str  # draft | default | final | reference | check
+    grid: int
+    cfl: float
+    ratio: float
+    seconds_wall: float = float("nan")
+    substeps: int = 0
+    drivers: int = 0
+    per_cell: float = float("nan")  # driving particles per occupied cell
+    peak: float = float("nan")  # fraction of the object's size
+    peak_ratio: float = float("nan")
+    rms: float = float("nan")  # of the reference's peak
+    f1: float = float("nan")  # Hz
+    extra: dict = field(default_factory=dict)
+
+
+def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
+    """The scene as a GaussianScene, subsampled to at most `gaussians` (seeded)."""
+    from pd_tool.synthetic import make_plant, make_strip
+
+    if name == "strip":
+        return make_strip(gaussians, **STRIP, seed=seed)
+    if name == "plant":
+        return make_plant(gaussians, seed=seed, thin=True)
+    from pd_tool.io import load_splats
+
+    path = {"udon": "udon.ply", "donut": "donut_fused.ply", "tree": "tree_100k.splat"}[name]
+    scene = load_splats(data / path)
+    if scene.count > gaussians:
+        keep = np.sort(np.random.default_rng(seed).choice(scene.count, gaussians, replace=False))
+        scene = scene.subset(keep)
+    return scene
+
+
+def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str) -> tuple[np.ndarray, np.ndarray, Run]:
+    """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
+    run's record, for one discretisation, through the product's own steps."""
+    import torch
+
+    from pd_tool.animate import GaussianAnimator
+    from pd_tool.bake import ForceSpec, force_mask
+    from pd_tool.prepare import PrepareOptions, prepare_scene, up_rotation
+    from pd_tool.sim import MPMSolver, SimConfig
+
+    pos = scene.positions.detach().cpu().double().numpy()
+    height = pos @ up_rotation(case.up)[2]
+    lo, hi = float(height.min()), float(height.max())
+    static_below = 1e-6 if case.name == "strip" else lo + 0.1 * (hi - lo)
+    prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
+                                               density_kg_m3=case.density))
+    t0 = time.perf_counter()
+    from pd_tool.drivers import build_drivers
+
+    def t(a, dtype=torch.float32):
+        return torch.as_tensor(a, dtype=dtype, device=device)
+
+    drivers = build_drivers(t(prep.positions_sim), t(prep.volumes), t(prep.masses), t(prep.static, torch.bool), prep.dx,
+                            ratio=ratio, seed=0)
+    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=case.nu, gravity=(0.0, 0.0, 0.0),
+                    cfl_safety=cfl)
+    d_rest = drivers.positions.double().cpu().numpy()
+    d_static = drivers.static.cpu().numpy().astype(bool)
+    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(),
+                       np.full(len(d_rest), case.E), d_static, cfg, device=device)
+    accel = np.asarray(case.push, float) * case.accel
+    spec = ForceSpec(accel=tuple(accel), at="top", radius_fraction=0.3, start=0.0, duration=case.duration)
+    # m/s^2 whatever the scene's units: rotate only
+    solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.R @ accel, 0.0, case.duration)
+    anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
+    fps = 30.0
+    frames = [scene.positions.detach().cpu().numpy()]
+    most = 0
+    for _ in range(int(round(case.seconds * fps))):
+        most = max(most, solver.step_frame(1.0 / fps))
+        with torch.no_grad():
+            frames.append(anim(solver.positions())[0].cpu().numpy())
+    moving = np.zeros(scene.count, bool)
+    moving[prep.foreground[~prep.static[: prep.count]]] = True
+    run = Run(case.name, "", grid, cfl, ratio, seconds_wall=time.perf_counter() - t0, substeps=most,
+              drivers=int(len(d_rest)),
+              per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)))
+    return np.stack(frames).astype(np.float64), moving, run
+
+
+def peak_of(x: np.ndarray, moving: np.ndarray, size: float) -> float:
+    """Largest displacement over frames of the 99th percentile over the moving Gaussians,
+    as a fraction of `size`. x [T, N, 3]."""
+    d = np.linalg.norm(x[:, moving] - x[0, moving], axis=-1)
+    return float(np.percentile(d, 99, axis=1).max() / size)
+
+
+def first_frequency(signal: np.ndarray, fps: float, after: float) -> float:
+    """First oscillation frequency (Hz) of `signal` [T] from the spacing of its first three
+    extrema after time `after` (s); NaN when it does not reach three."""
+    s = np.asarray(signal, float)
+    start = int(np.ceil(after * fps))
+    ds = np.diff(s[start:])
+    turn = np.nonzero(np.sign(ds[1:]) != np.sign(ds[:-1]))[0] + 1 + start
+    turn = turn[np.abs(s[turn] - s[start:].mean()) > 0.05 * np.abs(s[start:] - s[start:].mean()).max()]
+    if len(turn) < 3:
+        return float("nan")
+    half = np.diff(turn[:3]).mean() / fps  # a half period per step between extrema
+    return float(1.0 / (2.0 * half))
+
+
+def compare(runs: dict[str, tuple[np.ndarray, np.ndarray, Run]], case: Case) -> list[Run]:
+    """Fill each run's peak, peak ratio, rms and f1 against runs['reference']."""
+    x_ref, moving, ref = runs["reference"]
+    size = float(np.ptp(x_ref[0, moving], axis=0).max())
+    push = np.asarray(case.push, float) / np.linalg.norm(case.push)
+    d_ref = np.linalg.norm(x_ref[:, moving] - x_ref[0, moving], axis=-1).max(axis=0)
+    top = np.argsort(d_ref)[-max(1, len(d_ref) // 20):]
+    peak_ref = peak_of(x_ref, moving, size)
+    out = []
+    for name, (x, _, run) in runs.items():
+        run.setting = name
+        run.peak = peak_of(x, moving, size)
+        run.peak_ratio = run.peak / peak_ref
+        err = np.linalg.norm(x[:, moving] - x_ref[:, moving], axis=-1)
+        run.rms = float(np.sqrt((err ** 2).mean()) / size / peak_ref)
+        sig = ((x[:, moving][:, top] - x[0, moving][top]) @ push).mean(axis=1)
+        run.f1 = first_frequency(sig, 30.0, case.duration)
+        out.append(run)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="CPU, CI scale: 3000 Gaussians, reference 48 cells")
+    ap.add_argument("--scenes", default=",".join(CASES), help="comma-separated: " + ", ".join(CASES))
+    ap.add_argument("--gaussians", type=int, default=20000)
+    ap.add_argument("--strip-gaussians", type=int, default=0,
+                    help="the strip's Gaussians (default --gaussians): a fine reference needs several per cell")
+    ap.add_argument("--sweep", default="", help="extra grids at the default CFL and driver ratio, e.g. 24,32,48")
+    ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
+    ap.add_argument("--reference-cfl", type=float, default=0.25)
+    ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--data", type=Path, default=DATA, help="folder of the real captures")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    if args.quick:
+        args.gaussians, args.reference = 3000, 48
+
+    from pd_tool.device import init_warp_quietly
+    from pd_tool.presets import load_preset
+    from pd_tool.synthetic import clamped_strip_frequency
+
+    init_warp_quietly()
+    settings = {q: load_preset("quality", q) for q in QUALITIES}
+    result = {"device": args.device, "gaussians": args.gaussians, "reference": args.reference,
+              "reference_cfl": args.reference_cfl, "check_grid": args.check_grid, "runs": []}
+    print(f"{'scene':7} {'setting':10} {'grid':>4} {'cfl':>5} {'ratio':>5} {'peak':>7} {'peak/ref':>8} "
+          f"{'rms':>6} {'f1 Hz':>6} {'substeps':>8} {'/cell':>5} {'s':>7}")
+    for name in args.scenes.split(","):
+        case = CASES[name]
+        count = args.strip_gaussians if name == "strip" and args.strip_gaussians else args.gaussians
+        scene = load_scene(name, count, data=args.data).to(args.device)
+        runs = {}
+        for q in QUALITIES:
+            s = settings[q]
+            runs[q] = simulate(scene, case, int(s["grid_res"]), float(s["cfl_safety"]), float(s["driver_ratio"]),
+                               args.device)
+        d = settings["default"]
+        for g in filter(None, args.sweep.split(",")):
+            runs[f"grid {g}"] = simulate(scene, case, int(g), float(d["cfl_safety"]), float(d["driver_ratio"]),
+                                         args.device)
+        runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device)
+        if args.check_grid:
+            runs["check"] = simulate(scene, case, args.check_grid, args.reference_cfl, 1.0, args.device)
+        for run in compare(runs, case):
+            if name == "strip":
+                run.extra["f1_theory"] = clamped_strip_frequency(case.E, case.nu, case.density, STRIP["length"],
+                                                                 STRIP["thickness"])
+            result["runs"].append(asdict(run))
+            print(f"{name:7} {run.setting:10} {run.grid:4d} {run.cfl:5.2f} {run.ratio:5.2f} {run.peak:7.2%} "
+                  f"{run.peak_ratio:8.3f} {run.rms:6.1%} {run.f1:6.2f} {run.substeps:8d} {run.per_cell:5.1f} "
+                  f"{run.seconds_wall:7.1f}",
+                  flush=True)
+        if name == "strip":
+            print(f"strip   theory f1 {result['runs'][-1]['extra']['f1_theory']:.3f} Hz "
+                  f"(thickness {STRIP['thickness']} m, length {STRIP['length']} m)")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

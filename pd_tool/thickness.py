@@ -1,0 +1,170 @@
+"""How thick the moving parts of a prepared scene are, against the simulation's cell.
+
+MPM has no degrees of freedom below a grid cell, so a leaf, petal or brim thinner than a
+cell bends as if it were much thicker and moves too little (docs/simulator.md, "Thin
+parts"). This module measures each particle's local thickness from the particles around it
+and turns it into the one line that bake, fit and select print.
+
+Thickness at a window of w cells: the particles within w cells around a particle (3x3x3
+bins of w/3 cells, the particle's bin in the middle), their covariance, and
+sqrt(12 * smallest eigenvalue). That is a slab's exact thickness, a filled window's edge,
+and 0.87 of a rod's diameter.
+
+A part is thin where it reads under half a cell at both one cell and three cells. The cell
+window sees the part at the grid's scale (a wider one would take in the stem beside a
+leaf); the wider window tells a sheet from the surface of a bulk part, which a scan samples
+only on its outside and which reads as a sheet within one cell but not within three.
+A large flat face of an unfilled bulk object can still read thin; `--fill` gives it an
+inside. On the convergence benchmark's real captures (udon, donut, tree) no part reads
+thin from 32 cells up, where their motion has converged; the thin-leaved plant does.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+WINDOW_BINS = 3  # bins along a window's edge
+WIDE_WINDOW = 3.0  # cells: the second window, which a bulk part's surface does not pass
+MIN_POINTS = 10  # fewer particles in a window: no estimate (a stray splat says nothing)
+# A part is resolved when it is at least this many cells thick. In a 2D MLS-MPM a strip of
+# two particle layers was about 20 % too stiff in bending at half a cell and 60 % at a
+# quarter (../shared/docs/thin-parts.md); the convergence benchmark measures pdtool's own.
+RESOLVED_CELLS = 0.5
+THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
+MAX_GRID = 256  # the largest grid the CLI accepts
+SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5 s on a CPU core)
+
+
+def _window_moments(x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per particle: count [N], sum [N, 3] and sum of outer products [N, 3, 3] of the
+    particles in the 3x3x3 bins of edge h around its own, positions in units of h relative to
+    its bin's corner (so that the covariance does not cancel at large coordinates)."""
+    keys = np.floor(x / h).astype(np.int64)
+    lo = keys.min(axis=0) - 1
+    k = keys - lo
+    span = k.max(axis=0) + 2
+    lin = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+    cells, inverse = np.unique(lin, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    # moments per occupied cell, about each cell's own corner
+    local = x / h - keys
+    n_c = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+    s_c = np.stack([np.bincount(inverse, local[:, a], len(cells)) for a in range(3)], 1)
+    q_c = np.stack([np.bincount(inverse, local[:, a] * local[:, b], len(cells))
+                    for a in range(3) for b in range(3)], 1).reshape(-1, 3, 3)
+    cell_k = np.stack([cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]], 1)
+    n_w = np.zeros(len(cells))
+    s_w = np.zeros((len(cells), 3))
+    q_w = np.zeros((len(cells), 3, 3))
+    half = WINDOW_BINS // 2
+    for off in np.ndindex(WINDOW_BINS, WINDOW_BINS, WINDOW_BINS):
+        o = np.array(off) - half
+        nb = cell_k + o
+        nb_lin = (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2]
+        pos = np.searchsorted(cells, nb_lin).clip(0, len(cells) - 1)
+        hit = cells[pos] == nb_lin
+        j = pos[hit]
+        # shift the neighbour's moments from its corner to ours: y = local + o
+        n, s, q = n_c[j], s_c[j], q_c[j]
+        s_shift = s + n[:, None] * o
+        q_shift = q + np.einsum("ka,b->kab", s, o) + np.einsum("a,kb->kab", o, s) + n[:, None, None] * np.outer(o, o)
+        n_w[hit] += n
+        s_w[hit] += s_shift
+        q_w[hit] += q_shift
+    return n_w[inverse], s_w[inverse], q_w[inverse], inverse
+
+
+def local_thickness(positions: np.ndarray, window: float) -> np.ndarray:
+    """Local thickness [N] in metres of the part each particle lies in, seen through a window
+    `window` metres wide; NaN where it holds fewer than MIN_POINTS particles.
+    positions [N, 3] metres."""
+    x = np.asarray(positions, np.float64)
+    out = np.full(len(x), np.nan)
+    if len(x) == 0:
+        return out
+    h = window / WINDOW_BINS
+    n, s, q, _ = _window_moments(x, h)
+    ok = n >= MIN_POINTS
+    mean = s[ok] / n[ok, None]
+    cov = q[ok] / n[ok, None, None] - np.einsum("ka,kb->kab", mean, mean)
+    lam = np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)
+    out[ok] = np.sqrt(12.0 * lam) * h
+    return out
+
+
+def local_thickness_ref(positions: np.ndarray, window: float) -> np.ndarray:
+    """Brute-force twin of local_thickness: each particle's window gathered explicitly."""
+    x = np.asarray(positions, np.float64)
+    keys = np.floor(x / (window / WINDOW_BINS)).astype(np.int64)
+    out = np.full(len(x), np.nan)
+    half = WINDOW_BINS // 2
+    for i in range(len(x)):
+        sel = np.all(np.abs(keys - keys[i]) <= half, axis=1)
+        if sel.sum() < MIN_POINTS:
+            continue
+        cov = np.cov(x[sel].T, bias=True)
+        out[i] = math.sqrt(12.0 * max(float(np.linalg.eigvalsh(cov)[0]), 0.0))
+    return out
+
+
+@dataclass(frozen=True)
+class ThinParts:
+    """What local_thickness says about a scene's moving particles at one cell size.
+
+    share: fraction of the moving particles that are thin (thinner than
+    RESOLVED_CELLS cells through both windows); thickness_m: their median thickness at one cell; dx_m: the cell; object_m: the object's
+    longest side; grid_needed: cells along the longest side that would resolve that median.
+    """
+
+    share: float
+    thickness_m: float
+    dx_m: float
+    object_m: float
+    grid_needed: int
+
+    @property
+    def thin(self) -> bool:
+        return self.share >= THIN_SHARE
+
+    def line(self, grid_res: int) -> str:
+        """The notice bake, fit and select print."""
+        head = (f"thin parts: {self.share:.0%} of the moving particles lie in parts about "
+                f"{_length(self.thickness_m)} thick, under half this {grid_res}-cell grid's "
+                f"{_length(self.dx_m)} cell; MPM bends them as if they were thicker, so they move too little")
+        if self.grid_needed <= MAX_GRID:
+            return head + f"; a grid of {self.grid_needed} cells along the longest side resolves them"
+        return head + (f"; resolving them needs about {self.grid_needed} cells along the longest side, "
+                       f"beyond the {MAX_GRID} pdtool allows")
+
+
+def _length(m: float) -> str:
+    return f"{m * 1000:.2g} mm" if m < 0.01 else f"{m * 100:.2g} cm"
+
+
+def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: int) -> ThinParts | None:
+    """ThinParts of the moving particles, or None when too few have an estimate.
+
+    positions [N, 3] metres, moving [N] bool, dx metres, grid_res cells along the longest
+    side of the simulation box (grid_res * dx is that side).
+    """
+    x = np.asarray(positions, np.float64)
+    moving = np.asarray(moving, bool)
+    if len(x) > SAMPLE:
+        # a fixed subset: the covariance of a window is unbiased under uniform thinning
+        keep = np.random.default_rng(0).choice(len(x), SAMPLE, replace=False)
+        x, moving = x[keep], moving[keep]
+    t = local_thickness(x, dx)[moving]
+    wide = local_thickness(x, WIDE_WINDOW * dx)[moving]
+    if np.isfinite(t).sum() < MIN_POINTS:
+        return None
+    # a particle whose window is too sparse to judge counts as not thin
+    with np.errstate(invalid="ignore"):
+        thin = (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
+    share = float(thin.mean())
+    thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
+    box = grid_res * dx
+    needed = math.ceil(box / (max(thick, 1e-9) / RESOLVED_CELLS))
+    size = float(np.ptp(x[moving], axis=0).max())
+    return ThinParts(share=share, thickness_m=thick, dx_m=dx, object_m=size, grid_needed=int(needed))

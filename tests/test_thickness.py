@@ -1,0 +1,116 @@
+"""Local thickness of the moving parts and the thin-part notice of bake, fit and select."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pd_tool import thickness as T
+
+
+def _slab(n: int, t: float, side: float, rng) -> np.ndarray:
+    return np.stack([rng.uniform(0, side, n), rng.uniform(0, side, n), rng.uniform(0, t, n)], 1) + 0.37
+
+
+def test_window_moments_match_the_brute_force_twin() -> None:
+    rng = np.random.default_rng(1)
+    x = np.concatenate([_slab(1500, 0.01, 0.4, rng), rng.uniform(0.2, 0.5, (800, 3))])
+    fast, ref = T.local_thickness(x, 0.06), T.local_thickness_ref(x, 0.06)
+    assert np.array_equal(np.isnan(fast), np.isnan(ref))
+    assert np.isfinite(fast).sum() > 1000
+    np.testing.assert_allclose(fast[np.isfinite(fast)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("t", [0.002, 0.01, 0.03])
+def test_a_slab_reads_its_own_thickness(t: float) -> None:
+    x = _slab(40000, t, 0.6, np.random.default_rng(2))
+    assert np.nanmedian(T.local_thickness(x, 0.06)) == pytest.approx(t, rel=0.05)
+
+
+def test_a_filled_block_reads_about_its_window_and_a_rod_most_of_its_diameter() -> None:
+    rng = np.random.default_rng(3)
+    block = rng.uniform(0, 0.6, (200000, 3))
+    # the smallest eigenvalue of a sample covariance reads a little low
+    assert 0.85 * 0.06 < np.nanmedian(T.local_thickness(block, 0.06)) <= 0.06
+    th, r = rng.uniform(0, 2 * np.pi, 20000), 0.01 * np.sqrt(rng.uniform(0, 1, 20000))
+    rod = np.stack([r * np.cos(th), r * np.sin(th), rng.uniform(0, 0.6, 20000)], 1)
+    assert np.nanmedian(T.local_thickness(rod, 0.06)) == pytest.approx(0.87 * 0.02, rel=0.1)
+
+
+def test_sparse_windows_have_no_estimate() -> None:
+    x = np.random.default_rng(4).uniform(0, 10, (50, 3))
+    assert np.isnan(T.local_thickness(x, 0.06)).all()
+    assert T.thin_parts(x, np.ones(50, bool), 0.06, 32) is None
+
+
+def _points_scene(x: np.ndarray, scale: float):
+    import torch
+
+    from pd_tool.scene import GaussianScene
+
+    n = len(x)
+
+    def t(a):
+        return torch.as_tensor(np.asarray(a), dtype=torch.float32)
+
+    return GaussianScene(positions=t(x), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))), scales=t(np.full((n, 3), scale)),
+                         opacities=t(np.full(n, 0.9)), sh=t(np.full((n, 1, 3), 0.5)), source_format="synthetic")
+
+
+def _sphere(n: int, radius: float, rng) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return radius * v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_a_sheet_is_thin_and_a_scanned_ball_a_few_cells_wide_is_not() -> None:
+    rng = np.random.default_rng(5)
+    sheet = _slab(30000, 0.003, 0.6, rng)
+    found = T.thin_parts(sheet, np.ones(len(sheet), bool), 0.05, 32)
+    assert found is not None and found.thin and found.share > 0.9
+    assert found.thickness_m == pytest.approx(0.003, rel=0.1)
+    # a scan samples a bulk part on its surface only: thin within one cell, not within three
+    ball = _sphere(30000, 0.1, rng)
+    assert np.nanmedian(T.local_thickness(ball, 0.05)) < 0.025
+    found = T.thin_parts(ball, np.ones(len(ball), bool), 0.05, 32)
+    assert found is not None and not found.thin, found
+
+
+def test_a_large_scanned_ball_is_filled_and_not_thin() -> None:
+    """Within three cells the surface of a ball ten cells wide is flat enough to read as a
+    sheet; preparation fills the closed shell, and the filled inside is not thin."""
+    from pd_tool.prepare import PrepareOptions, prepare_scene
+
+    ball = _sphere(40000, 0.5, np.random.default_rng(7))
+    found = T.thin_parts(ball, np.ones(len(ball), bool), 0.1, 20)
+    assert found is not None and found.thin  # unfilled, it reads as a sheet
+    prep = prepare_scene(_points_scene(ball, 0.01), PrepareOptions(grid_res=20, static_below=-0.4))
+    assert prep.n_filled > 0, prep.report
+    assert not any(line.startswith("thin parts:") for line in prep.report), prep.report
+
+
+def test_static_particles_are_not_judged() -> None:
+    sheet = _slab(20000, 0.003, 0.6, np.random.default_rng(6))
+    found = T.thin_parts(sheet, np.zeros(len(sheet), bool), 0.05, 32)
+    assert found is None
+
+
+def test_the_line_names_thickness_cell_and_the_grid_that_resolves() -> None:
+    near = T.ThinParts(share=0.3, thickness_m=0.02, dx_m=0.06, object_m=1.0, grid_needed=96)
+    line = near.line(32)
+    assert "\n" not in line and "30%" in line and "2 cm" in line and "6 cm" in line and "96 cells" in line
+    far = T.ThinParts(share=0.3, thickness_m=0.003, dx_m=0.06, object_m=1.0, grid_needed=640)
+    assert "beyond the 256" in far.line(32) and "3 mm" in far.line(32)
+
+
+def test_prepare_reports_thin_leaves_and_the_grid_that_resolves_them() -> None:
+    from pd_tool.prepare import PrepareOptions, prepare_scene
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    thin = prepare_scene(make_plant(6000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=48))
+    lines = [line for line in thin.report if line.startswith("thin parts:")]
+    assert len(lines) == 1 and " mm thick" in lines[0], thin.report  # 3 mm leaves and petals
+    # the 2 cm leaves are thin at 24 cells and resolved by the grid the line names
+    coarse = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=24))
+    line = next(line for line in coarse.report if line.startswith("thin parts:"))
+    needed = int(line.split("a grid of ")[1].split()[0])
+    fine = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=needed))
+    assert not any(line.startswith("thin parts:") for line in fine.report), fine.report
