@@ -62,6 +62,7 @@ def _stem(rng, n):
 
 
 LEAF_THICKNESS = 0.02  # metres: the plant's leaves, as the tests and fit benchmarks use it
+PETAL_THICKNESS = 0.04  # metres: its flower head
 THIN_THICKNESS = 0.003  # metres: leaves and petals of the thin plant, as real ones are
 
 
@@ -80,7 +81,7 @@ def _leaves(rng, n, thickness=LEAF_THICKNESS):
     return np.concatenate(out)
 
 
-def _flower(rng, n, thickness=0.04):
+def _flower(rng, n, thickness=PETAL_THICKNESS):
     # a flat head: a disc of petals of radius 13 cm, `thickness` thick (4 cm), cupped
     rr = 0.13 * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
@@ -102,11 +103,10 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
     rng = np.random.default_rng(seed)
     counts = [int(n * s) for s in _SHARES]
     counts[-1] = n - sum(counts[:-1])
-    if thin:
-        leaves, flower = _leaves(rng, counts[2], THIN_THICKNESS), _flower(rng, counts[3], THIN_THICKNESS)
-    else:
-        leaves, flower = _leaves(rng, counts[2]), _flower(rng, counts[3])
-    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), leaves, flower]
+    leaf_t, petal_t = (THIN_THICKNESS, THIN_THICKNESS) if thin else (LEAF_THICKNESS, PETAL_THICKNESS)
+    # drawn in this order from one generator: the plant of a seed stays the same
+    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), _leaves(rng, counts[2], leaf_t),
+             _flower(rng, counts[3], petal_t)]
     pos = np.concatenate(parts)
     labels = np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(counts)])
     # splat size from the local spacing of each region: about half the mean neighbour gap
