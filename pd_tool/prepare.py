@@ -359,7 +359,7 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     )
     from pd_tool.thickness import thin_parts
 
-    thin = thin_parts(pos_sim, ~static, dx, max(dims))
+    thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes)
     if thin is not None and thin.thin:
         report.append(thin.line(max(dims)))
     return PreparedScene(
