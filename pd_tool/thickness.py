@@ -23,7 +23,7 @@ ball ten cells wide is reported at 20 cells).
 Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported and
 every one moves too little; from 32 cells up udon, the donut and the tree are not reported;
 there udon moves within 1% of the reference and the tree within 2-8% (26% over at 48); the plant with 3 mm leaves,
-25-52% short at every grid, is reported at every grid.
+17-68% short at every grid, is reported at every grid.
 """
 from __future__ import annotations
 

@@ -1,0 +1,57 @@
+"""bench/convergence.py's measures and the strip's theory, on signals whose answer is known,
+and one tiny strip simulated through it."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests._bench import load_bench
+
+conv = load_bench("convergence")
+
+
+@pytest.mark.parametrize("f,decay", [(1.58, 0.0), (2.3, 1.5), (0.9, 0.5)])
+def test_first_frequency_of_a_damped_sine(f: float, decay: float) -> None:
+    t = np.arange(0, 2.5, 1 / conv.FPS)
+    s = np.exp(-decay * t) * np.sin(2 * np.pi * f * (t - 0.05))
+    assert conv.first_frequency(s, conv.FPS, 0.1) == pytest.approx(f, rel=0.01)
+
+
+def test_first_frequency_is_nan_without_a_full_swing() -> None:
+    t = np.arange(0, 1.0, 1 / conv.FPS)
+    assert math.isnan(conv.first_frequency(np.sin(2 * np.pi * 0.6 * t), conv.FPS, 0.1))
+    assert math.isnan(conv.first_frequency(np.full(len(t), 0.3), conv.FPS, 0.1))
+
+
+def test_peak_is_the_99th_percentile_at_the_worst_frame() -> None:
+    x = np.zeros((3, 200, 3))
+    x[1, :, 0] = np.linspace(0, 1, 200)  # frame 1: displacements 0..1
+    x[2, :, 0] = 0.5
+    moving = np.ones(200, bool)
+    assert conv.peak_of(x, moving, 2.0) == pytest.approx(np.percentile(np.linspace(0, 1, 200), 99) / 2.0)
+
+
+def test_strip_frequency_is_kirchhoff_plate_theory() -> None:
+    from pd_tool.synthetic import clamped_strip_frequency
+
+    E, nu, rho, L, t = 2.5e7, 0.3, 700.0, 0.9, 0.04
+    D = E * t ** 3 / (12 * (1 - nu ** 2))
+    expected = 1.8751 ** 2 / (2 * math.pi * L ** 2) * math.sqrt(D / (rho * t))
+    assert clamped_strip_frequency(E, nu, rho, L, t) == pytest.approx(expected, rel=1e-12)
+    # doubling the thickness doubles the frequency; the length enters squared
+    assert clamped_strip_frequency(E, nu, rho, L, 2 * t) == pytest.approx(2 * expected, rel=1e-12)
+    assert clamped_strip_frequency(E, nu, rho, 2 * L, t) == pytest.approx(expected / 4, rel=1e-12)
+
+
+def test_a_tiny_strip_through_the_benchmark_compares_with_itself() -> None:
+    case = conv.Case("strip", "+z", 2.5e6, 700.0, 6.0, (1.0, 0.0, 0.0), duration=0.1, seconds=0.25)
+    scene = conv.load_scene("strip", 800)
+    a = conv.simulate(scene, case, 12, 0.5, 0.5, "cpu")
+    b = conv.simulate(scene, case, 16, 0.5, 0.5, "cpu")
+    runs = conv.compare({"reference": a, "other": b}, case)
+    ref, other = runs
+    assert ref.peak_ratio == pytest.approx(1.0) and ref.rms == 0.0
+    assert ref.peak > 0 and other.peak > 0 and other.rms > 0
+    assert a[0].shape == (int(round(0.25 * conv.FPS)) + 1, 800, 3)
