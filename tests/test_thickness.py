@@ -90,3 +90,16 @@ def test_prepare_reports_thin_leaves_and_the_grid_that_resolves_them() -> None:
     needed = int(line.split("a grid of ")[1].split()[0])
     fine = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=needed))
     assert not any(line.startswith("thin parts:") for line in fine.report), fine.report
+
+
+@pytest.mark.parametrize("grid", [16, 64])
+def test_a_coarse_cell_reads_the_leaves_own_thickness_after_refining(grid: int) -> None:
+    """A 15 cm cell's window takes in the stem beside a 3 mm leaf; the line still names the
+    leaf's thickness, read again through the finer cells it asks for."""
+    from pd_tool.prepare import PrepareOptions, prepare_scene
+    from pd_tool.synthetic import POT_TOP, THIN_THICKNESS, make_plant
+
+    prep = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=grid))
+    found = T.thin_parts(prep.positions_sim, ~prep.static, prep.dx, max(prep.grid_dims), prep.volumes)
+    assert found is not None and found.thin
+    assert found.thickness_m == pytest.approx(THIN_THICKNESS, rel=0.3)
