@@ -208,7 +208,8 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=20000)
     ap.add_argument("--strip-gaussians", type=int, default=0,
                     help="the strip's Gaussians (default --gaussians): a fine reference needs several per cell")
-    ap.add_argument("--sweep", default="", help="extra grids at the default CFL and driver ratio, e.g. 24,32,48")
+    ap.add_argument("--sweep", default="", help="extra grids at the default CFL and driver ratio, e.g. 24,32,48; "
+                    "GRID:RATIO for another driver ratio, e.g. 24:0.05")
     ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
     ap.add_argument("--reference-cfl", type=float, default=0.25)
     ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
@@ -239,9 +240,11 @@ def main() -> None:
             runs[q] = simulate(scene, case, int(s["grid_res"]), float(s["cfl_safety"]), float(s["driver_ratio"]),
                                args.device)
         d = settings["default"]
-        for g in filter(None, args.sweep.split(",")):
-            runs[f"grid {g}"] = simulate(scene, case, int(g), float(d["cfl_safety"]), float(d["driver_ratio"]),
-                                         args.device)
+        for item in filter(None, args.sweep.split(",")):
+            g, _, r = item.partition(":")
+            ratio = float(r) if r else float(d["driver_ratio"])
+            runs[f"grid {g}" + (f" r{r}" if r else "")] = simulate(scene, case, int(g), float(d["cfl_safety"]), ratio,
+                                                                   args.device)
         runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device)
         if args.check_grid:
             runs["check"] = simulate(scene, case, args.check_grid, args.reference_cfl, 1.0, args.device)

@@ -133,10 +133,11 @@ def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
 def fit_simulation(quality: dict[str, Any]) -> tuple[int, float, float]:
     """(grid_res, cfl_safety, driver_ratio) the fit simulates with under a quality preset.
 
-    The bake's values sit on the run-time/error front of docs/benchmarks.md, which for the
-    bake allows grids of 16 cells; the fit needs thin parts resolved (a stem several cells
-    wide) for their stiffness to show in the motion, so presets carry fit_* values of their
-    own. The reference videos of the demo and the benchmarks use the same values."""
+    The bake's grids come from bench/convergence.py (32 to 128 cells). The fit runs its
+    differentiable simulation once per iteration, so it keeps coarser grids of its own
+    (24 to 64 cells, a stem several cells wide), and a bake of a fitted material simulates
+    as its fit did, the discretisation its E is calibrated to. The reference videos of the
+    demo and the benchmarks use the fit's values."""
     return (int(quality.get("fit_grid_res", quality["grid_res"])),
             float(quality.get("fit_cfl_safety", quality["cfl_safety"])),
             float(quality.get("fit_driver_ratio", quality["driver_ratio"])))
