@@ -101,7 +101,7 @@ def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | 
     against the many on the surface."""
     x = np.asarray(positions, np.float64)
     out = np.full(len(x), np.nan)
-    if len(x) == 0:
+    if len(x) == 0 or not window > 0.0:
         return out
     w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
     h = window / WINDOW_BINS
@@ -203,7 +203,7 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
     # that reading asks for, until it stops shrinking.
     for _ in range(REFINE):
         cell = thick / RESOLVED_CELLS
-        if not thin.any() or cell >= 0.8 * dx:
+        if not thin.any() or not 0.0 < cell < 0.8 * dx:  # a line of particles reads 0
             break
         t2, thin2 = _thin_at(x, vol, moving, cell, size, REFINE_POINTS)
         if t2 is None or not (thin & thin2).any():

@@ -103,3 +103,13 @@ def test_a_coarse_cell_reads_the_leaves_own_thickness_after_refining(grid: int) 
     found = T.thin_parts(prep.positions_sim, ~prep.static, prep.dx, max(prep.grid_dims), prep.volumes)
     assert found is not None and found.thin
     assert found.thickness_m == pytest.approx(THIN_THICKNESS, rel=0.3)
+
+
+def test_a_line_of_particles_reads_zero_and_the_line_still_forms() -> None:
+    x = np.zeros((400, 3)) + 0.5
+    x[:, 2] = np.linspace(0.1, 0.9, 400)
+    t = T.local_thickness(x, 0.05)
+    assert np.isfinite(t).sum() > 390 and np.nanmax(t) < 1e-9  # an end's window can be too sparse
+    assert np.isnan(T.local_thickness(x, 0.0)).all()
+    found = T.thin_parts(x, np.ones(len(x), bool), 0.05, 32)
+    assert found is not None and found.thin and "\n" not in found.line(32)
