@@ -10,20 +10,22 @@ bins of w/3 cells, the particle's bin in the middle), their covariance, and
 sqrt(12 * smallest eigenvalue). That is a slab's exact thickness, a filled window's edge,
 and 0.87 of a rod's diameter.
 
-A part is thin where it reads under half a cell through two windows: one cell, and a wide
-one of three cells but at most WIDE_SHARE of the object's size. The cell window sees the
-part at the grid's scale. The wide one tells a sheet from the surface of a bulk part, which
-a scan samples only on its outside and which reads as a sheet within one cell but not
-within three; capped, it does not take in the other parts of the object (the stem beside a
-leaf) on a coarse grid, where a cell is already a large share of the object. Particles are
-weighted by their simulated volume. The surface of a bulk part whose radius of curvature
-exceeds about two cells still reads as a sheet, filled or not (a known false report: a
-ball ten cells wide is reported at 20 cells).
+A part is thin where it reads under RESOLVED_CELLS of a cell through two windows: one cell,
+and a wide one of three cells but at most WIDE_SHARE of the object's size. The cell window
+sees the part at the grid's scale. The wide one tells a sheet from the surface of a bulk
+part, which a scan samples only on its outside and which reads as a sheet within one cell
+but not within three; capped, it does not take in the other parts of the object (the stem
+beside a leaf) on a coarse grid, where a cell is already a large share of the object.
+Particles are weighted by their simulated volume. A coarse cell's window can still take in
+more than the part, so the reading is an upper bound. The surface of a bulk part whose
+radius of curvature exceeds about two cells reads as a sheet, filled or not (a known false
+report: a ball ten cells wide).
 
-Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported and
-every one moves too little; from 32 cells up udon, the donut and the tree are not reported;
-there udon moves within 1% of the reference and the tree within 2-8% (26% over at 48); the plant with 3 mm leaves,
-17-68% short at every grid, is reported at every grid.
+Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported,
+and every one moves 36-84% too little; from 32 cells up udon, the donut and the tree are
+not reported, and udon and the tree move within 8% of the reference; the plant with 3 mm
+leaves is reported at 16, 32 and 64 cells (20-50% short) and not at 128, where its motion
+has converged.
 """
 from __future__ import annotations
 
@@ -35,17 +37,16 @@ import numpy as np
 WINDOW_BINS = 3  # bins along a window's edge
 WIDE_WINDOW = 3.0  # cells: the second window, which a bulk part's surface does not pass...
 WIDE_SHARE = 0.15  # ...and at most this share of the object's longest side (never under a cell)
-MIN_POINTS = 10  # fewer particles in a window: no estimate (a stray splat says nothing)
-# A part is resolved when it is at least this many cells thick. In a 2D MLS-MPM a strip of
-# two particle layers was about 20 % too stiff in bending at half a cell and 60 % at a
-# quarter (../shared/docs/thin-parts.md); the convergence benchmark measures pdtool's own.
-RESOLVED_CELLS = 0.5
+MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenvalue of a
+# covariance of a few points reads low: windows of about 10 in a solid stem read a third of a cell)
+# A part is resolved when it is at least this many cells thick. The convergence benchmark's
+# plant with 3 mm leaves moves as a converged simulation does at 128 cells (0.29 of a cell)
+# and 20% too little at 64 (0.13); in a 2D MLS-MPM a strip of two particle layers was about
+# 20% too stiff at a quarter cell (../shared/docs/thin-parts.md). One 3D thin scene so far:
+# recheck this figure as more are measured.
+RESOLVED_CELLS = 0.25
 THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
 MAX_GRID = 256  # the largest grid the CLI accepts
-REFINE = 3  # re-readings of a coarse cell's thickness through finer cells
-# particles a finer window needs for its reading to count: the smallest eigenvalue of a
-# covariance of few points reads low (a 3 mm leaf read 1.6 mm through windows of about 15)
-REFINE_POINTS = 40
 SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5 s on a CPU core)
 
 
@@ -150,14 +151,23 @@ class ThinParts:
         return self.share >= THIN_SHARE
 
     def line(self, grid_res: int) -> str:
-        """The notice bake, fit and select print."""
-        head = (f"thin parts: {self.share:.0%} of the moving particles lie in parts about "
-                f"{_length(self.thickness_m)} thick, under half this {grid_res}-cell grid's "
+        """The notice bake, fit and select print: what is thin, and the shipped quality (or
+        the grid_res of a quality file) to try. A coarse cell's window can take in more than
+        the part (the stem beside a leaf), so the thickness is an upper bound and the grid a
+        lower one: a finer grid may report a thinner part again."""
+        head = (f"thin parts: {self.share:.0%} of the moving particles lie in parts "
+                f"{_length(self.thickness_m)} thick or thinner, under a quarter of this {grid_res}-cell grid's "
                 f"{_length(self.dx_m)} cell; MPM bends them as if they were thicker, so they move too little")
-        if self.grid_needed <= MAX_GRID:
-            return head + f"; a grid of {self.grid_needed} cells along the longest side resolves them"
-        return head + (f"; resolving them needs about {self.grid_needed} cells along the longest side, "
-                       f"beyond the {MAX_GRID} pdtool allows")
+        if self.grid_needed > MAX_GRID:
+            return head + (f"; resolving them needs {self.grid_needed} cells or more along the longest side, "
+                           f"beyond the {MAX_GRID} pdtool allows (--quality final, 128 cells, comes closest)")
+        from pd_tool.presets import builtin
+
+        shipped = sorted((int(q["grid_res"]), name) for name, q in builtin("quality").items())
+        fits = [name for grid, name in shipped if grid >= self.grid_needed]
+        if fits:
+            return head + f"; try --quality {fits[0]} or finer"
+        return head + f"; try a --quality file with grid_res = {self.grid_needed} or more"
 
 
 def _length(m: float) -> str:
@@ -198,20 +208,6 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
         return None
     share = float(thin.mean())
     thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
-    # A window of a coarse cell takes in more than the part (a leaf with the stem beside
-    # it), so its reading is an upper bound: read the thin particles again through the cell
-    # that reading asks for, until it stops shrinking.
-    for _ in range(REFINE):
-        cell = thick / RESOLVED_CELLS
-        if not thin.any() or not 0.0 < cell < 0.8 * dx:  # a line of particles reads 0
-            break
-        t2, thin2 = _thin_at(x, vol, moving, cell, size, REFINE_POINTS)
-        if t2 is None or not (thin & thin2).any():
-            break
-        finer = float(np.median(t2[thin & thin2]))
-        if not finer < 0.8 * thick:
-            break
-        thick = finer
     box = grid_res * dx
     needed = math.ceil(box / (max(thick, 1e-9) / RESOLVED_CELLS))
     return ThinParts(share=share, thickness_m=thick, dx_m=dx, object_m=size, grid_needed=int(needed))
