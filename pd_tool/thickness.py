@@ -93,10 +93,9 @@ def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray,
     return c_w[inverse], n_w[inverse], s_w[inverse], q_w[inverse]
 
 
-def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None,
-                    min_points: int = MIN_POINTS) -> np.ndarray:
+def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
     """Local thickness [N] in metres of the part each particle lies in, seen through a window
-    `window` metres wide; NaN where it holds fewer than `min_points` particles.
+    `window` metres wide; NaN where it holds fewer than MIN_POINTS particles.
     positions [N, 3] metres; weights [N] (> 0; default 1): the simulation's particle volumes,
     so that a filled inside, a few particles each holding a cell, counts for its volume
     against the many on the surface."""
@@ -107,7 +106,7 @@ def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | 
     w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
     h = window / WINDOW_BINS
     count, n, s, q = _window_moments(x, w, h)
-    ok = count >= min_points
+    ok = count >= MIN_POINTS
     mean = s[ok] / n[ok, None]
     cov = q[ok] / n[ok, None, None] - np.einsum("ka,kb->kab", mean, mean)
     lam = np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)
@@ -135,15 +134,14 @@ def local_thickness_ref(positions: np.ndarray, window: float, weights: np.ndarra
 class ThinParts:
     """What local_thickness says about a scene's moving particles at one cell size.
 
-    share: fraction of the moving particles that are thin (thinner than
-    RESOLVED_CELLS cells through both windows); thickness_m: their median thickness at one cell; dx_m: the cell; object_m: the object's
-    longest side; grid_needed: cells along the longest side that would resolve that median.
+    share: fraction of the moving particles that are thin (thinner than RESOLVED_CELLS
+    cells through both windows); thickness_m: their median thickness through one cell;
+    dx_m: the cell; grid_needed: cells along the longest side that would resolve that median.
     """
 
     share: float
     thickness_m: float
     dx_m: float
-    object_m: float
     grid_needed: int
 
     @property
@@ -158,12 +156,13 @@ class ThinParts:
         head = (f"thin parts: {self.share:.0%} of the moving particles lie in parts "
                 f"{_length(self.thickness_m)} thick or thinner, under a quarter of this {grid_res}-cell grid's "
                 f"{_length(self.dx_m)} cell; MPM bends them as if they were thicker, so they move too little")
-        if self.grid_needed > MAX_GRID:
-            return head + (f"; resolving them needs {self.grid_needed} cells or more along the longest side, "
-                           f"beyond the {MAX_GRID} pdtool allows (--quality final, 128 cells, comes closest)")
         from pd_tool.presets import builtin
 
         shipped = sorted((int(q["grid_res"]), name) for name, q in builtin("quality").items())
+        if self.grid_needed > MAX_GRID:
+            finest, name = shipped[-1]
+            return head + (f"; resolving them needs {self.grid_needed} cells or more along the longest side, "
+                           f"beyond the {MAX_GRID} pdtool allows (--quality {name}, {finest} cells, comes closest)")
         fits = [name for grid, name in shipped if grid >= self.grid_needed]
         if fits:
             return head + f"; try --quality {fits[0]} or finer"
@@ -172,20 +171,6 @@ class ThinParts:
 
 def _length(m: float) -> str:
     return f"{m * 1000:.2g} mm" if m < 0.01 else f"{m * 100:.2g} cm"
-
-
-def _thin_at(x: np.ndarray, vol: np.ndarray, moving: np.ndarray, dx: float, size: float,
-             min_points: int = MIN_POINTS) -> tuple[np.ndarray | None, np.ndarray]:
-    """Thickness [M] of the M moving particles through a one-cell window of `dx`, and which
-    of them are thin (under RESOLVED_CELLS cells through both windows); None when fewer
-    than MIN_POINTS have an estimate."""
-    t = local_thickness(x, dx, vol, min_points)[moving]
-    if np.isfinite(t).sum() < MIN_POINTS:
-        return None, np.zeros(int(moving.sum()), bool)
-    wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol)[moving]
-    # a particle whose window is too sparse to judge counts as not thin
-    with np.errstate(invalid="ignore"):
-        return t, (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
 
 
 def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: int,
@@ -202,12 +187,14 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
         # a fixed subset: the covariance of a window is unbiased under uniform thinning
         keep = np.random.default_rng(0).choice(len(x), SAMPLE, replace=False)
         x, moving, vol = x[keep], moving[keep], vol[keep]
-    size = float(np.ptp(x[moving], axis=0).max()) if moving.any() else 0.0
-    t, thin = _thin_at(x, vol, moving, dx, size)
-    if t is None:
+    t = local_thickness(x, dx, vol)[moving]
+    if np.isfinite(t).sum() < MIN_POINTS:
         return None
-    share = float(thin.mean())
+    size = float(np.ptp(x[moving], axis=0).max())
+    wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol)[moving]
+    # a particle whose window is too sparse to judge counts as not thin
+    with np.errstate(invalid="ignore"):
+        thin = (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
     thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
-    box = grid_res * dx
-    needed = math.ceil(box / (max(thick, 1e-9) / RESOLVED_CELLS))
-    return ThinParts(share=share, thickness_m=thick, dx_m=dx, object_m=size, grid_needed=int(needed))
+    needed = math.ceil(grid_res * dx / (max(thick, 1e-9) / RESOLVED_CELLS))
+    return ThinParts(share=float(thin.mean()), thickness_m=thick, dx_m=dx, grid_needed=int(needed))

@@ -73,14 +73,14 @@ def test_the_line_names_thickness_cell_and_the_quality_that_resolves() -> None:
     from pd_tool.presets import builtin
 
     grids = {name: int(q["grid_res"]) for name, q in builtin("quality").items()}
-    near = T.ThinParts(share=0.3, thickness_m=0.02, dx_m=0.06, object_m=1.0, grid_needed=grids["default"] - 1)
+    near = T.ThinParts(share=0.3, thickness_m=0.02, dx_m=0.06, grid_needed=grids["default"] - 1)
     line = near.line(32)
     assert "\n" not in line and "30%" in line and "2 cm" in line and "6 cm" in line
     assert line.endswith("try --quality default or finer"), line
-    assert T.ThinParts(0.3, 0.01, 0.06, 1.0, grids["final"]).line(32).endswith("try --quality final or finer")
-    mid = T.ThinParts(share=0.3, thickness_m=0.005, dx_m=0.06, object_m=1.0, grid_needed=grids["final"] + 20)
+    assert T.ThinParts(0.3, 0.01, 0.06, grids["final"]).line(32).endswith("try --quality final or finer")
+    mid = T.ThinParts(share=0.3, thickness_m=0.005, dx_m=0.06, grid_needed=grids["final"] + 20)
     assert mid.line(32).endswith(f"a --quality file with grid_res = {grids['final'] + 20} or more")
-    far = T.ThinParts(share=0.3, thickness_m=0.003, dx_m=0.06, object_m=1.0, grid_needed=640)
+    far = T.ThinParts(share=0.3, thickness_m=0.003, dx_m=0.06, grid_needed=640)
     assert "beyond the 256" in far.line(32) and "3 mm" in far.line(32)
 
 
