@@ -89,6 +89,15 @@ def _flower(rng, n, thickness=PETAL_THICKNESS):
     return np.stack([rr * np.cos(th) + 0.03, rr * np.sin(th), z], 1)
 
 
+def _scene(pos, quats, scales, opacities, sh, labels, names, device) -> GaussianScene:
+    """A synthetic GaussianScene from numpy arrays (float32 tensors on `device`)."""
+    def t(a):
+        return torch.as_tensor(a, dtype=torch.float32, device=device)
+
+    return GaussianScene(positions=t(pos), quats=t(quats), scales=t(scales), opacities=t(opacities), sh=t(sh),
+                         source_format="synthetic", labels=labels, label_names=names)
+
+
 def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | torch.device = "cpu",
                thin: bool = False) -> GaussianScene:
     """The procedural plant with about `n` Gaussians (exactly n), seeded and deterministic.
@@ -123,14 +132,7 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3))
     sh[:, 0] = rgb_to_sh(torch.from_numpy(colors)).numpy()
     opac = rng.uniform(0.7, 0.95, n)
-
-    def t(a):
-        return torch.as_tensor(a, dtype=torch.float32, device=device)
-
-    return GaussianScene(
-        positions=t(pos), quats=t(quats), scales=t(scales), opacities=t(opac), sh=t(sh),
-        source_format="synthetic", labels=labels, label_names=REGIONS,
-    )
+    return _scene(pos, quats, scales, opac, sh, labels, REGIONS, device)
 
 
 def driver_regions(scene: GaussianScene, prep, drivers) -> np.ndarray:
@@ -170,15 +172,8 @@ def make_strip(n: int = 4000, *, length: float = 0.8, width: float = 0.3, thickn
     spacing = (length * width * thickness / n_strip) ** (1 / 3)
     scales = np.full((n, 3), 0.5 * spacing)
     colors = np.where(labels[:, None] == 0, [0.5, 0.5, 0.5], [0.3, 0.7, 0.25])
-
-    def t(a):
-        return torch.as_tensor(a, dtype=torch.float32, device=device)
-
-    return GaussianScene(
-        positions=t(pos), quats=t(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))), scales=t(scales),
-        opacities=t(np.full(n, 0.9)), sh=t(rgb_to_sh(torch.from_numpy(colors))[:, None].numpy()),
-        source_format="synthetic", labels=labels, label_names=STRIP_REGIONS,
-    )
+    return _scene(pos, np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), scales, np.full(n, 0.9),
+                  rgb_to_sh(torch.from_numpy(colors))[:, None].numpy(), labels, STRIP_REGIONS, device)
 
 
 def clamped_strip_frequency(E: float, nu: float, density: float, length: float, thickness: float) -> float:
