@@ -42,6 +42,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_recovery.simulate_positions
 
 DATA = ROOT.parent / "shared" / "data"
 QUALITIES = ("draft", "default", "final")
@@ -116,12 +117,8 @@ def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str) -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps."""
-    import torch
-
-    from pd_tool.animate import GaussianAnimator
-    from pd_tool.bake import ForceSpec, force_mask
+    from fit_recovery import simulate_positions
     from pd_tool.prepare import PrepareOptions, prepare_scene, up_rotation
-    from pd_tool.sim import MPMSolver, SimConfig
 
     pos = scene.positions.detach().cpu().double().numpy()
     height = pos @ up_rotation(case.up)[2]
@@ -130,38 +127,21 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
                                                density_kg_m3=case.density))
     t0 = time.perf_counter()
-    from pd_tool.drivers import build_drivers
-
-    def t(a, dtype=torch.float32):
-        return torch.as_tensor(a, dtype=dtype, device=device)
-
-    drivers = build_drivers(t(prep.positions_sim), t(prep.volumes), t(prep.masses), t(prep.static, torch.bool), prep.dx,
-                            ratio=ratio, seed=0)
-    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=case.nu, gravity=(0.0, 0.0, 0.0),
-                    cfl_safety=cfl)
+    drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
     d_rest = drivers.positions.double().cpu().numpy()
-    d_static = drivers.static.cpu().numpy().astype(bool)
-    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(),
-                       np.full(len(d_rest), case.E), d_static, cfg, device=device)
-    accel = np.asarray(case.push, float) * case.accel
-    spec = ForceSpec(accel=tuple(accel), at="top", radius_fraction=0.3, start=0.0, duration=case.duration)
-    # m/s^2 whatever the scene's units: rotate only
-    solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.R @ accel, 0.0, case.duration)
-    anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
-    fps = FPS
-    frames = [scene.positions.detach().cpu().numpy()]
-    most = 0
-    for _ in range(int(round(case.seconds * fps))):
-        most = max(most, solver.step_frame(1.0 / fps))
-        with torch.no_grad():
-            frames.append(anim(solver.positions())[0].cpu().numpy())
+    # the push is in m/s^2 whatever the scene's units
+    accel = tuple(np.asarray(case.push, float) * case.accel / prep.transform.scale)
+    stats: dict = {}
+    x = simulate_positions(scene, prep, drivers, np.full(len(d_rest), case.E), nu=case.nu, seconds=case.seconds,
+                           fps=FPS, accel=accel, device=device, cfl_safety=cfl, stats=stats, duration=case.duration)
     moving = np.zeros(scene.count, bool)
     moving[prep.foreground[~prep.static[: prep.count]]] = True
     # substeps per 30 fps frame, the product's frame
-    run = Run(case.name, "", grid, cfl, ratio, seconds_wall=time.perf_counter() - t0, substeps=most * round(fps / 30),
+    run = Run(case.name, "", grid, cfl, ratio, seconds_wall=time.perf_counter() - t0,
+              substeps=stats["substeps"] * round(FPS / 30),
               drivers=int(len(d_rest)),
               per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)))
-    return np.stack(frames), moving, run
+    return x, moving, run
 
 
 def peak_of(x: np.ndarray, moving: np.ndarray, size: float) -> float:

@@ -185,15 +185,16 @@ class PreparedScene:
     def count(self) -> int:
         return int(len(self.foreground))
 
-    def build_drivers(self, *, ratio: float | None, seed: int = 0):
-        """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle."""
+    def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu"):
+        """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle,
+        clustered on `device` (K-Means with a driver per Gaussian is slow on a CPU)."""
         from pd_tool.drivers import build_drivers
 
-        return build_drivers(
-            torch.as_tensor(self.positions_sim, dtype=torch.float32), torch.as_tensor(self.volumes, dtype=torch.float32),
-            torch.as_tensor(self.masses, dtype=torch.float32), torch.as_tensor(self.static), self.dx,
-            ratio=ratio, seed=seed,
-        )
+        def t(a, dtype=torch.float32):
+            return torch.as_tensor(a, dtype=dtype, device=device)
+
+        return build_drivers(t(self.positions_sim), t(self.volumes), t(self.masses), t(self.static, torch.bool),
+                             self.dx, ratio=ratio, seed=seed)
 
     @property
     def object_size_m(self) -> float:
