@@ -984,15 +984,10 @@ def _start_resource_tracker_quietly() -> None:
     the terminal the user killed the batch from. Nothing to do when it already runs."""
     from multiprocessing import resource_tracker
 
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-            resource_tracker.ensure_running()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    from pd_tool.device import native_stderr_silenced
+
+    with native_stderr_silenced():
+        resource_tracker.ensure_running()
 
 
 class LocalBackend:

@@ -1,32 +1,42 @@
 """Choosing the compute device: CUDA when present, CPU otherwise; --device overrides."""
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
+
 from pd_tool.errors import PdToolError
 
 DEVICES = ("auto", "cpu", "cuda")
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 on /dev/null for the block: what native code and child processes
+    started in it write there (Python's own sys.stderr included) goes nowhere."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def init_warp_quietly() -> None:
     """Initialise warp without its banner, and without the native library's
     "could not load the CUDA driver" line on machines with no GPU: a user's stderr should
     hold pdtool's own messages only."""
-    import os
-    import sys
-
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
     if getattr(init_warp_quietly, "_done", False):
         return
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    with native_stderr_silenced():
+        wp.init()
     init_warp_quietly._done = True  # type: ignore[attr-defined]
 
 

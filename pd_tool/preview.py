@@ -93,21 +93,8 @@ class _Mp4Encoder:
             self._p.wait()
             raise self._failure() from None
 
-    def close(self) -> None:
-        try:
-            if self._p.stdin is not None:
-                self._p.stdin.close()
-        except BrokenPipeError:
-            pass
-        self._p.stdin = None
-        self._p.wait()
-        if self._p.returncode != 0:
-            raise self._failure()
-        self._reap()
-
-    def abort(self) -> None:
-        if self._p.poll() is None:
-            self._p.kill()
+    def _end_input(self) -> None:
+        # a pipe whose reader is gone cannot be flushed; the exit status says what happened
         try:
             if self._p.stdin is not None:
                 self._p.stdin.close()
@@ -115,6 +102,17 @@ class _Mp4Encoder:
             pass
         self._p.stdin = None
         self._p.wait()
+
+    def close(self) -> None:
+        self._end_input()
+        if self._p.returncode != 0:
+            raise self._failure()
+        self._reap()
+
+    def abort(self) -> None:
+        if self._p.poll() is None:
+            self._p.kill()
+        self._end_input()
         self._reap()
 
 
