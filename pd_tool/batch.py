@@ -424,14 +424,15 @@ def load_jobs(path: str | Path) -> list[Job]:
     Raises JobsFileError (one line) for a missing, unreadable, too large, too deeply
     nested or malformed file.
     """
+    from pd_tool.inputs import regular_file_problem
+
     path = Path(path)
+    problem = regular_file_problem(path)  # a pipe or a device would block the read
+    if problem is not None:
+        raise JobsFileError(f"{path}: {problem}; give the jobs file (TOML) itself")
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_FILE_BYTES + 1)
-    except FileNotFoundError:
-        raise JobsFileError(f"{path}: no such jobs file") from None
-    except IsADirectoryError:
-        raise JobsFileError(f"{path}: is a folder; give the jobs file (TOML) itself") from None
     except OSError as e:
         raise JobsFileError(f"{path}: unreadable ({e.strerror})") from None
     if len(raw) > MAX_FILE_BYTES:

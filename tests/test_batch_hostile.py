@@ -244,6 +244,13 @@ def test_large_file_is_refused(tmp_path: Path) -> None:
     _one_error_line(r, lines, "jobs.toml", "larger than 1,048,576 bytes")
 
 
+def test_a_pipe_as_the_jobs_file_is_refused_without_blocking(tmp_path: Path) -> None:
+    fifo = tmp_path / "jobs.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(B.JobsFileError, match="not a regular file"):
+        B.load_jobs(fifo)
+
+
 def test_not_utf8_is_one_line(tmp_path: Path) -> None:
     f = tmp_path / "jobs.toml"
     f.write_bytes(b'[[job]]\nname = "\xff"\n')
