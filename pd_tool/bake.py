@@ -272,7 +272,8 @@ def bake(
 
     E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
     push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
-    speed = float(np.linalg.norm(prep.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
+    accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+    speed = float(np.linalg.norm(accel_sim)) * push_s
     check_bake_work(prep, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(prep.positions_sim)))),
                     frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
                     speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
@@ -292,9 +293,8 @@ def bake(
     )
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
     mask = force_mask(prep, d_rest, d_static, force)
-    accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
     free_E = E[~d_static] if (~d_static).any() else E
-    check_force(float(np.linalg.norm(accel_sim)), min(force.duration, max(settings.seconds - force.start, 0.0)),
+    check_force(float(np.linalg.norm(accel_sim)), push_s,
                 float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx, opts.density_kg_m3,
                 float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale), nu=nu,
                 gap_m=_free_space(prep), magnitude=force.magnitude)

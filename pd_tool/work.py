@@ -120,11 +120,9 @@ def cfl_substeps_estimate(frame_dt: float, dx: float, E_max: float, density: flo
     material E_max (Pa) at `speed` (m/s); `fixed` wins when given, `floor` is a least count."""
     if fixed is not None:
         return int(fixed)
-    from pd_tool.sim.cfl import cfl_substeps, lame_np
+    from pd_tool.sim.cfl import cfl_substeps, wave_speed
 
-    mu, lam = lame_np(E_max, nu)
-    c = math.sqrt(float(lam + 2.0 * mu) / density)
-    n = cfl_substeps(frame_dt, dx, c, speed, safety)
+    n = cfl_substeps(frame_dt, dx, wave_speed(E_max, density, nu), speed, safety)
     return max(n, int(floor or 0))
 
 

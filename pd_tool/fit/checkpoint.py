@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from pd_tool.atomic import atomic_output
-from pd_tool.errors import OutputError, PdToolError
+from pd_tool.errors import PdToolError
 
 FORMAT = "pdtool-fit-checkpoint"
 VERSION = 1
@@ -132,17 +132,11 @@ def checkpoint_bytes(state: dict[str, Any], problem: dict[str, Any]) -> bytes:
 
 def write_checkpoint(path: str | Path, state: dict[str, Any], problem: dict[str, Any]) -> None:
     """Write the checkpoint atomically (a hidden temporary beside `path`, then a rename).
-    A full or read-only disk raises CheckpointError (one line) and leaves no temporary."""
-    path = Path(path)
+    A full or read-only disk raises OutputError (one line naming the path) and leaves no
+    temporary: atomic_output turns every OSError of the write into one."""
     data = checkpoint_bytes(state, problem)
-    try:
-        with atomic_output(path) as tmp:
-            tmp.write_bytes(data)
-    except OutputError:
-        raise  # already one line naming the path
-    except OSError as e:
-        raise CheckpointError(f"cannot write the fit checkpoint {path}: {e.strerror or type(e).__name__}; "
-                              f"free some space or choose a writable folder for --out") from None
+    with atomic_output(Path(path)) as tmp:
+        tmp.write_bytes(data)
 
 
 # ---------------------------------------------------------------------- identity

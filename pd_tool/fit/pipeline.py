@@ -212,7 +212,7 @@ class FitProblem:
             resolution=f"--working-size {settings.working_long_side}")
         from pd_tool.work import check_fit_work  # ... or would take longer than allowed
 
-        self.work = check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety)
+        check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety)
         self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed)
         self.animator = GaussianAnimator(self.scene, p, self.drivers, device=self.device)
         self.videos = videos

@@ -86,11 +86,9 @@ def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, de
     travel = 0.5 * accel_m_s2 * duration_s ** 2  # a free particle's displacement, m
     strain = density * accel_m_s2 * max(pushed_extent_m, 1e-9) / E_max  # stress needed / E
     if travel > box_m and strain > HOPELESS_STRAIN:
-        from pd_tool.sim.cfl import lame_np
+        from pd_tool.sim.cfl import wave_speed
 
-        mu, lam = lame_np(E_max, nu)
-        c = math.sqrt(float(lam + 2.0 * mu) / density)
-        ok = safe_acceleration(duration_s, c, box_m / 5.0 if gap_m is None else gap_m)
+        ok = safe_acceleration(duration_s, wave_speed(E_max, density, nu), box_m / 5.0 if gap_m is None else gap_m)
         hint = _round_down(ok / (scale * magnitude))
         raise SimulationUnstable(
             f"the force cannot end stable: {accel_m_s2 / scale:.3g} scene units/s^2 for {duration_s:g} s would "
