@@ -41,7 +41,9 @@ MANIFEST = ".pdtool-output.json"
 WRITTEN_BY = "pdtool"  # the value of every mark
 MARK_TEXT = "written by pdtool"  # PLY comment, mp4 / gif comment
 MANIFEST_MAX_BYTES = 64 << 20  # a larger "manifest" is not one pdtool wrote
-_TEMP_NAME_CHARS = 96  # of the output's name kept in a temporary's name: NAME_MAX is 255 bytes
+TEMP_NAME_BYTES = 96  # of the output's name kept in a temporary's name: NAME_MAX is 255 bytes
+TEMP_SUFFIX_CHARS = 16  # of the output's suffix kept in a file temporary's name
+PARKED = "previous"  # the folder being replaced, inside its `.NAME.XXXXXXXX.old` temporary
 _FIX_SPACE = "free some space or choose a writable folder"
 _FIX = {errno.ENAMETOOLONG: "choose a shorter name"}
 # errnos that say what is wrong with the destination itself (anything else, e.g. a broken
@@ -479,11 +481,14 @@ def check_destination(path: str | Path, what: str | None = None, *, folder: bool
 # ----------------------------------------------------------------------------- the writer
 
 
+def temp_stem(name: str) -> str:
+    """The output's name as its temporaries carry it: its first TEMP_NAME_BYTES bytes, so
+    that a temporary fits NAME_MAX wherever the name does (the usd writer's too)."""
+    return os.fsdecode(os.fsencode(name)[:TEMP_NAME_BYTES]).rstrip("\ufffd")
+
+
 def _temp_prefix(path: Path) -> str:
-    name = path.name
-    if len(os.fsencode(name)) > _TEMP_NAME_CHARS:
-        name = os.fsdecode(os.fsencode(name)[:_TEMP_NAME_CHARS]).rstrip("\ufffd")
-    return f".{name}."
+    return f".{temp_stem(path.name)}."
 
 
 def _map_temp(e: OutputError, tmp: Path, path: Path) -> OutputError:
@@ -543,7 +548,7 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
             if directory:
                 tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".part", dir=path.parent))
             else:
-                fd, name = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".part" + path.suffix[:16],
+                fd, name = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".part" + path.suffix[:TEMP_SUFFIX_CHARS],
                                             dir=path.parent)
                 os.close(fd)
                 tmp = Path(name)
@@ -567,12 +572,12 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
             if directory and path_kind(path) is not None:
                 check_replaceable_folder(path, what, known=known)
                 old = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".old", dir=path.parent))
-                os.replace(path, old / "previous")
+                os.replace(path, old / PARKED)
             try:
                 os.replace(tmp, path)
             except BaseException:
                 if old is not None:  # put the old folder back
-                    os.replace(old / "previous", path)
+                    os.replace(old / PARKED, path)
                     shutil.rmtree(old, ignore_errors=True)
                     old = None
                 raise

@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pd_tool.atomic import atomic_output, check_destination
+from pd_tool.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, check_destination, temp_stem
 from pd_tool.errors import PdToolError
 
 COMMANDS = ("bake", "fit")
@@ -707,14 +707,6 @@ def help_error(job: Job, arg: str) -> str:
 
 
 _TMP_RAND = r"[a-z0-9_]{8}"  # tempfile's random part (mkstemp / mkdtemp)
-# A writer may keep only the first bytes of a long output name, and of a long suffix, in its
-# temporary's name (NAME_MAX is 255 bytes); both forms are recognised.
-_TEMP_NAME_BYTES = 96
-_TEMP_SUFFIX_CHARS = 16
-
-
-def _shortened(name: str) -> str:
-    return os.fsdecode(os.fsencode(name)[:_TEMP_NAME_BYTES]).rstrip("\ufffd")
 
 
 def temporaries(p: Path) -> list[Path]:
@@ -722,8 +714,10 @@ def temporaries(p: Path) -> list[Path]:
     `.NAME.XXXXXXXX.part.EXT` (pd_tool.atomic, a file), `.NAME.XXXXXXXX.part` (a folder),
     `.NAME.XXXXXXXX.old` (the folder being replaced) and `.NAME.tmp-PID-HEX.usdc|usda`
     (usd_export's writer). Nothing else in the folder matches."""
-    names = "|".join(re.escape(n) for n in sorted({p.name, _shortened(p.name)}))
-    suffixes = "|".join(re.escape(x) for x in sorted({p.suffix, p.suffix[:_TEMP_SUFFIX_CHARS]}))
+    # a writer keeps only the first bytes of a long name, and of a long suffix, in its
+    # temporaries' names: both forms are recognised
+    names = "|".join(re.escape(n) for n in sorted({p.name, temp_stem(p.name)}))
+    suffixes = "|".join(re.escape(x) for x in sorted({p.suffix, p.suffix[:TEMP_SUFFIX_CHARS]}))
     pattern = re.compile(rf"\.(?:{names})\.(?:{_TMP_RAND}\.(?:part(?:{suffixes})|part|old)"
                          rf"|tmp-\d+-[0-9a-f]{{8}}\.usd[ac])")
     try:
@@ -745,7 +739,7 @@ def remove_temporaries(files: Iterable[JobFiles]) -> list[Path]:
                 try:
                     real_dir = t.is_dir() and not t.is_symlink()
                     if real_dir and t.name.endswith(".old"):
-                        kept = t / p.name
+                        kept = t / PARKED
                         if os.path.lexists(kept) and not os.path.lexists(p):
                             os.replace(kept, p)
                     if real_dir:

@@ -306,9 +306,12 @@ def test_remove_temporaries_takes_only_the_writers_temporaries(tmp_path: Path) -
     for n in folders:
         (out / n).mkdir()
         (out / n / "frame_0000.png").write_text("x")
-    # the folder replace was cut between its renames: the previous frames wait in .old/
-    (out / ".frames.a1b2c3d4.old" / "frames").mkdir()
-    (out / ".frames.a1b2c3d4.old" / "frames" / "camera.json").write_text("{}")
+    # the folder replace was cut between its renames: the previous frames wait in .old/,
+    # under the name pd_tool.atomic parks them with
+    from pd_tool.atomic import PARKED
+
+    (out / ".frames.a1b2c3d4.old" / PARKED).mkdir()
+    (out / ".frames.a1b2c3d4.old" / PARKED / "camera.json").write_text("{}")
     files = B.JobFiles(outputs=[out / "x.usd", out / "p.mp4", out / "frames", out / long], folders=[out / "frames"])
     removed = B.remove_temporaries([files])
     assert sorted(p.name for p in removed) == sorted(mine + folders)

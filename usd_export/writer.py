@@ -40,7 +40,6 @@ DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma elli
 DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
 QUEUE_FRAMES = 2  # threaded mode: frames waiting for the writer thread (bounds memory)
 ROOT = "/Root"
-_TEMP_NAME_BYTES = 96  # of the output's name kept in a temporary's name (NAME_MAX is 255)
 # OS errors that pxr's messages may carry, by their strerror text
 _OS_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG,
               errno.EIO)
@@ -121,7 +120,7 @@ class UsdBakeWriter:
 
         token = f"{os.getpid()}-{secrets.token_hex(4)}"
         # the output's name, shortened: a temporary must fit NAME_MAX wherever the name does
-        stem = os.fsdecode(os.fsencode(self.path.name)[:_TEMP_NAME_BYTES]).rstrip("\ufffd")
+        stem = _atomic.temp_stem(self.path.name)
         self._tmp = self.path.parent / f".{stem}.tmp-{token}.usdc"
         self._tmp_text = self.path.parent / f".{stem}.tmp-{token}.usda"
         self._layer = None
