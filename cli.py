@@ -951,11 +951,12 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
     if workers is not None and ray_address is not None:
         raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
     with user_errors():
-        from pd_tool.batch import BatchInterrupted, check_writable, load_jobs, run_batch, write_summary
+        from pd_tool.atomic import check_destination
+        from pd_tool.batch import BatchInterrupted, load_jobs, run_batch, write_summary
 
         jobs = load_jobs(jobs_file)
         if json_out is not None:
-            check_writable(json_out)  # before the jobs run, not after
+            check_destination(json_out, "--json")  # before the jobs run, not after
         try:
             result = run_batch(jobs, workers=workers, ray_address=ray_address, resume=resume,
                                allow_outside=allow_outside)

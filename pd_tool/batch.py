@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pd_tool.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, check_destination, temp_stem
+from pd_tool.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, temp_stem
 from pd_tool.errors import PdToolError
 
 COMMANDS = ("bake", "fit")
@@ -185,10 +185,6 @@ def _text(v: Any) -> str:
     return str(v).lower() if isinstance(v, bool) else str(v)
 
 
-def _printable(s: str) -> bool:
-    return s.isprintable()
-
-
 def parse_jobs(data: dict[str, Any], cwd: str | Path = ".", source: str = "jobs file") -> list[Job]:
     """Expand the `[[job]]` tables of a parsed jobs file into Jobs, in file order.
 
@@ -225,7 +221,7 @@ def parse_jobs(data: dict[str, Any], cwd: str | Path = ".", source: str = "jobs 
         name = t.get("name")
         if not isinstance(name, str) or not name.strip():
             raise JobsFileError(f"{where}: needs name = \"...\"")
-        if not _printable(name) or len(name) > MAX_NAME_CHARS:
+        if not name.isprintable() or len(name) > MAX_NAME_CHARS:
             raise JobsFileError(f"{where}: name must be printable text of at most {MAX_NAME_CHARS} characters, "
                                 f"got {_line(repr(name), 80)}")
         where = f"{source}: job {name!r}"
@@ -1204,12 +1200,6 @@ class BatchResult:
         lines.append(f"{len(self.jobs)} jobs: {c[OK]} ok, {c[FAILED]} failed, {c[BLOCKED]} blocked, "
                      f"{c[UP_TO_DATE]} up to date; {self.seconds:.1f} s on {self.backend}")
         return "\n".join(lines)
-
-
-def check_writable(path: str | Path) -> None:
-    """Refuse a summary destination that cannot be written (OutputError, one line), before
-    any job runs."""
-    check_destination(path, "--json")
 
 
 def write_summary(result: BatchResult, path: str | Path) -> Path:
