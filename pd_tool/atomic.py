@@ -396,13 +396,15 @@ def _real(p: str | Path) -> Path:
     return Path(os.path.realpath(p))
 
 
-def check_replaceable_folder(path: str | Path, what: str | None = None, *, known: Iterable[str] = ()) -> None:
+def check_replaceable_folder(path: str | Path, what: str | None = None, *, known: Iterable[str] = (),
+                             fix: str | None = None) -> None:
     """Refuse (OutputError) when writing the folder `path` would delete something pdtool
     did not write: `path` is a file or a link, the current folder or one that holds it,
     or a folder holding a file that its manifest does not list (at the listed size) and
     that carries no pdtool mark, a link, or an empty folder of someone else's. Missing
     and empty folders pass. `known`: relative paths that count as pdtool's even
-    without a manifest (the add-on's own files). `what`: the option, for the message."""
+    without a manifest (the add-on's own files). `what`: the option, for the message;
+    `fix`: what the command adds to the message about a foreign entry."""
     path = Path(path)
     label = _label(what, path)
     kind = path_kind(path)
@@ -419,7 +421,7 @@ def check_replaceable_folder(path: str | Path, what: str | None = None, *, known
     if foreign is not None:
         raise OutputError(f"{label}: holds {foreign}, which pdtool did not write (or which changed since); pdtool "
                           f"replaces only folders it made itself: choose a new or empty folder, or move "
-                          f"what you keep there elsewhere", path=path)
+                          f"what you keep there elsewhere" + (f"; {fix}" if fix else ""), path=path)
 
 
 def check_outputs(files: Mapping[str, str | Path | None], folders: Mapping[str, str | Path | None] = {},

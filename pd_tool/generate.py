@@ -220,12 +220,7 @@ def check_output(out: str | Path, overwrite: bool, inputs: dict[str, str | Path 
     check_outputs({}, {"-o": out}, inputs or {})
     if path_kind(out) == "dir" and any(out.iterdir()) and not overwrite:
         raise GenerateError(f"{out}: already exists and is not empty; choose a new folder or pass --overwrite")
-    try:
-        check_replaceable_folder(out, "-o")
-    except PdToolError as e:
-        if "pdtool did not write" not in str(e):
-            raise
-        raise GenerateError(f"{e}; --overwrite replaces only folders that pdtool generate wrote") from None
+    check_replaceable_folder(out, "-o", fix="--overwrite replaces only folders that pdtool generate wrote")
     check_destination(out, "-o", folder=True)
 
 

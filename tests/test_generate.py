@@ -352,3 +352,16 @@ def test_fp16_only_download_loads(tiny_model: Path, tmp_path: Path) -> None:
     pipe = load_pipeline(info, "cpu")
     assert pipe.unet.dtype == torch.float32 and pipe.vae_scale_factor == 4
     assert inspect_model(tiny_model).variant is None
+
+
+def test_overwrite_of_a_folder_holding_someone_elses_file_says_what_overwrite_replaces(tmp_path: Path) -> None:
+    from pd_tool.errors import OutputError
+    from pd_tool.generate import check_output
+
+    out = tmp_path / "videos"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="notes.txt, which pdtool did not write.*--overwrite replaces only folders "
+                                          "that pdtool generate wrote"):
+        check_output(out, overwrite=True)
+    assert (out / "notes.txt").read_text() == "mine"
