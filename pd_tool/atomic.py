@@ -137,6 +137,20 @@ def output_error(path: str | Path, e: BaseException | int | str) -> OutputError:
     return OutputError(f"cannot write {path}: {reason}; {_FIX.get(code, _FIX_SPACE)}", path=path)
 
 
+# the OS errors a library or an encoder reports only in its message text
+_TEXT_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG,
+                errno.EIO)
+
+
+def output_error_in_text(path: str | Path, text: str) -> OutputError | None:
+    """The OutputError for `path` when a message (ffmpeg's stderr, pxr's error chain)
+    quotes an OS error of the destination's (disk full, read-only, ...), else None."""
+    for code in _TEXT_ERRNOS:
+        if os.strerror(code) in text:
+            return output_error(path, code)
+    return None
+
+
 def as_output_error(path: str | Path, e: BaseException) -> OutputError | None:
     """The OutputError that an exception raised while writing `path` stands for, or None
     when it does not look like a write failure (then the caller re-raises it as it is).

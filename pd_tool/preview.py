@@ -134,16 +134,10 @@ def _even(a: np.ndarray) -> np.ndarray:
 def _encoder_error(path: Path, e: _EncoderFailed) -> PdToolError:
     """What an ffmpeg failure means: the destination's trouble when its message or the
     destination shows one (full, read-only...), else an encoder error."""
-    import errno as _errno
-
-    from pd_tool.atomic import as_output_error, output_error
+    from pd_tool.atomic import as_output_error, output_error_in_text
 
     text = str(e)
-    for code in (_errno.ENOSPC, _errno.EDQUOT, _errno.EFBIG, _errno.EROFS, _errno.EACCES, _errno.EPERM,
-                 _errno.EIO, _errno.ENAMETOOLONG):
-        if os.strerror(code) in text:
-            return output_error(path, code)
-    mapped = as_output_error(path, e)
+    mapped = output_error_in_text(path, text) or as_output_error(path, e)
     return mapped if mapped is not None else PreviewError(
         f"{path}: the mp4 encoder failed ({text}); write a .gif preview instead")
 

@@ -16,7 +16,6 @@ pd_tool.errors.OutputError, one line naming the destination, never the temporary
 """
 from __future__ import annotations
 
-import errno
 import os
 import queue
 import secrets
@@ -40,9 +39,6 @@ DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma elli
 DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
 QUEUE_FRAMES = 2  # threaded mode: frames waiting for the writer thread (bounds memory)
 ROOT = "/Root"
-# OS errors that pxr's messages may carry, by their strerror text
-_OS_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG,
-              errno.EIO)
 
 
 class UsdBakeWriter:
@@ -411,9 +407,9 @@ def _write_error(path: Path, e: Exception | None, temporaries: tuple[Path, ...] 
     for tmp in temporaries:
         text = text.replace(str(tmp), str(path))
     everything = " ".join(str(e).split()) if e is not None else ""  # pxr's chain: the OS error may come first
-    for code in _OS_ERRNOS:
-        if os.strerror(code) in everything:
-            return _atomic.output_error(path, code)
+    quoted = _atomic.output_error_in_text(path, everything)
+    if quoted is not None:
+        return quoted
     problem = _atomic.destination_problem(path)
     if problem is not None:
         return _atomic.output_error(path, problem)
