@@ -1047,6 +1047,14 @@ class LocalBackend:
             stop_processes([proc for p in pools for proc in list((getattr(p, "_processes", None) or {}).values())])
         for p in pools:
             p.shutdown(wait=not cancel, cancel_futures=cancel)
+        if cancel:
+            # Let each pool's manager thread finish closing its wake-up pipe now: at exit,
+            # Python 3.11's concurrent.futures wakes it without a lock and can hit the pipe
+            # while the thread closes it ("OSError: Bad file descriptor" on stderr).
+            for p in pools:
+                thread = getattr(p, "_executor_manager_thread", None)
+                if thread is not None:
+                    thread.join(timeout=STOP_GRACE_S)
 
 
 def ray_resources(job: Job, cluster_gpus: int, cpus_per_job: float = 1.0) -> dict[str, float]:
