@@ -33,7 +33,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping
+from typing import Any, Iterable, Iterator, Mapping
 
 from pd_tool.errors import OutputError, PdToolError
 
@@ -310,7 +310,9 @@ def png_info():
 # ----------------------------------------------------------------------------- folders
 
 
-def _read_manifest(folder: Path) -> tuple[dict[str, int], set[str]] | None:
+def _load_manifest(folder: Path) -> dict[str, Any] | None:
+    """The folder's pdtool manifest, checked (files {relative path: size}, folders list),
+    or None when it has none that pdtool wrote."""
     m = folder / MANIFEST
     try:
         if m.is_symlink() or not m.is_file() or m.stat().st_size > MANIFEST_MAX_BYTES:
@@ -325,7 +327,14 @@ def _read_manifest(folder: Path) -> tuple[dict[str, int], set[str]] | None:
         return None
     if not all(isinstance(k, str) and isinstance(v, int) for k, v in files.items()):
         return None
-    return files, {f for f in folders if isinstance(f, str)}
+    return data
+
+
+def _read_manifest(folder: Path) -> tuple[dict[str, int], set[str]] | None:
+    data = _load_manifest(folder)
+    if data is None:
+        return None
+    return data["files"], {f for f in data["folders"] if isinstance(f, str)}
 
 
 def _write_manifest(folder: Path, what: str | None) -> None:
@@ -354,9 +363,8 @@ def mark_folder(folder: str | Path, what: str) -> None:
 
 def folder_mark(folder: str | Path) -> str | None:
     """The `what` of the folder's pdtool manifest, or None when it has none."""
-    if _read_manifest(Path(folder)) is None:
-        return None
-    what = json.loads((Path(folder) / MANIFEST).read_bytes().decode("utf-8")).get("what")
+    data = _load_manifest(Path(folder))
+    what = None if data is None else data.get("what")
     return what if isinstance(what, str) else None
 
 
