@@ -1219,17 +1219,16 @@ def write_summary(result: BatchResult, path: str | Path) -> Path:
     return path
 
 
-def check_outputs(jobs: list[Job], allow_outside: bool = False) -> dict[str, JobFiles]:
-    """Find every job's outputs (JobFiles by job name) and, unless allow_outside, refuse the
-    whole batch when one of them is outside its jobs file's folder. Raises JobsFileError."""
-    found = {}
+def check_outputs(jobs: list[Job], allow_outside: bool = False) -> None:
+    """Unless allow_outside, refuse the whole batch when a job writes outside its jobs
+    file's folder, before any job runs. Raises JobsFileError. (run_batch finds each job's
+    files again when it starts it: inputs made by earlier jobs exist by then.)"""
+    if allow_outside:
+        return
     for job in jobs:
-        files = found[job.name] = job_files(job)
-        if not allow_outside:
-            bad = outside(files, job.cwd)
-            if bad:
-                raise JobsFileError(_outside_message(job, bad[0]))
-    return found
+        bad = outside(job_files(job), job.cwd)
+        if bad:
+            raise JobsFileError(_outside_message(job, bad[0]))
 
 
 def _outside_message(job: Job, path: Path) -> str:
