@@ -600,6 +600,11 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
               help="Simulate gravity. Off by default: a scan already shows the object at rest under gravity.")
 @click.option("--substeps", type=T.SUBSTEPS, help="Fix the substeps per frame. Default: from the CFL bound.")
 @click.option("--seed", type=T.SEED, default=0, show_default=True, help="Seed for driver selection.")
+@click.option("--refine-thin/--no-refine-thin", default=True, show_default=True,
+              help="When moving parts (leaves, petals, brims) are thinner than a quarter of the quality's grid "
+                   "cell, simulate on a finer grid, up to the quality's thin_grid_res (draft 64, default 128, "
+                   "final 192 cells), so that they bend as a converged simulation does. Not for a fitted material "
+                   "simulated as its fit was.")
 @MAX_MINUTES_OPTION
 @prepare_options_decorator
 @DEVICE_OPTION
@@ -608,7 +613,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
          force_box: tuple[float, ...] | None, start: float | None, duration: float | None, seconds: float | None,
          frames: int | None, fps: float, quality: str | None, fmt: str, preview: Path | None,
          frames_out: Path | None, camera: Path | None, view: str | None, gravity: bool, substeps: int | None,
-         seed: int, max_minutes: float, device: str, **prep_kw) -> None:
+         seed: int, refine_thin: bool, max_minutes: float, device: str, **prep_kw) -> None:
     """Simulate the object under a force and write an animated USD to OUT.
 
     The material comes from --preset, from --material, or, with neither, from the
@@ -680,7 +685,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                     setattr(spec, k, v)
         dev = resolve_device(device)
         settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=dev,
-                                gravity=gravity, substeps=substeps, seed=seed)
+                                gravity=gravity, substeps=substeps, seed=seed, refine_thin=refine_thin)
         splats = load_splats(scene, device=dev)
         cam = None
         if camera is not None:

@@ -29,6 +29,7 @@ def main() -> None:
     ap.add_argument("--quality", default="default")
     ap.add_argument("--fmt", default="instancer")
     ap.add_argument("--preset", default="flower")
+    ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
@@ -41,7 +42,7 @@ def main() -> None:
     from pd_tool.synthetic import POT_TOP, make_plant
 
     init_warp_quietly()
-    scene = make_plant(args.gaussians, seed=0, device=args.device)
+    scene = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin)
     kw = dict(force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material=Material.from_preset(args.preset))
     with tempfile.TemporaryDirectory() as tmp:
         bake(make_plant(2000, seed=1, device=args.device), Path(tmp) / "warm.usd",
@@ -59,7 +60,7 @@ def main() -> None:
     out = {
         "device": args.device,
         "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
-        "gaussians": args.gaussians, "drivers": res.drivers, "frames": res.frames,
+        "gaussians": args.gaussians, "thin": args.thin, "report": res.report, "drivers": res.drivers, "frames": res.frames,
         "substeps_per_frame": res.substeps_per_frame, "quality": args.quality, "fmt": args.fmt,
         "wall_s": wall, "timings_s": res.timings,
         "sim_plus_interp_s": res.timings["simulate"] + res.timings["interpolate"],

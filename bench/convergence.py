@@ -114,11 +114,13 @@ def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
     return scene
 
 
-def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str) -> tuple[np.ndarray, np.ndarray, Run]:
+def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
+             thin_grid: int | None = None) -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
-    run's record, for one discretisation, through the product's own steps."""
+    run's record, for one discretisation, through the product's own steps: with
+    `thin_grid`, the grid is raised for thin parts as a bake raises it."""
     from fit_recovery import simulate_positions
-    from pd_tool.prepare import PrepareOptions, prepare_scene, up_rotation
+    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin, up_rotation
 
     pos = scene.positions.detach().cpu().double().numpy()
     height = pos @ up_rotation(case.up)[2]
@@ -126,6 +128,9 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     static_below = 1e-6 if case.name == "strip" else lo + 0.1 * (hi - lo)
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
                                                density_kg_m3=case.density))
+    if thin_grid:
+        prep = refine_for_thin(prep, thin_grid) or prep
+    grid = int(prep.options.grid_res)
     t0 = time.perf_counter()
     drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
     d_rest = drivers.positions.double().cpu().numpy()
@@ -200,6 +205,8 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
     ap.add_argument("--reference-cfl", type=float, default=0.25)
     ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
+    ap.add_argument("--no-refine-thin", action="store_true",
+                    help="the presets' rows on their own grids, as `pdtool bake --no-refine-thin` bakes")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--data", type=Path, default=DATA, help="folder of the real captures")
     ap.add_argument("--json", type=Path)
@@ -234,7 +241,7 @@ def main() -> None:
         for q in QUALITIES:
             s = settings[q]
             runs[q] = simulate(scene, case, int(s["grid_res"]), float(s["cfl_safety"]), float(s["driver_ratio"]),
-                               args.device)
+                               args.device, thin_grid=None if args.no_refine_thin else s.get("thin_grid_res"))
         d = settings["default"]
         for item in filter(None, args.sweep.split(",")):
             g, _, r = item.partition(":")

@@ -240,6 +240,7 @@ def main() -> None:
                          "new-force runs), so that they share one count unless E rises above what N allows; "
                          "'truth': the CFL count of the reference under the true E. Default: each simulation "
                          "picks its own by CFL, as pdtool does")
+    ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--save-drivers", type=Path, metavar="NPZ",
                     help="also write each driver's rest position (simulation axes, m), region, static flag, "
@@ -284,7 +285,7 @@ def main() -> None:
         ap.error("--residual-gradients needs the per-driver residuals (driver_residual=true)")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
+        path = save_splats(make_plant(args.gaussians, seed=0, thin=args.thin), tmp / "plant.ply")
         scene = load_splats(path, device=args.device)
         if args.substeps == "truth":
             substeps = truth_substeps(scene, q, args.fps, settings.nu)

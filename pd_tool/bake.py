@@ -17,9 +17,11 @@ import numpy as np
 import torch
 
 from pd_tool.errors import PdToolError, PreparationError
-from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene, up_rotation
+from pd_tool.memory import InsufficientMemory
+from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene, refine_for_thin, up_rotation
 from pd_tool.presets import Material, load_preset
 from pd_tool.scene import GaussianScene
+from pd_tool.work import WorkTooLarge
 
 # The object is at rest again when its kinetic energy has stayed below REST_FRACTION of
 # the peak (after the force ended) for REST_FRAMES frames in a row.
@@ -85,6 +87,10 @@ class BakeSettings:
     driver_ratio: float | None = None  # None: from the quality preset
     seed: int = 0
     stop_at_rest: bool = True
+    # raise the grid, up to the quality's thin_grid_res, when moving parts are thinner than
+    # its grid resolves (pd_tool.prepare.refine_for_thin); never for a fitted material
+    # simulated as its fit was
+    refine_thin: bool = True
 
     @property
     def frames(self) -> int:
@@ -234,7 +240,7 @@ def bake(
     if material is None and material_file is None:
         raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
     opts = prepare_options or PrepareOptions()
-    grid, cfl_safety, quality_ratio, seed, follows_fit, sim_note = _discretisation(settings, material_file)
+    grid, thin_grid, cfl_safety, quality_ratio, seed, follows_fit, sim_note = _discretisation(settings, material_file)
     opts.grid_res = grid
     if material is None:
         nu, damping = material_file.nu, material_file.damping
@@ -252,31 +258,51 @@ def bake(
     dev = settings.device
     frame_dt = 1.0 / settings.fps
     n_frames = settings.frames
-
-    # ---- driving particles
     ratio = settings.driver_ratio if settings.driver_ratio is not None else quality_ratio
-    # refuse now, before drivers and simulator, when the run cannot fit in memory
-    from pd_tool.memory import PREVIEW_PIXELS, check_memory, estimate_bake_memory
+    from pd_tool.memory import PREVIEW_PIXELS
 
     px = 0 if preview is None and frames_dir is None else (
         camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
-    check_memory(estimate_bake_memory(
-        n_gaussians=scene.count, n_simulated=len(prep.positions_sim), driver_ratio=ratio, grid_dims=prep.grid_dims,
-        frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
-        what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
-        resolution=f"grid {'x'.join(map(str, prep.grid_dims))} cells, set by "
-                   f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
-    # refuse now too when the run would take longer than allowed (substeps from the CFL
-    # rule at the stiffest material and the speed the force can give)
-    from pd_tool.work import check_bake_work
-
     E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
     push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
+
+    def check_cost(p: PreparedScene) -> None:
+        # refuse before drivers and simulator when the run cannot fit in memory or would
+        # take longer than allowed (substeps from the CFL rule at the stiffest material and
+        # the speed the force can give)
+        from pd_tool.memory import check_memory, estimate_bake_memory
+        from pd_tool.work import check_bake_work
+
+        check_memory(estimate_bake_memory(
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
+            frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
+            what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
+            resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
+                       f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
+        speed = float(np.linalg.norm(p.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
+        check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
+                        frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
+                        speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
+
+    finer = refine_for_thin(prep, thin_grid) if settings.refine_thin and thin_grid else None
+    if finer is not None:
+        why = None
+        try:
+            check_cost(finer)
+        except InsufficientMemory:
+            why = "need more memory than is available"
+        except WorkTooLarge:
+            why = "take longer than --max-minutes allows"
+        if why is None:
+            prep = finer
+        else:  # the quality's own grid may still run: bake there, and say so
+            prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} cells "
+                               f"would {why} (raise --max-minutes, or use --device cuda)")
+    if prep is not finer:
+        check_cost(prep)
     accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
-    speed = float(np.linalg.norm(accel_sim)) * push_s
-    check_bake_work(prep, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(prep.positions_sim)))),
-                    frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
-                    speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
+
+    # ---- driving particles
     drivers = prep.build_drivers(ratio=ratio, seed=seed)
     d_rest = drivers.positions.double().cpu().numpy()
     d_static = drivers.static.cpu().numpy().astype(bool)
@@ -403,9 +429,11 @@ def bake(
     return result
 
 
-def _discretisation(settings: BakeSettings, material_file) -> tuple[int, float, float, int, bool, str | None]:
-    """(grid cells along the longest side, CFL safety, driver ratio, driver seed, whether
-    these are the fit's, a note for the report) of a bake: the fit's for a fitted material
+def _discretisation(settings: BakeSettings, material_file) -> tuple[int, int | None, float, float, int, bool,
+                                                                    str | None]:
+    """(grid cells along the longest side, the most cells for thin parts (None: never
+    raised), CFL safety, driver ratio, driver seed, whether these are the fit's, a note for
+    the report) of a bake: the fit's for a fitted material
     unless a quality is named, else the quality preset's."""
     fit = material_file.fit_simulation() if material_file is not None else None
     if settings.quality is None and fit is not None:
@@ -413,11 +441,12 @@ def _discretisation(settings: BakeSettings, material_file) -> tuple[int, float, 
         cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else float(default["cfl_safety"])
         note = (f"simulating as the fit did: {fit['grid_res']}-cell grid, {fit['driver_ratio']:g} driving particles "
                 f"per Gaussian, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
-        return fit["grid_res"], cfl, fit["driver_ratio"], fit["driver_seed"], True, note
+        return fit["grid_res"], None, cfl, fit["driver_ratio"], fit["driver_seed"], True, note
     q = load_preset("quality", settings.quality or "default")
+    thin = int(q.get("thin_grid_res", q["grid_res"]))
     note = None
     if fit is not None and (int(q["grid_res"]) != fit["grid_res"] or float(q["driver_ratio"]) != fit["driver_ratio"]):
         note = (f"note: the material was fitted on a {fit['grid_res']}-cell grid with {fit['driver_ratio']:g} driving "
                 f"particles per Gaussian; --quality {settings.quality} simulates on {int(q['grid_res'])} cells with "
                 f"{float(q['driver_ratio']):g}, which moves differently (leave --quality out to match the fit)")
-    return int(q["grid_res"]), float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, False, note
+    return int(q["grid_res"]), thin, float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, False, note

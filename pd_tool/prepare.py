@@ -9,7 +9,7 @@ to scene units exactly up to float64 rounding.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -166,6 +166,7 @@ class PreparedScene:
     grid_dims: tuple[int, int, int]
     report: list[str] = field(default_factory=list)
     fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
+    thin: Any = None  # pd_tool.thickness.ThinParts of the moving particles at this grid, or None
 
     # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
     # interior particles added by filling (simulated, never rendered).
@@ -366,6 +367,33 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     return PreparedScene(
         scene=scene, options=options, foreground=fg, static=static, transform=transform,
         positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,
-        dx=dx, grid_dims=dims, report=report, fill_source=fill_source,
+        dx=dx, grid_dims=dims, report=report, fill_source=fill_source, thin=thin,
     )
+
+
+def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | None:
+    """`prep` prepared again on a finer grid that resolves its thin moving parts, at most
+    `max_grid_res` cells along the longest side; None when it has no thin parts or the grid
+    cannot grow.
+
+    The grid is the one ThinParts.grid_needed asks for, rounded up to a multiple of 16 (the
+    benchmark's plant with 3 mm leaves asks for 123-135 cells and moves as the converged
+    reference does at 128: docs/benchmarks.md, "Convergence against a fine reference").
+    The new preparation's report starts with one line that says what was raised and why.
+    """
+    from pd_tool.thickness import describe_refinement
+
+    thin, grid = prep.thin, int(prep.options.grid_res)
+    if thin is None or not thin.thin or max_grid_res <= grid:
+        return None
+    target = min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16))
+    if target <= grid:
+        return None
+    finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
+    still = finer.thin is not None and finer.thin.thin
+    if still:  # one line says it all: drop the finer grid's own notice
+        finer.report.remove(finer.thin.line(max(finer.grid_dims)))
+    finer.report.append(describe_refinement(thin, grid, finer.thin if still else None, max(finer.grid_dims),
+                                            finer.dx))
+    return finer
 

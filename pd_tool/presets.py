@@ -38,11 +38,14 @@ _RANGES = {
     "cfl_safety": (0.05, 1.0), "driver_ratio": (1e-4, 1.0), "fit_velocity_iters": (0, 10000),
     "fit_material_iters": (0, 10000), "radius": (0.0, 10.0), "start": (0.0, 600.0),
     "duration": (0.0, 600.0), "magnitude": (0.0, 1e6), "damping": (0.0, 1e3),
-    "fit_grid_res": (10, 256), "fit_cfl_safety": (0.05, 1.0), "fit_driver_ratio": (1e-4, 1.0),
+    "fit_grid_res": (10, 256), "thin_grid_res": (10, 256), "fit_cfl_safety": (0.05, 1.0), "fit_driver_ratio": (1e-4, 1.0),
 }
 _OPTIONAL = {"materials": {"damping": float},
              # the fit's simulation settings; a quality preset without them fits with its bake settings
-             "quality": {"fit_grid_res": int, "fit_cfl_safety": float, "fit_driver_ratio": float}}
+             "quality": {"fit_grid_res": int, "fit_cfl_safety": float, "fit_driver_ratio": float,
+                         # the bake's grid for a scene with parts thinner than grid_res resolves
+                         # (pd_tool.prepare.refine_for_thin); a preset without it keeps grid_res
+                         "thin_grid_res": int}}
 _CHOICES = {"at": ("top", "all")}  # string settings with a fixed set of values
 
 

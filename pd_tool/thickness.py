@@ -169,6 +169,21 @@ class ThinParts:
         return head + f"; try a --quality file with grid_res = {self.grid_needed} or more"
 
 
+def describe_refinement(coarse: ThinParts, grid_res: int, still: ThinParts | None, new_grid: int,
+                        new_dx: float) -> str:
+    """The line a bake prints when it raised its grid for thin parts: what was thin at
+    `grid_res` (`coarse`), the grid it simulates on instead, and, when the parts are
+    still thin there (`still`, the quality's ceiling), what would resolve them."""
+    head = (f"thin parts: {coarse.share:.0%} of the moving particles lie in parts {_length(coarse.thickness_m)} "
+            f"thick or thinner, under a quarter of the {grid_res}-cell grid's {_length(coarse.dx_m)} cell; "
+            f"simulating on {new_grid} cells ({_length(new_dx)})")
+    keep = f"--no-refine-thin keeps {grid_res}"
+    if still is None:
+        return head + f", which resolves them ({keep})"
+    return (head + f", the most this quality allows; they are still thinner than that resolves and move too "
+            f"little ({still.grid_needed} cells would: a finer --quality or a quality file; {keep})")
+
+
 def _length(m: float) -> str:
     return f"{m * 1000:.2g} mm" if m < 0.01 else f"{m * 100:.2g} cm"
 

@@ -90,3 +90,41 @@ def test_force_pointing_at_nothing(plant_ply: Path, tmp_path: Path) -> None:
 def test_bad_output_suffix(plant_ply: Path, tmp_path: Path) -> None:
     res = _bake(["--scene", str(plant_ply), "--preset", "flower", "--force", "0,0,1", str(tmp_path / "x.abc")], tmp_path)
     assert res.exit_code == 2 and ".usd" in res.output
+
+
+@pytest.fixture(scope="module")
+def thin_plant_ply(tmp_path_factory) -> Path:
+    return save_splats(make_plant(5000, seed=0, thin=True), tmp_path_factory.mktemp("thin") / "thin.ply")
+
+
+def test_bake_raises_the_grid_for_thin_leaves_unless_told_not_to(thin_plant_ply: Path, tmp_path: Path) -> None:
+    common = ["--scene", str(thin_plant_ply), "--preset", "leafy-plant", "--force", "1,0,0", "--seconds", "0.2",
+              "--quality", "draft", "--static-below", str(POT_TOP), "--device", "cpu"]
+    res = _bake([*common, str(tmp_path / "raised.usd")], tmp_path)
+    assert res.exit_code == 0, res.output
+    line = next(x for x in res.output.splitlines() if x.startswith("thin parts:"))
+    assert "simulating on 64 cells" in line and "--no-refine-thin keeps 32" in line, line
+    assert "x64 grid" in res.output
+    res = _bake([*common, "--no-refine-thin", str(tmp_path / "own.usd")], tmp_path)
+    assert res.exit_code == 0, res.output
+    assert "x32 grid" in res.output and "try " in res.output  # the notice names what would resolve them
+
+
+def test_a_thin_grid_that_would_run_too_long_falls_back_to_the_quality_grid(thin_plant_ply: Path, tmp_path: Path,
+                                                                           monkeypatch) -> None:
+    import pd_tool.work as W
+
+    real = W.check_bake_work
+
+    def only_coarse(prep, **kw):
+        if max(prep.grid_dims) > 40:
+            raise W.WorkTooLarge("too long")
+        return real(prep, **kw)
+
+    monkeypatch.setattr(W, "check_bake_work", only_coarse)
+    res = _bake(["--scene", str(thin_plant_ply), "--preset", "leafy-plant", "--force", "1,0,0", "--seconds", "0.2",
+                 "--quality", "draft", "--static-below", str(POT_TOP), "--device", "cpu",
+                 str(tmp_path / "o.usd")], tmp_path)
+    assert res.exit_code == 0, res.output
+    assert "x32 grid" in res.output
+    assert "thin parts: kept the 32-cell grid; 64 cells would take longer than --max-minutes allows" in res.output

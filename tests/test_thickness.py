@@ -126,3 +126,31 @@ def test_a_line_of_particles_reads_zero_and_the_line_still_forms() -> None:
     assert np.isnan(T.local_thickness(x, 0.0)).all()
     found = T.thin_parts(x, np.ones(len(x), bool), 0.05, 32)
     assert found is not None and found.thin and "\n" not in found.line(32)
+
+
+def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceiling() -> None:
+    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    coarse = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=32))
+    assert coarse.thin is not None and coarse.thin.thin
+    capped = refine_for_thin(coarse, 48)
+    assert capped is not None and capped.options.grid_res == 48 and capped.thin.thin
+    line = capped.report[-1]
+    assert line.startswith("thin parts:") and "the most this quality allows" in line and "keeps 32" in line
+    assert sum(r.startswith("thin parts:") for r in capped.report) == 1, capped.report
+    # the grid the 32-cell reading asks for, rounded up to 16: no longer thin there
+    full = refine_for_thin(coarse, 256)
+    assert full is not None and full.options.grid_res == 16 * -(-coarse.thin.grid_needed // 16)
+    assert not full.thin.thin and full.report[-1].endswith("which resolves them (--no-refine-thin keeps 32)")
+    assert full.dx < capped.dx < coarse.dx
+    assert refine_for_thin(coarse, 32) is None  # no room to grow
+
+
+def test_refine_for_thin_leaves_a_scene_without_thin_parts_alone() -> None:
+    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    thick = prepare_scene(make_plant(6000), PrepareOptions(static_below=POT_TOP, grid_res=48))  # 2 cm leaves
+    assert thick.thin is None or not thick.thin.thin
+    assert refine_for_thin(thick, 256) is None
