@@ -190,6 +190,23 @@ def compare(runs: dict[str, tuple[np.ndarray, np.ndarray, Run]], case: Case) -> 
     return out
 
 
+def plot(sources: list[Path], png: Path) -> None:
+    """Peak against the reference's, by grid, one line per scene: the runs at the default
+    CFL safety and driver ratio (0.5 / 0.5) and the finer check, from earlier --json files;
+    a later file's scene replaces an earlier one's point at the same grid."""
+    from pd_tool.plots import line_plot
+
+    points: dict[str, dict[int, float]] = {}
+    for src in sources:
+        for r in json.loads(src.read_text())["runs"]:
+            if r["setting"] == "check" or (r["cfl"] == 0.5 and r["ratio"] == 0.5):
+                points.setdefault(r["scene"], {})[int(r["grid"])] = float(r["peak_ratio"])
+    series = {name: (sorted(p), [p[g] for g in sorted(p)]) for name, p in points.items()}
+    line_plot(png, series, title="peak motion against a converged reference", xlabel="grid cells",
+              ylabel="peak / reference")
+    print(f"wrote {png}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
@@ -210,7 +227,13 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--data", type=Path, default=DATA, help="folder of the real captures")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--plot", type=Path, metavar="PNG",
+                    help="draw peak / reference against grid cells from the --from JSON files and exit")
+    ap.add_argument("--from", dest="sources", type=Path, nargs="+", default=[], metavar="JSON")
     args = ap.parse_args()
+    if args.plot:
+        plot(args.sources, args.plot)
+        return
     if args.quick:
         # CI scale: a smoke run of every scene and quality, not an accuracy figure (too few
         # particles per cell); half the seconds, and the 4 cm strip, whose stiffness needs

@@ -24,8 +24,9 @@ report: a ball ten cells wide).
 Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported,
 and every one moves 36-84% too little; from 32 cells up udon, the donut and the tree are
 not reported, and udon and the tree move within 8% of the reference; the plant with 3 mm
-leaves is reported at 16, 32 and 64 cells (20-50% short) and not at 128, where its motion
-has converged.
+leaves is reported at 16-96 cells (17-50% short) and not at 128, where it moves within 5%
+of a 192-cell reference. A bake raises its grid to ThinParts.grid_needed
+(pd_tool.prepare.refine_for_thin).
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenv
 # covariance of a few points reads low: windows of about 10 in a solid stem read a third of a cell)
 # A part is resolved when it is at least this many cells thick. The convergence benchmark's
 # plant with 3 mm leaves moves as a converged simulation does at 128 cells (0.29 of a cell)
-# and 20% too little at 64 (0.13); in a 2D MLS-MPM a strip of two particle layers was about
+# and 17-20% too little at 64 and 96 (0.13, 0.2); in a 2D MLS-MPM a strip of two particle layers was about
 # 20% too stiff at a quarter cell (../shared/docs/thin-parts.md). One 3D thin scene so far:
 # recheck this figure as more are measured.
 RESOLVED_CELLS = 0.25
