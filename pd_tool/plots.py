@@ -1,10 +1,11 @@
-"""Small PNG charts (loss curves, time-vs-error scatter) drawn with Pillow, which imageio
-already brings: no plotting library to install for two kinds of chart."""
+"""Small PNG charts (loss curves, time-vs-error scatter) and a labelled colour bar, drawn
+with Pillow, which imageio already brings: no plotting library to install for them."""
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -26,6 +27,95 @@ def _ticks(lo: float, hi: float, log: bool) -> list[float]:
             break
     start = math.ceil(lo / step) * step
     return [start + i * step for i in range(int((hi - start) / step) + 1)]
+
+
+def log_ticks(lo: float, hi: float) -> list[float]:
+    """Ticks for a log axis from lo to hi (both > 0), ascending, all inside [lo, hi]: the
+    powers of ten there when there are at least three; else 1, 2 and 5 times them when
+    that gives two or more; else evenly spaced values (a range under about a factor of 2.5)."""
+    if not (0.0 < lo <= hi and math.isfinite(hi)):
+        raise ValueError(f"log_ticks needs 0 < lo <= hi, finite; got lo={lo}, hi={hi}")
+    if lo == hi:
+        return [lo]
+    # lo and hi often come back from 10 ** log10(E): a decade they sit on must not fall out
+    a, b = lo * (1 - 1e-9), hi * (1 + 1e-9)
+    decades = [t for t in _ticks(lo, hi, True) if a <= t <= b]
+    if len(decades) >= 3:
+        return decades
+    e0, e1 = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
+    fine = [m * 10.0 ** e for e in range(e0, e1 + 1) for m in (1, 2, 5) if a <= m * 10.0 ** e <= b]
+    if len(fine) >= 2:
+        return fine
+    return [t for t in _ticks(lo, hi, False) if a <= t <= b]
+
+
+def sci_label(v: float) -> str:
+    """A short label for a tick on a log axis: 1e4, 2.5e5, 1.15e5 (three digits at most)."""
+    m, e = f"{v:.2e}".split("e")
+    return f"{m.rstrip('0').rstrip('.')}e{int(e)}"
+
+
+STRIP_MIN_WIDTH = 256  # px: room for a line of statistics under a small render
+_PAD = 10  # px, the strip's margins
+_BAR_H = 14  # px, height of the colour ramp
+
+
+def colorbar_strip(width: int, lo: float, hi: float, cmap: Callable[[np.ndarray], np.ndarray], *, label: str,
+                   notes: Sequence[str] = ()) -> np.ndarray:
+    """A white strip to put under a picture: `label`, then a horizontal colour ramp for
+    values lo..hi on a log scale (left = lo, colour cmap(u) for u in 0-1 along it), ticks at
+    log_ticks(lo, hi) labelled with sci_label, then each note, wrapped to the width.
+
+    cmap: u [N] in 0-1 -> RGB [N, 3] in 0-1. Returns uint8 [h, width, 3]; h follows the
+    text. Raises ValueError for lo, hi not 0 < lo <= hi or a width under 2 * margin + 2."""
+    from PIL import Image, ImageDraw
+
+    if width < 2 * _PAD + 2:
+        raise ValueError(f"colorbar_strip: width {width} px leaves no room for the bar")
+    ticks = log_ticks(lo, hi)
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    line_h = probe.textbbox((0, 0), "Ag")[3] + 4
+    lines = [ln for note in notes for ln in _wrap(probe, note, width - 2 * _PAD)]
+    h = _PAD + line_h + _BAR_H + 6 + line_h + 4 + line_h * len(lines) + _PAD
+    img = Image.new("RGB", (width, h), (255, 255, 255))
+    draw = ImageDraw.Draw(img)
+    draw.text((_PAD, _PAD), label, fill=(0, 0, 0))
+    x0, n, y0 = _PAD, width - 2 * _PAD, _PAD + line_h
+    ramp = np.clip(np.asarray(cmap(np.linspace(0.0, 1.0, n)), np.float64) * 255 + 0.5, 0, 255).astype(np.uint8)
+    img.paste(Image.fromarray(np.repeat(ramp[None], _BAR_H, axis=0)), (x0, y0))
+    span = math.log10(hi / lo) if hi > lo else 1.0
+    right = -1.0  # x where the last drawn tick label ends: a label that would overlap it is left out
+    for t in ticks:
+        x = x0 + (math.log10(t / lo) / span if hi > lo else 0.5) * (n - 1)
+        draw.line([x, y0 + _BAR_H, x, y0 + _BAR_H + 4], fill=(0, 0, 0))
+        text = sci_label(t)
+        tw = draw.textlength(text)
+        left = min(max(x - tw / 2, 0.0), width - tw)
+        if left > right + 4:
+            draw.text((left, y0 + _BAR_H + 6), text, fill=(0, 0, 0))
+            right = left + tw
+    y = y0 + _BAR_H + 6 + line_h + 4
+    for ln in lines:
+        draw.text((_PAD, y), ln, fill=(0, 0, 0))
+        y += line_h
+    return np.asarray(img)
+
+
+def _wrap(draw, text: str, width: float) -> list[str]:
+    """text in lines no wider than width px, broken after a comma or colon where it can be
+    (a value stays with its name), else at spaces; a longer word keeps its own line."""
+    out: list[str] = []
+    for chunk in re.split(r"(?<=[,:]) ", text):
+        if out and draw.textlength(out[-1] + " " + chunk) <= width:
+            out[-1] += " " + chunk
+            continue
+        out.append("")
+        for word in chunk.split(" "):
+            if out[-1] and draw.textlength(out[-1] + " " + word) > width:
+                out.append(word)
+            else:
+                out[-1] = f"{out[-1]} {word}" if out[-1] else word
+    return out
 
 
 class _Axes:

@@ -44,11 +44,12 @@ def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
 
     def problem(settings: FitSettings) -> SimpleNamespace:
         # what FitProblem.substeps reads of a FitProblem: its DiffSim, built with
-        # SimConfig(min_substeps=settings.substeps) as FitProblem.__init__ does
+        # SimConfig(min_substeps=settings.substeps) as FitProblem.__init__ does, and the
+        # range of counts so far, which it widens
         sim = SimpleNamespace(_static=np.zeros(n, bool), n=n, _mass=np.ones(n), _vol=np.full(n, 1e-3),
                               config=SimConfig(nu=0.3, cfl_safety=0.5, min_substeps=settings.substeps),
                               geo=SimpleNamespace(dx=0.05))
-        return SimpleNamespace(s=settings, sim=sim, frame_dt=1 / 30)
+        return SimpleNamespace(s=settings, sim=sim, frame_dt=1 / 30, substeps_range=None)
 
     v0 = torch.zeros(n, 3)
     soft, stiff = torch.full((n,), 1e3), torch.full((n,), 1e9)
@@ -57,6 +58,8 @@ def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
     assert cfl_soft < 40 < cfl_stiff
     assert FitProblem.substeps(floored, soft, v0) == 40  # the floor holds the count while E is soft
     assert FitProblem.substeps(floored, stiff, v0) == cfl_stiff  # and never undercuts stability
+    # the report's substeps per frame: the least and the most counts taken
+    assert free.substeps_range == (cfl_soft, cfl_stiff) and floored.substeps_range == (40, cfl_stiff)
 
 
 def test_polish_iterations_back_propagate_through_every_frame(tmp_path) -> None:

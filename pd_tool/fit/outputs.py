@@ -1,16 +1,22 @@
 """What a fit leaves beside the material file: report.json, a loss plot, the E field as a
-coloured .ply and a rendered PNG, and a side-by-side preview (reference | fitted)."""
+coloured .ply and a rendered PNG (with a colour bar in Pa and the E statistics under it),
+and a side-by-side preview (reference | fitted)."""
 from __future__ import annotations
 
 import dataclasses
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from pd_tool.atomic import WRITTEN_BY, atomic_output
+from pd_tool.plots import STRIP_MIN_WIDTH, colorbar_strip, sci_label
 from pd_tool.scene import GaussianScene, rgb_to_sh
+
+if TYPE_CHECKING:
+    from pd_tool.fit.pipeline import FitResult, FitSettings
 
 # A perceptual blue -> green -> yellow ramp (viridis-like stops) for log E.
 _STOPS = np.array([[0.267, 0.005, 0.329], [0.230, 0.322, 0.546], [0.128, 0.567, 0.551],
@@ -37,6 +43,70 @@ def e_field_scene(scene: GaussianScene, foreground: np.ndarray, gaussian_E: np.n
     sh = torch.zeros((scene.count, 1, 3), dtype=scene.sh.dtype, device=scene.device)
     sh[:, 0] = rgb_to_sh(torch.as_tensor(rgb, dtype=scene.sh.dtype, device=scene.device))
     return dataclasses.replace(scene, sh=sh, raw=None), (10 ** lo, 10 ** hi)
+
+
+E_PERCENTILES = (5, 25, 50, 75, 95)  # %, of the simulated Gaussians' E, in the report
+E_PICTURE_PERCENTILES = (5, 50, 95)  # %, the ones printed on the E picture
+
+
+def e_statistics(scene: GaussianScene, foreground: np.ndarray, static: np.ndarray,
+                 gaussian_E: np.ndarray) -> dict:
+    """E of the simulated Gaussians, summed up: {"percentiles_pa": {"5": E, ...} over all of
+    them (E_PERCENTILES), "regions": {name: {"E_median_pa": E or None, "simulated": n,
+    "fixed": k}}}, regions from scene.labels ({} without them), named by scene.label_names
+    ("region i" where a label has no name: a PLY keeps the labels, not the names). A
+    region's median is over its simulated Gaussians, fixed (static) ones included; None
+    when none of its Gaussians is simulated.
+
+    foreground: indices [F] into the scene; static: PreparedScene.static, bool [F] or
+    longer (interior particles from filling follow the F Gaussians); gaussian_E [F] Pa."""
+    E = np.asarray(gaussian_E, np.float64)
+    out: dict = {"percentiles_pa": {str(q): float(np.percentile(E, q)) for q in E_PERCENTILES}, "regions": {}}
+    if scene.labels is None:
+        return out
+    all_labels = np.asarray(scene.labels)
+    labels = all_labels[np.asarray(foreground)]
+    static = np.asarray(static, bool)[: len(labels)]
+    names = tuple(scene.label_names)
+    ids = range(len(names)) if names else (int(i) for i in np.unique(all_labels))
+    for i in ids:
+        sel = labels == i
+        name = str(names[i]) if i < len(names) else f"region {i}"
+        out["regions"][name] = {"E_median_pa": float(np.median(E[sel])) if sel.any() else None,
+                                "simulated": int(sel.sum()), "fixed": int((sel & static).sum())}
+    return out
+
+
+def e_picture_notes(stats: dict, n_simulated: int) -> list[str]:
+    """The lines of statistics printed under the E picture (stats from e_statistics)."""
+    pct = stats["percentiles_pa"]
+    notes = [f"E of the {n_simulated:,} simulated Gaussians: "
+             + ", ".join(f"{q}% {sci_label(pct[str(q)])}" for q in E_PICTURE_PERCENTILES) + " Pa"]
+    regions = []
+    for name, r in stats["regions"].items():
+        if r["E_median_pa"] is None:
+            regions.append(f"{name} not simulated")
+        else:
+            fixed = " (fixed)" if r["fixed"] == r["simulated"] else ""
+            regions.append(f"{name} {sci_label(r['E_median_pa'])}{fixed}")
+    if regions:
+        notes.append("median E per region: " + ", ".join(regions) + " Pa")
+    notes.append("grey: not simulated")
+    return notes
+
+
+def e_field_picture(render: np.ndarray, E_range: tuple[float, float], notes: list[str]) -> np.ndarray:
+    """The E picture: the render [H, W, 3] uint8 at the top left, unchanged, over a strip
+    holding the colour bar of `colormap` for E_range (Pa, log scale, as e_field_scene
+    coloured it) and the notes. Returns uint8 [H + strip, max(W, STRIP_MIN_WIDTH), 3]."""
+    h, w = render.shape[:2]
+    width = max(w, STRIP_MIN_WIDTH)
+    strip = colorbar_strip(width, E_range[0], E_range[1], colormap, label="Young's modulus E, Pa (log scale)",
+                           notes=notes)
+    out = np.full((h + len(strip), width, 3), 255, np.uint8)
+    out[:h, :w] = render[..., :3]
+    out[h:] = strip
+    return out
 
 
 def write_report(path: Path, data: dict, *, own_only: bool = True) -> Path:
@@ -86,6 +156,32 @@ def check_fit_outputs(out_dir: str | Path, stem: str, *, preview: bool = True,
         check_destination(p)
 
 
+def fit_simulation_record(result: "FitResult", settings: "FitSettings") -> dict:
+    """How the fit simulated, for its report: the quality, the grid (cells along the longest
+    axis, cells per axis, cell size in m, metres per scene unit), the CFL safety factor,
+    quantile and substep floor, the least and most substeps per frame it took ([lo, hi];
+    None when unknown), the drivers, and the iterations per stage.
+
+    result: the FitResult; settings: the FitSettings the fit ran at, resolved."""
+    prep, substeps, cfl_safety = result.prep, result.substeps, result.cfl_safety
+    return {
+        "quality": settings.quality,
+        "grid_res": int(prep.options.grid_res),
+        "grid_dims": [int(n) for n in prep.grid_dims],
+        "dx_m": float(prep.dx),
+        "meters_per_unit": float(prep.transform.scale),
+        "cfl_safety": None if cfl_safety is None else float(cfl_safety),
+        "cfl_quantile": settings.cfl_quantile,
+        "substeps_floor": settings.substeps,
+        "substeps_per_frame": None if substeps is None else [int(substeps[0]), int(substeps[1])],
+        "driver_ratio": settings.driver_ratio,
+        "driver_seed": settings.seed,
+        "iterations": {"rounds": settings.rounds, "velocity": settings.velocity_iters,
+                       "material": settings.material_iters, "polish": settings.polish_iters,
+                       "calibrate": settings.calibrate_iters},
+    }
+
+
 def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, videos: list, settings,
                       *, preview: bool = True) -> dict[str, Path]:
     """Write every side output of a fit into out_dir; returns their paths by kind.
@@ -121,8 +217,10 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
                                        xlabel="iteration", ylabel="loss", logy=False, own_only=True)
     e_scene, e_range = e_field_scene(scene, result.prep.foreground, result.gaussian_E)
     paths["e_field_ply"] = save_ply(e_scene, planned["e_field_ply"][0], own_only=True, what=planned["e_field_ply"][1])
+    stats = e_statistics(scene, result.prep.foreground, result.prep.static, result.gaussian_E)
     cam = videos[0].camera
-    picture = render_image(e_scene, cam, background=settings.background)
+    picture = e_field_picture(render_image(e_scene, cam, background=settings.background), e_range,
+                              e_picture_notes(stats, result.prep.count))
     paths["e_field_png"] = save_png(planned["e_field_png"][0], picture, own_only=True, what=planned["e_field_png"][1])
     if preview:
         v0 = np.asarray(result.driver_v0, np.float64)
@@ -132,15 +230,21 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
         ref = (videos[0].frames.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
         paths["preview"] = write_preview_any([np.concatenate([a, b], axis=1) for a, b in zip(ref, sim)],
                                              planned["preview"][0], videos[0].fps, own_only=True)
+    ran = result.settings or settings.resolved()
     report = {
         "material": str(result.material_path),
         "losses": L,
         "seconds": result.seconds,
         "drivers": int(len(result.driver_E)),
         "E_range_pa": list(e_range),
-        "E_percentiles_pa": {str(q): float(np.percentile(result.gaussian_E, q)) for q in (5, 25, 50, 75, 95)},
+        "E_percentiles_pa": stats["percentiles_pa"],
+        "E_region_median_pa": {k: r["E_median_pa"] for k, r in stats["regions"].items()},
+        "region_gaussians": {k: {"simulated": r["simulated"], "fixed": r["fixed"]}
+                             for k, r in stats["regions"].items()},
         "outputs": {k: str(v) for k, v in paths.items()},
-        "settings": dataclasses.asdict(settings),
+        "settings": dataclasses.asdict(ran),
+        "simulation": fit_simulation_record(result, ran),
+        "prepare": result.prep.options.to_dict(),
     }
     paths["report"] = write_report(planned["report"][0], report)
     return paths

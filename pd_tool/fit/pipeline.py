@@ -179,6 +179,12 @@ class FitResult:
     # E per driver (Pa) before calibration, when the fit calibrated (diagnostics; not saved)
     driver_E_uncalibrated: np.ndarray | None = None
     calibration: dict[str, Any] | None = None  # the offsets, gains and losses calibration chose
+    # what the fit ran at, for its report: the settings resolved from the quality preset,
+    # the quality's CFL safety factor, and the least and most substeps per frame its
+    # simulations took in this process (None: none ran, as when a resumed fit had finished)
+    settings: FitSettings | None = None
+    cfl_safety: float | None = None
+    substeps: tuple[int, int] | None = None
 
 
 ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
@@ -192,6 +198,7 @@ class FitProblem:
         from pd_tool.fit.fields import MaterialField, VelocityField
 
         self.s = settings
+        self.substeps_range: tuple[int, int] | None = None  # least, most per frame so far
         self.device = torch.device(settings.device)
         torch.manual_seed(settings.seed)
         quality = load_preset("quality", settings.quality)
@@ -287,7 +294,10 @@ class FitProblem:
         from pd_tool.sim import cfl_substeps_for
 
         vmax = float(v0.detach().norm(dim=1).max()) if len(v0) else 0.0
-        return cfl_substeps_for(E, self.sim, self.frame_dt, vmax, self.s.cfl_quantile)
+        n = cfl_substeps_for(E, self.sim, self.frame_dt, vmax, self.s.cfl_quantile)
+        lo, hi = self.substeps_range or (n, n)
+        self.substeps_range = (min(lo, n), max(hi, n))
+        return n
 
     def initial_state(self, v0: torch.Tensor):
         from pd_tool.sim import initial_state
@@ -1051,4 +1061,5 @@ def run_fit(
                      gaussian_E=driver_E[labels], losses=losses,
                      seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped,
                      driver_v0s=[v.double().cpu().numpy() for v in v0s],
-                     driver_E_uncalibrated=E_uncalibrated, calibration=calibration)
+                     driver_E_uncalibrated=E_uncalibrated, calibration=calibration, settings=s,
+                     cfl_safety=float(pb.cfl_safety), substeps=pb.substeps_range)
