@@ -128,8 +128,9 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     static_below = 1e-6 if case.name == "strip" else lo + 0.1 * (hi - lo)
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
                                                density_kg_m3=case.density))
-    if thin_grid:
-        prep = refine_for_thin(prep, thin_grid) or prep
+    finer = refine_for_thin(prep, thin_grid) if thin_grid else None
+    if finer is not None:  # as a bake does: the finer grid, and drivers enough for its cells
+        prep, ratio = finer, finer.connected_ratio(ratio)
     grid = int(prep.options.grid_res)
     t0 = time.perf_counter()
     drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
@@ -145,7 +146,9 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     run = Run(case.name, "", grid, cfl, ratio, seconds_wall=time.perf_counter() - t0,
               substeps=stats["substeps"] * round(FPS / 30),
               drivers=int(len(d_rest)),
-              per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)))
+              per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)),
+              extra={"particles_per_cell": prep.n_particles / prep.occupied_cells(),
+                     "drivers_per_occupied_cell": len(d_rest) / prep.occupied_cells()})
     return x, moving, run
 
 

@@ -24,9 +24,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety, substeps=None,
-                       stats: dict | None = None, duration: float = 0.5):
-    """Gaussian positions [T, N, 3] (scene units) under a drag at the top for `duration` s.
-    accel: scene units per s^2. stats, when given, receives the most substeps per frame."""
+                       stats: dict | None = None, duration: float = 0.5, at="top", radius: float | None = None):
+    """Gaussian positions [T, N, 3] (scene units) under a drag for `duration` s, within
+    `radius` scene units (default: 0.3 of the object's size) of `at` (a point in scene
+    units, or "top"). accel: scene units per s^2. stats, when given, receives the most
+    substeps per frame."""
     import numpy as np
     import torch
 
@@ -41,7 +43,7 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     d_static = drivers.static.cpu().numpy().astype(bool)
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
                        device=device)
-    spec = ForceSpec(accel=accel, at="top", radius_fraction=0.3, start=0.0, duration=duration)
+    spec = ForceSpec(accel=accel, at=at, radius=radius, radius_fraction=0.3, start=0.0, duration=duration)
     solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.vector_to_sim(np.asarray(accel)), 0.0,
                      duration)
     anim = GaussianAnimator(scene, prep, drivers, device=scene.device)

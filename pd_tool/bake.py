@@ -156,10 +156,10 @@ def _free_space(prep: PreparedScene) -> float:
     return float(max(min(lo.min(), hi.min()), prep.dx))
 
 
-def _usd_frame(prep: PreparedScene) -> tuple[np.ndarray, str]:
-    """Rotation from scene axes to the USD file's axes, and its upAxis. +y and +z scenes are
-    written as they are; other up axes are rotated so that up is +Z (USD knows only Y, Z)."""
-    up = prep.options.up_axis
+def usd_frame(up: str) -> tuple[np.ndarray, str]:
+    """Rotation [3, 3] from scene axes to the USD file's axes (x_usd = R @ x_scene) for a
+    scene whose up axis is `up`, and the file's upAxis. +y and +z scenes are written as
+    they are; other up axes are rotated so that up is +Z (USD knows only Y, Z)."""
     if up == "+z":
         return np.eye(3), "Z"
     if up == "+y":
@@ -266,7 +266,7 @@ def bake(
     E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
     push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
 
-    def check_cost(p: PreparedScene) -> None:
+    def check_cost(p: PreparedScene, ratio: float) -> None:
         # refuse before drivers and simulator when the run cannot fit in memory or would
         # take longer than allowed (substeps from the CFL rule at the stiffest material and
         # the speed the force can give)
@@ -286,20 +286,22 @@ def bake(
 
     finer = refine_for_thin(prep, thin_grid) if settings.refine_thin and thin_grid else None
     if finer is not None:
+        # the finer grid's cells need their drivers (an explicit --driver-ratio stands)
+        finer_ratio = finer.connected_ratio(ratio) if settings.driver_ratio is None else ratio
         why = None
         try:
-            check_cost(finer)
+            check_cost(finer, finer_ratio)
         except InsufficientMemory:
             why = "need more memory than is available"
         except WorkTooLarge:
             why = "take longer than --max-minutes allows"
         if why is None:
-            prep = finer
+            prep, ratio = finer, finer_ratio
         else:  # the quality's own grid may still run: bake there, and say so
             prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} cells "
                                f"would {why} (raise --max-minutes, or use --device cuda)")
     if prep is not finer:
-        check_cost(prep)
+        check_cost(prep, ratio)
     accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
 
     # ---- driving particles
@@ -329,7 +331,7 @@ def bake(
 
     # ---- every Gaussian follows its drivers; the USD file may use rotated axes
     animator = GaussianAnimator(scene, prep, drivers, device=dev)
-    R_usd, up_axis = _usd_frame(prep)
+    R_usd, up_axis = usd_frame(prep.options.up_axis)
     R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
     q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
     all_scales = scene.scales.detach().cpu().numpy()

@@ -28,24 +28,28 @@ def test_udon_moves_the_same_at_draft_and_default(shared_data) -> None:
     assert draft.rms < 0.25, draft
 
 
-def test_thin_leaves_move_the_same_at_draft_and_default_because_the_grid_is_raised() -> None:
-    """The plant with 3 mm leaves: draft and default each raise their grid for the leaves
-    (to 64 and 128 cells) and then agree; on their own grids (32 and 64) both move less.
-    On the GPU at 100k Gaussians against a 192-cell reference: draft 0.77 and default 1.05
-    raised, 0.51 and 0.80 not. At this scale (10k Gaussians, 0.6 s) draft raised reads
-    0.95 of default raised, the own grids 0.78-0.79."""
+def test_thin_leaves_move_the_same_at_draft_and_default_with_the_grid_raised() -> None:
+    """The plant with 3 mm leaves: draft and default each raise their grid for the leaves,
+    as far as the particles fill it, with drivers enough for its cells, and then agree.
+    On the GPU at 100k Gaussians against a 192-cell reference the raise takes draft from
+    0.51 to 0.77 and default from 0.80 to 1.05; at this scale the particles fill only 64-80
+    cells, too few to resolve the leaves, so this checks agreement and that nothing breaks
+    (too few drivers on a raised grid made a side poke fly 9x too far)."""
+    from pd_tool.prepare import MIN_DRIVERS_PER_CELL, MIN_PARTICLES_PER_CELL
+
     case = replace(conv.CASES["plant"], seconds=0.6)
     scene = conv.load_scene("plant", 10_000)
     runs = {}
-    for name, refine in (("default", True), ("draft", True), ("draft own", False), ("default own", False)):
-        q = load_preset("quality", name.split()[0])
+    for name in ("default", "draft"):
+        q = load_preset("quality", name)
         runs["reference" if name == "default" else name] = conv.simulate(
             scene, case, int(q["grid_res"]), float(q["cfl_safety"]), float(q["driver_ratio"]), "cpu",
-            thin_grid=int(q["thin_grid_res"]) if refine else None)
-    ref, draft, *own = conv.compare(runs, case)
-    assert (ref.grid, draft.grid, *(r.grid for r in own)) == (128, 64, 32, 64)
+            thin_grid=int(q["thin_grid_res"]))
+    ref, draft = conv.compare(runs, case)
+    assert ref.grid > 64 and draft.grid == 64  # both raised
+    for r in (ref, draft):
+        assert r.extra["particles_per_cell"] >= MIN_PARTICLES_PER_CELL, r
+        assert r.extra["drivers_per_occupied_cell"] >= 0.9 * MIN_DRIVERS_PER_CELL, r
     assert ref.peak > 0.05, ref
     assert draft.peak_ratio == pytest.approx(1.0, abs=0.10), draft
     assert draft.rms < 0.10, draft
-    for r in own:  # the test can fail: without the raise, neither quality moves as far
-        assert r.peak_ratio < 0.85, r

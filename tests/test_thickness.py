@@ -129,7 +129,7 @@ def test_a_line_of_particles_reads_zero_and_the_line_still_forms() -> None:
 
 
 def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceiling() -> None:
-    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.prepare import MIN_PARTICLES_PER_CELL, PrepareOptions, prepare_scene, refine_for_thin
     from pd_tool.synthetic import POT_TOP, make_plant
 
     coarse = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=32))
@@ -139,12 +139,43 @@ def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceili
     line = capped.report[-1]
     assert line.startswith("thin parts:") and "the most this quality allows" in line and "keeps 32" in line
     assert sum(r.startswith("thin parts:") for r in capped.report) == 1, capped.report
-    # the grid the 32-cell reading asks for, rounded up to 16: no longer thin there
+    # as fine as the reading asks (rounded up to 16), unless the particles no longer fill it
     full = refine_for_thin(coarse, 256)
-    assert full is not None and full.options.grid_res == 16 * -(-coarse.thin.grid_needed // 16)
-    assert not full.thin.thin and full.report[-1].endswith("which resolves them (--no-refine-thin keeps 32)")
+    asked = 16 * -(-coarse.thin.grid_needed // 16)
+    g = full.options.grid_res
+    assert 48 < g <= asked and g % 16 == 0
+    assert full.n_particles >= MIN_PARTICLES_PER_CELL * full.occupied_cells()
+    if g < asked:  # the next grid up would hold fewer particles per cell than the floor
+        from pd_tool.prepare import cell_size
+
+        nxt = cell_size(full.object_size_m, full.options.padding, g + 16)[0]
+        assert full.n_particles < MIN_PARTICLES_PER_CELL * full.occupied_cells(nxt)
     assert full.dx < capped.dx < coarse.dx
     assert refine_for_thin(coarse, 32) is None  # no room to grow
+
+
+def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
+    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    sparse = prepare_scene(make_plant(2500, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=64))
+    from pd_tool.prepare import cell_size
+
+    finer = cell_size(sparse.object_size_m, sparse.options.padding, 80)[0]
+    assert sparse.n_particles < 4 * sparse.occupied_cells(finer)  # 80 cells would be too sparse
+    assert refine_for_thin(sparse, 256) is None
+
+
+def test_connected_ratio_gives_every_occupied_cell_two_drivers() -> None:
+    from pd_tool.prepare import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene
+    from pd_tool.synthetic import POT_TOP, make_plant
+
+    prep = prepare_scene(make_plant(3000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=64))
+    occupied = prep.occupied_cells()
+    r = prep.connected_ratio(0.05)
+    assert r == pytest.approx(MIN_DRIVERS_PER_CELL * occupied / prep.n_particles)
+    assert len(prep.build_drivers(ratio=r).positions) >= 0.9 * MIN_DRIVERS_PER_CELL * occupied
+    assert prep.connected_ratio(0.99) == 0.99 and prep.connected_ratio(1.0) == 1.0
 
 
 def test_refine_for_thin_leaves_a_scene_without_thin_parts_alone() -> None:
