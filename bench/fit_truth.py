@@ -1,0 +1,395 @@
+"""Does a fit recover a material it did not make? `pdtool fit` on reference videos simulated
+by a converged simulation, then `pdtool bake` under a new force, against the converged truth.
+
+For each scene and hidden E field:
+  1. the truth: E per Gaussian (`region`: the plant's stem / leaf / flower, a capture's
+     three height bands; `smooth`: stiff at the base to soft at the top, 3x stiffer on one
+     side; `random`: a seeded smooth random field), the same E range on every scene (every
+     scene is scaled to 1 m, as pdtool does);
+  2. two reference videos from a converged simulation (`--reference` cells, every
+     Gaussian a particle, CFL safety 0.25), each an initial push (along x, then y) seen
+     from a low view behind the object (azimuth 200, elevation 8 degrees) and from a high
+     side view (azimuth 290, elevation 35) that no default was tuned on, with a slight
+     blur, 10% less exposure and pixel noise of sigma 2/255;
+  3. `pdtool fit SCENE VIDEO0 VIDEO1` at `--quality` through the CLI;
+  4. `pdtool bake --material` under a new force (diagonal, at the side of the object at
+     70% of its height: another direction and place than either video's push) as the fit
+     simulated (no --quality), at default and at final; the uniform start E (the fit's
+     --init-e) and the best uniform E (the truth's geometric mean over the moving
+     Gaussians, an oracle a user could at best hand-tune to) baked at default;
+  5. each bake's positions (read back from its USD) against the converged truth under the
+     same force: RMS over frames and moving Gaussians, as a fraction of the object's size.
+The error is taken over the Gaussians that the new force moves more than 1% of the
+object's size in the truth; `still` is what a material that does not move would score.
+Also the E error: median |ln(E_fit / E_true)| and Spearman's rank correlation over the
+Gaussians that move more than 1% of the object's size in a video.
+
+`--control` simulates the reference videos with the fit's own grid, CFL safety and driver
+ratio instead: the inverse crime, kept as a labelled control so that its size stays
+visible. Targets at default quality: new-force error at least 3x below the uniform start
+and 2x below the best uniform E; median |ln| at most 0.5. Figures: docs/benchmarks.md,
+"Fit against a converged truth".
+
+    python bench/fit_truth.py --quick                    # CPU, CI scale (minutes)
+    python bench/fit_truth.py --device cuda --gaussians 30000 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SCENES = {"plant": "+z", "udon": "-y", "donut": "-y", "tree": "-y"}
+FIELDS = ("region", "smooth", "random")
+E_SOFT, E_STIFF = 6e4, 2e6  # Pa: the range of every field (a 1 m object)
+REGION_E = {"stem": 2e6, "leaf": 6e4, "flower": 3e5}  # the plant's regions; a capture's bands base -> top
+BANDS = (2e6, 3e5, 6e4)
+VIEWS = ((200.0, 8.0), (290.0, 35.0))  # (azimuth, elevation) degrees per video
+PUSHES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))  # simulation axes
+PUSH_SPEED = 0.6  # m/s at the top
+NOISE, BLUR, EXPOSURE = 2.0 / 255.0, 0.7, 0.9  # pixel sigma, blur sigma (px), exposure factor
+NEW_FORCE = dict(direction=(-1.0, 1.0, 0.0), height=0.7, accel=3.0, duration=0.3, radius=0.25)
+MOVING = 0.01  # of the object's size: a Gaussian moving less in every video says nothing of its E
+
+
+@dataclass
+class Row:
+    scene: str
+    field: str
+    reference: str  # "converged" or "control (fit's own discretisation)"
+    fit_s: float = math.nan
+    median_abs_ln: float = math.nan
+    spearman: float = math.nan
+    moving_share: float = math.nan
+    errors: dict = field(default_factory=dict)  # bake name -> RMS / object size
+    ratios: dict = field(default_factory=dict)  # "uniform start / fitted" etc.
+    seconds: dict = field(default_factory=dict)  # wall time per step
+
+
+def heights(pos: np.ndarray, up: str) -> np.ndarray:
+    """Height fraction [N] in 0-1 along the up axis."""
+    from pd_tool.prepare import up_rotation
+
+    h = pos @ up_rotation(up)[2]
+    return (h - h.min()) / max(float(np.ptp(h)), 1e-12)
+
+
+def truth_field(scene, up: str, kind: str, seed: int) -> np.ndarray:
+    """E per Gaussian [N] in Pa."""
+    from pd_tool.prepare import up_rotation
+
+    pos = scene.positions.detach().cpu().double().numpy()
+    t = heights(pos, up)
+    if kind == "region":
+        if scene.labels is not None and scene.label_names:
+            table = np.array([REGION_E.get(n, E_STIFF) for n in scene.label_names])
+            return table[scene.labels]
+        return np.array(BANDS)[np.digitize(t, [0.45, 0.75])]
+    R = up_rotation(up)
+    side = pos @ R[0]
+    side = (side - np.median(side)) / max(float(np.ptp(side)), 1e-12)
+    if kind == "smooth":
+        log_e = np.log(E_STIFF) + t * (np.log(E_SOFT) - np.log(E_STIFF))
+        return np.exp(log_e) * 3.0 ** (1.0 / (1.0 + np.exp(-side / 0.05)))
+    if kind == "random":
+        rng = np.random.default_rng(seed)
+        u = (pos - pos.min(0)) / max(float(np.ptp(pos, axis=0).max()), 1e-12)
+        centres, signs = rng.uniform(0, 1, (6, 3)), rng.choice([-1.0, 1.0], 6)
+        f = sum(s * np.exp(-np.sum((u - c) ** 2, 1) / (2 * 0.2 ** 2)) for c, s in zip(centres, signs))
+        f = (f - f.mean()) / max(float(f.std()), 1e-12)
+        mid, half = 0.5 * (np.log(E_SOFT) + np.log(E_STIFF)), 0.5 * (np.log(E_STIFF) - np.log(E_SOFT))
+        return np.exp(mid + half * np.tanh(0.8 * f))
+    raise ValueError(kind)
+
+
+def particle_E(prep, gaussian_E: np.ndarray) -> np.ndarray:
+    """E [P] of every simulated particle: a Gaussian's own, a filled particle its source's."""
+    e = gaussian_E[prep.foreground]
+    if prep.fill_source is not None:
+        e = np.concatenate([e, e[prep.fill_source]])
+    return e
+
+
+def driver_E(prep, drivers, gaussian_E: np.ndarray) -> np.ndarray:
+    """Each driver's E [Q]: the geometric mean over its particles."""
+    members = drivers.labels.cpu().numpy()
+    log_e = np.log(particle_E(prep, gaussian_E))
+    q = len(drivers.positions)
+    return np.exp(np.bincount(members, log_e, q) / np.maximum(np.bincount(members, minlength=q), 1))
+
+
+def degrade(frames: np.ndarray, rng) -> np.ndarray:
+    """What a camera adds: blur, an exposure change and pixel noise. frames uint8 [T, H, W, 3]."""
+    import torch
+
+    x = torch.as_tensor(frames, dtype=torch.float32).permute(0, 3, 1, 2) / 255.0
+    r = 2
+    k = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float32) ** 2 / (2 * BLUR ** 2))
+    k = k / k.sum()
+    c = x.shape[1]
+    x = torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
+    x = torch.nn.functional.conv2d(x, k.view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
+    x = torch.nn.functional.conv2d(x, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
+    y = x.permute(0, 2, 3, 1).numpy() * EXPOSURE + rng.normal(0.0, NOISE, x.permute(0, 2, 3, 1).shape)
+    return (np.clip(y, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str):
+    """(prep, drivers, driver E) of one discretisation."""
+    from pd_tool.prepare import PrepareOptions, prepare_scene
+
+    prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
+    drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
+    return prep, drivers, driver_E(prep, drivers, gaussian_E)
+
+
+def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, frames: int, device: str,
+                     seed: int) -> tuple[list[Path], np.ndarray]:
+    """Write the two reference videos; returns their folders and each Gaussian's largest
+    displacement in them [N] (scene units)."""
+    import torch
+
+    from pd_tool.animate import GaussianAnimator
+    from pd_tool.cameras import auto_camera
+    from pd_tool.fit.video import write_video_folder
+    from pd_tool.reference import push_velocity
+    from pd_tool.sim import MPMSolver, SimConfig
+    from pd_tool.views import render_image
+
+    prep, drivers, e = sim
+    rest = drivers.positions.double().cpu().numpy()
+    static = drivers.static.cpu().numpy().astype(bool)
+    pos0 = scene.positions.detach().cpu().numpy()
+    moved = np.zeros(scene.count)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k, ((az, el), push) in enumerate(zip(VIEWS, PUSHES)):
+        cam = auto_camera(pos0, size, size * 9 // 16 if size >= 512 else size, up_axis=up, azimuth_deg=az,
+                          elevation_deg=el)
+        cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=0.3, gravity=(0.0, 0.0, 0.0),
+                        cfl_safety=cfl)
+        solver = MPMSolver(rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), e, static, cfg,
+                           device=device)
+        solver.set_velocity(push_velocity(rest, static, direction=push, speed=PUSH_SPEED))
+        anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
+        images = [render_image(scene, cam)]
+        for _ in range(1, frames):
+            solver.step_frame(1.0 / 30.0)
+            with torch.no_grad():
+                p, q = anim(solver.positions())
+            moved = np.maximum(moved, np.linalg.norm(p.cpu().numpy() - pos0, axis=1))
+            images.append(render_image(scene, cam, positions=p, quats=q))
+        out.append(write_video_folder(folder / f"video{k}", degrade(np.stack(images), rng), cam, 30.0,
+                                      overwrite=True))
+    return out, moved
+
+
+def new_force(scene, up: str) -> tuple[tuple[float, float, float], tuple[float, float, float], float, float]:
+    """(acceleration, point, radius, size) of the new force in scene units: diagonal in the
+    horizontal plane, on the side of the object at NEW_FORCE['height'] of its height."""
+    from pd_tool.prepare import up_rotation
+
+    pos = scene.positions.detach().cpu().double().numpy()
+    R = up_rotation(up)
+    size = float(np.ptp(pos, axis=0).max())
+    t = heights(pos, up)
+    band = np.abs(t - NEW_FORCE["height"]) < 0.05
+    lateral = pos @ R[0]
+    point = pos[band][np.argmax(lateral[band])] if band.any() else pos[np.argmax(t)]
+    d = np.asarray(NEW_FORCE["direction"]) / np.linalg.norm(NEW_FORCE["direction"])
+    # m/s^2 along d in simulation axes; pdtool scales a scene to 1 m, so a scene unit is 1 / size m
+    accel = tuple((R.T @ d) * NEW_FORCE["accel"] * size)
+    return accel, tuple(point.tolist()), NEW_FORCE["radius"] * size, size
+
+
+def cli(args: list[str]) -> None:
+    from click.testing import CliRunner
+
+    from cli import main
+
+    res = CliRunner().invoke(main, args, catch_exceptions=False)
+    if res.exit_code != 0:
+        raise RuntimeError(f"pdtool {' '.join(args[:1])} failed ({res.exit_code}): {res.output[-2000:]}")
+
+
+def bake_positions(folder: Path, name: str, scene_path: Path, material: list[str], force, seconds: float,
+                   device: str, up: str, extra: list[str]) -> np.ndarray:
+    """`pdtool bake` under the new force; positions [T, N, 3] in scene axes, read back
+    from its USD (whose axes follow pd_tool.bake.usd_frame)."""
+    from pxr import Usd
+
+    from pd_tool.bake import usd_frame
+
+    accel, point, radius, _ = force
+    out = folder / f"{name}.usd"
+    cli(["bake", "--scene", str(scene_path), *material, "--force", ",".join(f"{a:.9g}" for a in accel),
+         "--at", ",".join(f"{a:.9g}" for a in point), "--radius", f"{radius:.9g}",
+         "--duration", str(NEW_FORCE["duration"]), "--seconds", str(seconds), "--format", "instancer",
+         "--device", device, *extra, str(out)])
+    stage = Usd.Stage.Open(str(out))  # held: its prims expire with it
+    attr = stage.GetPrimAtPath("/Root/Instancer").GetAttribute("positions")
+    frames = int(round(seconds * 30)) + 1
+    R = usd_frame(up)[0]
+    return np.stack([np.asarray(attr.Get(float(f)), np.float64) for f in range(frames)]) @ R
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 2 else math.nan
+
+
+def run_case(name: str, kind: str, args, tmp: Path) -> Row:
+    from convergence import load_scene
+    from fit_recovery import simulate_positions
+    from pd_tool.io import save_splats
+    from pd_tool.material_file import MaterialFile
+    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.prepare import up_rotation
+    from pd_tool.presets import fit_simulation, load_preset
+
+    up = SCENES[name]
+    scene = load_scene(name, args.gaussians, data=args.data).to(args.device)
+    pos = scene.positions.detach().cpu().double().numpy()
+    h = pos @ up_rotation(up)[2]
+    static_below = float(h.min() + 0.1 * np.ptp(h))
+    folder = tmp / f"{name}_{kind}"
+    folder.mkdir()
+    scene_path = save_splats(scene.to("cpu"), folder / f"{name}.ply")
+    E_true = truth_field(scene, up, kind, args.seed)
+    q = load_preset("quality", args.quality)
+    if args.control:
+        grid, cfl, ratio = fit_simulation(q)
+        label = "control (the fit's own discretisation)"
+    else:
+        grid, cfl, ratio = args.reference, 0.25, 1.0
+        label = f"converged ({grid} cells, every Gaussian, CFL 0.25)"
+    t0 = time.perf_counter()
+    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device)
+    videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed)
+    size = float(np.ptp(pos, axis=0).max())
+    row = Row(name, kind, label)
+    row.seconds["videos"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = folder / "fit.pdmat"
+    cli(["fit", str(scene_path), *map(str, videos), "-o", str(out), "--quality", args.quality, "--up", up,
+         "--static-below", f"{static_below:.9g}", "--device", args.device, "--no-preview"])
+    row.fit_s = time.perf_counter() - t0
+    E_fit = MaterialFile.load(out).E_at(pos)
+    sel = moved > MOVING * size
+    row.moving_share = float(sel.mean())
+    if sel.sum() > 2:
+        row.median_abs_ln = float(np.median(np.abs(np.log(E_fit[sel] / E_true[sel]))))
+        row.spearman = spearman(E_fit[sel], E_true[sel])
+    # the truth under the new force, at the converged settings whatever the videos used
+    force = new_force(scene, up)
+    t0 = time.perf_counter()
+    ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device)
+    prep, drivers, e = ref
+    x_true = simulate_positions(scene, prep, drivers, e, nu=0.3, seconds=args.seconds, fps=30.0, accel=force[0],
+                                device=args.device, cfl_safety=0.25, duration=NEW_FORCE["duration"], at=force[1],
+                                radius=force[2])
+    free = np.zeros(scene.count, bool)
+    free[prep.foreground[~prep.static[: prep.count]]] = True
+    # judged where the new force moves the truth: a local push leaves most of the object
+    # still, and a material that does not move at all would score well over all of it
+    moving = free & (np.linalg.norm(x_true - x_true[0], axis=-1).max(axis=0) > MOVING * size)
+    row.seconds["truth"] = time.perf_counter() - t0
+    E_uniform = float(FitSettings().init_E)  # `pdtool fit`'s --init-e default
+    E_best = float(np.exp(np.mean(np.log(E_true[free]))))
+    bakes = {"fitted, as fit": (["--material", str(out)], [])}
+    for qname in args.bake_qualities:
+        bakes[f"fitted, {qname}"] = (["--material", str(out)], ["--quality", qname])
+    for label_e, E in (("uniform start", E_uniform), ("best uniform", E_best)):
+        mat = folder / f"{label_e.replace(' ', '_')}.toml"
+        mat.write_text(f"E = {E:.9g}\nnu = 0.3\ndensity = 1000.0\n")
+        # at the fit's quality, and at each bake quality: a fitted bake is judged against
+        # a uniform one on the same grid
+        for qname in dict.fromkeys([args.quality, *args.bake_qualities]):
+            key = label_e if qname == args.quality else f"{label_e}, {qname}"
+            bakes[key] = (["--preset", str(mat)], ["--quality", qname, "--up", up,
+                                                    "--static-below", f"{static_below:.9g}"])
+    for bname, (material, extra) in bakes.items():
+        t0 = time.perf_counter()
+        x = bake_positions(folder, bname.replace(" ", "_").replace(",", ""), scene_path, material, force,
+                           args.seconds, args.device, up, extra)
+        err = np.linalg.norm(x[:, moving] - x_true[: len(x)][:, moving], axis=-1)
+        row.errors[bname] = float(np.sqrt((err ** 2).mean()) / size)
+        row.seconds[f"bake {bname}"] = time.perf_counter() - t0
+    # what a material that does not move at all would score
+    row.errors["still"] = float(np.sqrt((np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1) ** 2).mean())
+                                / size)
+    fitted = row.errors["fitted, as fit"]
+    row.ratios = {"uniform start / fitted": row.errors["uniform start"] / fitted,
+                  "best uniform / fitted": row.errors["best uniform"] / fitted}
+    for qname in args.bake_qualities:
+        if qname != args.quality and f"uniform start, {qname}" in row.errors:
+            f = row.errors[f"fitted, {qname}"]
+            row.ratios[f"uniform start / fitted, {qname}"] = row.errors[f"uniform start, {qname}"] / f
+            row.ratios[f"best uniform / fitted, {qname}"] = row.errors[f"best uniform, {qname}"] / f
+    row.errors["truth peak"] = float(np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1).max() / size)
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true",
+                    help="CPU, CI scale: plant and udon, smooth field, 3000 Gaussians, draft, 96 px, reference 48")
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--fields", default=",".join(FIELDS))
+    ap.add_argument("--gaussians", type=int, default=30000)
+    ap.add_argument("--reference", type=int, default=128, help="the converged simulation's grid cells")
+    ap.add_argument("--quality", default="default", help="the fit's quality")
+    ap.add_argument("--bake-qualities", default="default,final", help="fitted material also baked at these")
+    ap.add_argument("--size", type=int, default=512, help="reference frames' long side, px")
+    ap.add_argument("--frames", type=int, default=14)
+    ap.add_argument("--seconds", type=float, default=1.5, help="the new force's animation")
+    ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--keep", type=Path, help="keep every scene, video, fit and USD in this new folder")
+    args = ap.parse_args()
+    if args.quick:
+        args.scenes, args.fields, args.gaussians, args.quality = "plant,udon", "smooth", 3000, "draft"
+        args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
+    args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
+
+    from pd_tool.device import init_warp_quietly
+
+    init_warp_quietly()
+    rows = []
+    print("scene  field   fit s  |ln|   rho  then each bake's new-force error (RMS / size), and the ratios", flush=True)
+    if args.keep:
+        args.keep.mkdir(parents=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = args.keep or tmp
+        for name in args.scenes.split(","):
+            for kind in args.fields.split(","):
+                row = run_case(name, kind, args, Path(tmp))
+                rows.append(row)
+                errs = "  ".join(f"{k} {v:.2%}" for k, v in row.errors.items())
+                ratios = "  ".join(f"{k} {v:.2f}" for k, v in row.ratios.items())
+                print(f"{name:6} {kind:7} {row.fit_s:5.0f} {row.median_abs_ln:5.2f} {row.spearman:5.2f}  {errs}  |  "
+                      f"{ratios}", flush=True)
+                if args.json:  # after every row: a run cut short keeps what it measured
+                    import torch
+
+                    args.json.write_text(json.dumps({
+                        "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
+                        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+                        "rows": [asdict(r) for r in rows]}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
