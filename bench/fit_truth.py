@@ -344,8 +344,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
                     help="CPU, CI scale: plant and udon, smooth field, 3000 Gaussians, draft, 96 px, reference 48")
-    ap.add_argument("--scenes", default=",".join(SCENES))
-    ap.add_argument("--fields", default=",".join(FIELDS))
+    ap.add_argument("--scenes", default=None, help=f"comma-separated, of {','.join(SCENES)} (default: all)")
+    ap.add_argument("--fields", default=None, help=f"comma-separated, of {','.join(FIELDS)} (default: all)")
     ap.add_argument("--gaussians", type=int, default=30000)
     ap.add_argument("--reference", type=int, default=128, help="the converged simulation's grid cells")
     ap.add_argument("--quality", default="default", help="the fit's quality")
@@ -361,9 +361,11 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, help="keep every scene, video, fit and USD in this new folder")
     args = ap.parse_args()
     if args.quick:
-        args.scenes, args.fields, args.gaussians, args.quality = "plant,udon", "smooth", 3000, "draft"
+        args.scenes, args.fields = args.scenes or "plant,udon", args.fields or "smooth"
+        args.gaussians, args.quality = 3000, "draft"
         args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
+    args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
 
     from pd_tool.device import init_warp_quietly
 
