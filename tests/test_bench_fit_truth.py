@@ -2,11 +2,11 @@
 end to end (`pdtool fit` and `pdtool bake` against a converged truth)."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
 
-import json
 import numpy as np
 import pytest
 
