@@ -757,6 +757,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--init-e", "init_e", type=T.FiniteFloat(1e3, 1e8, unit="Pa"), default=1e6, show_default=True,
               help="Starting Young's modulus, Pa (uniform), within the fitted field's bounds; stage 1 rescales "
                    "it unless --no-level.")
+@click.option("--match-exposure/--no-match-exposure", default=True, show_default=True,
+              help="Scale each video's renders by a gain per colour channel, fitted at rest (frame 0), so that the "
+                   "camera's exposure and white balance do not count as motion.")
 @click.option("--nu", type=T.FiniteFloat(0.0, 0.49), default=0.3, show_default=True, help="Poisson's ratio.")
 @click.option("--density", type=T.FiniteFloat(1e-3, 1e5, unit="kg/m^3"), default=1000.0, show_default=True,
               help="Density, kg/m^3 (the material presets' range).")
@@ -771,8 +774,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, level: bool, diffusion: float, working_size: int, init_e: float,
-        nu: float, density: float, background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int,
-        max_minutes: float, device: str, **prep_kw) -> None:
+        match_exposure: bool, nu: float, density: float, background: tuple[float, float, float], resume: bool,
+        no_preview: bool, seed: int, max_minutes: float, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
     Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
@@ -810,7 +813,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
                                stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
-                               nu=nu, density=density,
+                               match_exposure=match_exposure, nu=nu, density=density,
                                working_long_side=working_size, background=background, seed=seed, device=dev)
         opts = build_prepare_options(None, **prep_kw)
         estimates = []

@@ -1075,9 +1075,14 @@ def run_fit(
                       driver_rest=p.transform.to_scene(pb.x_rest.double().cpu().numpy()), meta=meta, fields=fields)
     mf.save(out)
     _remove_own_checkpoint(ckpt_path)
+    report = list(p.report)
+    for i, g in enumerate(pb.gains):
+        if float((g - 1.0).abs().max()) > 0.02:  # a camera that differs visibly from the splat's colours
+            report.append(f"video {i}: exposure matched at rest, gain {' / '.join(f'{x:.2f}' for x in g.tolist())} "
+                          f"(r / g / b; --no-match-exposure turns it off)")
     return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
                      gaussian_E=driver_E[labels], losses=losses,
-                     seconds=seconds, prep=p, drivers=pb.drivers, report=list(p.report), skipped_steps=skipped,
+                     seconds=seconds, prep=p, drivers=pb.drivers, report=report, skipped_steps=skipped,
                      driver_v0s=[v.double().cpu().numpy() for v in v0s],
                      driver_E_uncalibrated=E_uncalibrated, calibration=calibration, settings=s,
                      cfl_safety=float(pb.cfl_safety), substeps=pb.substeps_range)
