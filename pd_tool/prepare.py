@@ -421,6 +421,10 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
             cell_size(longest, prep.options.padding, target)[0]):
         target -= 16
     if target <= grid:
+        if target < min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16)):
+            prep.report.append(f"thin parts: kept the {grid}-cell grid: {prep.n_particles:,} particles are too few "
+                               f"to fill a finer one ({MIN_PARTICLES_PER_CELL:g} per occupied cell), so only a "
+                               f"denser capture would resolve them")
         return None
     finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
     still = finer.thin is not None and finer.thin.thin

@@ -155,15 +155,15 @@ def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceili
 
 
 def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
-    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.prepare import MIN_PARTICLES_PER_CELL, PrepareOptions, cell_size, prepare_scene, refine_for_thin
     from pd_tool.synthetic import POT_TOP, make_plant
 
-    sparse = prepare_scene(make_plant(2500, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=64))
-    from pd_tool.prepare import cell_size
-
-    finer = cell_size(sparse.object_size_m, sparse.options.padding, 80)[0]
-    assert sparse.n_particles < 4 * sparse.occupied_cells(finer)  # 80 cells would be too sparse
+    sparse = prepare_scene(make_plant(2500, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=48))
+    assert sparse.thin is not None and sparse.thin.thin and sparse.thin.grid_needed > 64
+    finer = cell_size(sparse.object_size_m, sparse.options.padding, 64)[0]
+    assert sparse.n_particles < MIN_PARTICLES_PER_CELL * sparse.occupied_cells(finer)  # 64 cells: too sparse
     assert refine_for_thin(sparse, 256) is None
+    assert sparse.report[-1].startswith("thin parts: kept the 48-cell grid") and "denser capture" in sparse.report[-1]
 
 
 def test_connected_ratio_gives_every_occupied_cell_two_drivers() -> None:
