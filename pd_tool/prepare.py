@@ -407,21 +407,23 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
     The grid is the one ThinParts.grid_needed asks for, rounded up to a multiple of 16 (the
     benchmark's plant with 3 mm leaves asks for 123-135 cells and moves as the converged
     reference does at 128: docs/benchmarks.md, "Convergence against a fine reference").
-    The new preparation's report starts with one line that says what was raised and why.
+    The new preparation's report ends with one line that says what was raised and why; a
+    scene too sparse for any finer grid gets a line in `prep.report` saying so.
     """
     from pd_tool.thickness import describe_refinement
 
     thin, grid = prep.thin, int(prep.options.grid_res)
     if thin is None or not thin.thin or max_grid_res <= grid:
         return None
-    target = min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16))
+    asked = min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16))
+    target = asked
     # a grid finer than the particles fill resolves nothing: keep MIN_PARTICLES_PER_CELL
     longest = float(np.ptp(prep.positions_sim[: prep.count], axis=0).max())
     while target > grid and prep.n_particles < MIN_PARTICLES_PER_CELL * prep.occupied_cells(
             cell_size(longest, prep.options.padding, target)[0]):
         target -= 16
     if target <= grid:
-        if target < min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16)):
+        if target < asked:
             prep.report.append(f"thin parts: kept the {grid}-cell grid: {prep.n_particles:,} particles are too few "
                                f"to fill a finer one ({MIN_PARTICLES_PER_CELL:g} per occupied cell), so only a "
                                f"denser capture would resolve them")

@@ -149,14 +149,19 @@ class ThinParts:
     def thin(self) -> bool:
         return self.share >= THIN_SHARE
 
+    def found(self, grid_res: int, article: str) -> str:
+        """What is thin, against `article` ("this", "the") `grid_res`-cell grid's cell:
+        the start of every thin-parts line."""
+        return (f"thin parts: {self.share:.0%} of the moving particles lie in parts {_length(self.thickness_m)} "
+                f"thick or thinner, under a quarter of {article} {grid_res}-cell grid's {_length(self.dx_m)} cell")
+
     def line(self, grid_res: int) -> str:
         """The notice bake, fit and select print: what is thin, and the shipped quality (or
         the grid_res of a quality file) to try. A coarse cell's window can take in more than
         the part (the stem beside a leaf), so the thickness is an upper bound and the grid a
         lower one: a finer grid may report a thinner part again."""
-        head = (f"thin parts: {self.share:.0%} of the moving particles lie in parts "
-                f"{_length(self.thickness_m)} thick or thinner, under a quarter of this {grid_res}-cell grid's "
-                f"{_length(self.dx_m)} cell; MPM bends them as if they were thicker, so they move too little")
+        head = (self.found(grid_res, "this")
+                + "; MPM bends them as if they were thicker, so they move too little")
         from pd_tool.presets import builtin
 
         shipped = sorted((int(q["grid_res"]), name) for name, q in builtin("quality").items())
@@ -175,9 +180,7 @@ def describe_refinement(coarse: ThinParts, grid_res: int, still: ThinParts | Non
     """The line a bake prints when it raised its grid for thin parts: what was thin at
     `grid_res` (`coarse`), the grid it simulates on instead, and, when the parts are
     still thin there (`still`, the quality's ceiling), what would resolve them."""
-    head = (f"thin parts: {coarse.share:.0%} of the moving particles lie in parts {_length(coarse.thickness_m)} "
-            f"thick or thinner, under a quarter of the {grid_res}-cell grid's {_length(coarse.dx_m)} cell; "
-            f"simulating on {new_grid} cells ({_length(new_dx)})")
+    head = coarse.found(grid_res, "the") + f"; simulating on {new_grid} cells ({_length(new_dx)})"
     keep = f"--no-refine-thin keeps {grid_res}"
     if still is None:
         return head + f", which resolves them ({keep})"
