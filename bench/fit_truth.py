@@ -157,40 +157,25 @@ def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, f
                      seed: int) -> tuple[list[Path], np.ndarray]:
     """Write the two reference videos; returns their folders and each Gaussian's largest
     displacement in them [N] (scene units)."""
-    import torch
-
-    from pd_tool.animate import GaussianAnimator
     from pd_tool.cameras import auto_camera
     from pd_tool.fit.video import write_video_folder
-    from pd_tool.reference import push_velocity
-    from pd_tool.sim import MPMSolver, SimConfig
-    from pd_tool.views import render_image
+    from pd_tool.reference import push_velocity, simulate_reference
 
     prep, drivers, e = sim
     rest = drivers.positions.double().cpu().numpy()
     static = drivers.static.cpu().numpy().astype(bool)
     pos0 = scene.positions.detach().cpu().numpy()
-    moved = np.zeros(scene.count)
+    moved = np.zeros(scene.count, np.float32)
     rng = np.random.default_rng(seed)
     out = []
     for k, ((az, el), push) in enumerate(zip(VIEWS, PUSHES)):
         cam = auto_camera(pos0, size, size * 9 // 16 if size >= 512 else size, up_axis=up, azimuth_deg=az,
                           elevation_deg=el)
-        cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=0.3, gravity=(0.0, 0.0, 0.0),
-                        cfl_safety=cfl)
-        solver = MPMSolver(rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), e, static, cfg,
-                           device=device)
-        solver.set_velocity(push_velocity(rest, static, direction=push, speed=PUSH_SPEED))
-        anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
-        images = [render_image(scene, cam)]
-        for _ in range(1, frames):
-            solver.step_frame(1.0 / 30.0)
-            with torch.no_grad():
-                p, q = anim(solver.positions())
-            moved = np.maximum(moved, np.linalg.norm(p.cpu().numpy() - pos0, axis=1))
-            images.append(render_image(scene, cam, positions=p, quats=q))
-        out.append(write_video_folder(folder / f"video{k}", degrade(np.stack(images), rng), cam, 30.0,
-                                      overwrite=True))
+        images = simulate_reference(scene, prep, drivers, e, push_velocity(rest, static, direction=push,
+                                                                           speed=PUSH_SPEED),
+                                    cam, n_frames=frames, fps=30.0, nu=0.3, cfl_safety=cfl, device=device,
+                                    displacement=moved)
+        out.append(write_video_folder(folder / f"video{k}", degrade(images, rng), cam, 30.0, overwrite=True))
     return out, moved
 
 

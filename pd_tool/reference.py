@@ -56,9 +56,12 @@ def simulate_reference(
     substeps: int | None = None,
     device: str = "cpu",
     background=(1.0, 1.0, 1.0),
+    displacement: np.ndarray | None = None,
 ) -> np.ndarray:
     """Simulate and render `n_frames` frames (frame 0 = rest): uint8 [T, H, W, 3].
-    substeps: per frame, or None for the CFL choice."""
+    substeps: per frame, or None for the CFL choice. displacement: when given, an [N]
+    array (one per Gaussian) raised in place to each Gaussian's largest displacement from
+    rest in scene units."""
     from pd_tool.animate import GaussianAnimator
     from pd_tool.sim import MPMSolver, SimConfig
     from pd_tool.views import render_image
@@ -70,10 +73,13 @@ def simulate_reference(
     solver.set_velocity(driver_v0)
     animator = GaussianAnimator(scene, prep, drivers, device=scene.device)
     frames = [render_image(scene, camera, background=background)]
+    rest = scene.positions.detach() if displacement is not None else None
     for _ in range(1, n_frames):
         solver.step_frame(1.0 / fps)
         with torch.no_grad():
             pos, quats = animator(solver.positions())
+        if rest is not None:
+            np.maximum(displacement, (pos - rest).norm(dim=1).cpu().numpy(), out=displacement)
         frames.append(render_image(scene, camera, background=background, positions=pos, quats=quats))
     return np.stack(frames)
 
