@@ -34,7 +34,7 @@ class InputError(click.ClickException):
         return " ".join(self.message.split())
 
 
-# The writers' hidden temporaries: `.NAME.XXXXXXXX.part[.EXT]` (pd_tool.atomic) and
+# The writers' hidden temporaries: `.NAME.XXXXXXXX.part[.EXT]` (pd_tool.core.atomic) and
 # `.NAME.tmp-XXXXXXXX.usd[ac]` (the USD writer). A message names NAME, the user's file.
 _TEMP_SUFFIX = r"\.(?:[a-z0-9_]{8}\.part(?:\.[A-Za-z0-9]+)?|tmp-[0-9]+-[0-9a-f]{8}\.usd[ac]?|[a-z0-9_]{8}\.old)"
 _TEMP_NAME = re.compile(r"^\.(?P<name>.+)" + _TEMP_SUFFIX + "$")
@@ -77,7 +77,7 @@ def user_errors() -> Iterator[None]:
     """Turn library errors a user can fix into InputError (exit 2, one line). An OSError
     that names a file (a full disk, a read-only folder, a name too long) is the last resort:
     one line naming the user's file, not a traceback."""
-    from pd_tool.errors import PdToolError
+    from pd_tool.core.errors import PdToolError
 
     try:
         yield
@@ -291,7 +291,7 @@ def info(scene: Path, as_json: bool) -> None:
       pdtool info ../shared/data/udon.ply --json
     """
     with user_errors():
-        from pd_tool.info import format_summary, scene_summary
+        from pd_tool.io.info import format_summary, scene_summary
         from pd_tool.io import load_splats
 
         summary = scene_summary(load_splats(scene))
@@ -333,13 +333,13 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
     with user_errors():
         import dataclasses
 
-        from pd_tool.cameras import save_camera_json
-        from pd_tool.device import resolve_device
+        from pd_tool.core.cameras import save_camera_json
+        from pd_tool.core.device import resolve_device
         from pd_tool.io import load_splats
-        from pd_tool.preview import save_png
-        from pd_tool.views import render_image, scene_camera
+        from pd_tool.render.preview import save_png
+        from pd_tool.render.views import render_image, scene_camera
 
-        from pd_tool.atomic import check_destination, check_outputs, check_own_file
+        from pd_tool.core.atomic import check_destination, check_outputs, check_own_file
 
         check_outputs({"--out": out}, {}, {"SCENE": scene, "--camera": camera})
         check_destination(out)
@@ -422,7 +422,7 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
         raise T.OptionError(f"with --count {count} the last video's seed passes {T.SEED_MAX}; give a smaller --seed",
                             None, None, seed, "--seed")
     with user_errors():
-        from pd_tool.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
+        from pd_tool.video.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
                                       generation_camera, inspect_model, require_video_extra)
 
         # cheap checks first: no rendering or loading before the extra, folder and size are right
@@ -430,7 +430,7 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
         info = inspect_model(model)
         check_size(info, width, height)
         check_output(out, overwrite)
-        from pd_tool.device import resolve_device
+        from pd_tool.core.device import resolve_device
         from pd_tool.io import load_splats
 
         dev = resolve_device(device)
@@ -438,9 +438,9 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
         cam = generation_camera(splats, camera, parse_view(view), width, height, up)
         static = None
         if static_below is not None or static_box is not None:
-            from pd_tool.prepare import select_static
+            from pd_tool.prepare.preparation import PrepareOptions, select_static
 
-            opts = build_prepare_options(None, static_below=static_below, static_box=static_box, up=up)
+            opts = PrepareOptions().updated(**prepare_changes(static_below=static_below, static_box=static_box, up=up))
             static = select_static(splats.positions.detach().cpu().numpy(), opts)
         settings = GenerateSettings(frames=frames, motion_bucket=motion_bucket, seed=seed, count=count, steps=steps,
                                     fps=fps, max_camera_motion=max_camera_motion,
@@ -485,25 +485,14 @@ def prepare_options_decorator(f):
     return f
 
 
-def build_prepare_options(base=None, **kw):
-    """PrepareOptions from CLI values; options left unset keep `base`'s (a fit's) values."""
-    from pd_tool.prepare import Box, PrepareOptions
-
-    opts = base or PrepareOptions()
-    for key in ("foreground_box", "static_box"):
-        if kw.get(key) is not None:
-            box = Box.parse(kw[key], "--" + key.replace("_", "-"))
-            setattr(opts, key, (*box.lo, *box.hi))
-    mapping = {"min_opacity": "min_opacity", "static_below": "static_below", "up": "up_axis",
-               "meters_per_unit": "meters_per_unit", "fill": "fill"}
-    for cli_name, field_name in mapping.items():
-        if kw.get(cli_name) is not None:
-            setattr(opts, field_name, kw[cli_name])
-    return opts
+def prepare_changes(**kw) -> dict:
+    """The preparation options a user set on the command line, as PrepareOptions fields."""
+    names = {"up": "up_axis"}
+    return {names.get(k, k): v for k, v in kw.items() if v is not None}
 
 
 def _fmt_size(n: int) -> str:
-    from pd_tool.info import format_bytes
+    from pd_tool.io.info import format_bytes
 
     return format_bytes(n)
 
@@ -529,11 +518,11 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
       pdtool select donut.ply --static-below 0.005 -o selection.ply --png selection.png
     """
     with user_errors():
-        from pd_tool.device import resolve_device
+        from pd_tool.core.device import resolve_device
         from pd_tool.io import load_splats, save_ply
-        from pd_tool.prepare import prepare_scene
-        from pd_tool.atomic import check_destination, check_outputs
-        from pd_tool.selection import selection_scene
+        from pd_tool.prepare import PrepareOptions, prepare_scene
+        from pd_tool.core.atomic import check_destination, check_outputs
+        from pd_tool.prepare.selection import selection_scene
 
         check_outputs({"--out": out, "--png": png}, {}, {"SCENE": scene})
         for path in (out, png):
@@ -541,14 +530,13 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
                 check_destination(path)
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
-        opts = build_prepare_options(None, **prep_kw)
-        opts.grid_res = grid_res
+        opts = PrepareOptions(grid_res=grid_res).updated(**prepare_changes(**prep_kw))
         prep = prepare_scene(splats, opts)
         coloured = selection_scene(prep)
         save_ply(coloured, out)
         if png is not None:
-            from pd_tool.preview import save_png
-            from pd_tool.views import render_image, scene_camera
+            from pd_tool.render.preview import save_png
+            from pd_tool.render.views import render_image, scene_camera
 
             save_png(png, render_image(coloured, scene_camera(coloured, up_axis=opts.up_axis)))
     for line in prep.report:
@@ -644,37 +632,10 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         raise T.OptionError(f"the force would start at or after the animation's end ({n_seconds:g} s); start it "
                             "earlier or make the animation longer", None, None, start, "--start")
     with user_errors():
-        from pd_tool.bake import BakeSettings, ForceSpec, bake as run_bake
-        from pd_tool.device import resolve_device
-        from pd_tool.io import load_splats
-        from pd_tool.material_file import MaterialFile, read_record
-        from pd_tool.prepare import PrepareOptions
-        from pd_tool.presets import Material, load_preset
-        from pd_tool.work import work_policy
+        from pd_tool import app
+        from pd_tool.bake import BakeSettings, ForceSpec
+        from pd_tool.core.device import resolve_device
 
-        mat_file = None
-        mat = None
-        if preset is not None:
-            mat = Material.from_preset(preset)
-        else:
-            if material is None:
-                rec = read_record(".")
-                if rec is None:
-                    raise InputError("no material: pass --scene FILE with --preset NAME (see `pdtool presets`), "
-                                     "or --material FILE, or run `pdtool fit` in this folder first")
-                rec_scene, material = rec
-                scene = scene or rec_scene
-            mat_file = MaterialFile.load(material)
-        if scene is None:
-            scene = mat_file.scene_path if mat_file is not None else None
-            if scene is None or not scene.is_file():
-                raise InputError("no scene: pass --scene FILE.ply (with --preset NAME or --material FILE)")
-        if mat_file is not None:
-            mat_file.check_scene(scene, material)
-        if quality is not None:
-            load_preset("quality", quality)
-        base = PrepareOptions.from_dict(mat_file.prepare) if mat_file is not None else None
-        opts = build_prepare_options(base, **prep_kw)
         overrides = dict(at=at_point, radius=radius, start=start, duration=duration, box=force_box)
         if interaction is not None:
             spec = ForceSpec.from_interaction(interaction, force_vec, **overrides)
@@ -683,15 +644,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
             for k, v in overrides.items():
                 if v is not None:
                     setattr(spec, k, v)
-        dev = resolve_device(device)
-        settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=dev,
+        settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=resolve_device(device),
                                 gravity=gravity, substeps=substeps, seed=seed, refine_thin=refine_thin)
-        splats = load_splats(scene, device=dev)
-        cam = None
-        if camera is not None:
-            from pd_tool.views import scene_camera
-
-            cam = scene_camera(splats, camera, parse_view(view))
+        job = app.BakeJob(out, spec, settings, scene=scene, material=material, preset=preset,
+                          prepare=prepare_changes(**prep_kw), preview=preview, frames_out=frames_out, camera=camera,
+                          view=parse_view(view))
         estimates = []
         with bars() as held:
             bar = held["bake"] = LazyBar("bake", "frame")
@@ -700,11 +657,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                 estimates.append(est)
                 bar.note = f" (up to {est.describe()})"
 
-            with work_policy(max_minutes, on_estimate):
-                result = run_bake(splats, out, force=spec, material=mat, material_file=mat_file,
-                                  prepare_options=opts, settings=settings, preview=preview,
-                                  frames_dir=frames_out, camera=cam, inputs={"--material": material},
-                                  progress=lambda done, total: bar.update_to(done, total))
+            result = app.bake(job, progress=lambda done, total: bar.update_to(done, total), max_minutes=max_minutes,
+                              on_estimate=on_estimate)
     for line in result.report:
         click.echo(line)
     if estimates:
@@ -794,28 +748,20 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
     out_given = out is not None
     out = out or T.OutputFile([".pdmat"], "a pdtool material file").convert(scene.with_suffix(".pdmat"), None, None)
     with user_errors():
-        from pd_tool.device import resolve_device
-        from pd_tool.fit.outputs import write_fit_outputs
-        from pd_tool.fit.pipeline import FitSettings, run_fit
-        from pd_tool.fit.video import load_reference_video
-        from pd_tool.io import load_splats
-        from pd_tool.material_file import write_record
-        from pd_tool.presets import load_preset
-        from pd_tool.work import work_policy
+        from pd_tool import app
+        from pd_tool.core.device import resolve_device
+        from pd_tool.fit.pipeline import FitSettings
+        from pd_tool.prepare import PrepareOptions
 
-        load_preset("quality", quality)
-        dev = resolve_device(device)
-        view_id = parse_view(view)
-        _check_fit_destinations(scene, videos, out, named=out_given, preview=not no_preview)
-        refs = [load_reference_video(v, camera_path=camera, view=view_id, fps=fps, working_size=working_size,
-                                     device=dev) for v in videos]
-        splats = load_splats(scene, device=dev)
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
                                stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
                                match_exposure=match_exposure, nu=nu, density=density,
-                               working_long_side=working_size, background=background, seed=seed, device=dev)
-        opts = build_prepare_options(None, **prep_kw)
+                               working_long_side=working_size, background=background, seed=seed,
+                               device=resolve_device(device))
+        job = app.FitJob(scene, videos, out, settings, PrepareOptions().updated(**prepare_changes(**prep_kw)),
+                         camera=camera, view=parse_view(view), fps=fps, preview=not no_preview, resume=resume,
+                         out_named=out_given)
         estimates = []
         with bars() as held:
             def progress(stage: str, it: int, total: int, loss: float) -> None:
@@ -827,19 +773,14 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                         held[stage].note = f" (whole fit about {estimates[-1].describe()})"
                 held[stage].update_to(it, total, loss=f"{loss:.4f}")
 
-            with work_policy(max_minutes, estimates.append):
-                result = run_fit(splats, scene, refs, out, prepare_options=opts, settings=settings,
-                                 progress=progress, resume=resume)
-        side = write_fit_outputs(out.parent, out.stem, splats, result, refs, settings.resolved(),
-                                 preview=not no_preview)
-        write_record(scene, out, ".")
+            done = app.fit(job, progress=progress, max_minutes=max_minutes, on_estimate=estimates.append)
+    result, side, estimate = done.result, done.side, done.estimate
     import numpy as np
 
     for line in result.report:
         click.echo(line)
-    if estimates:
-        click.echo(f"work estimate about {estimates[-1].describe()} on {estimates[-1].device} "
-                   f"(--max-minutes {max_minutes:g})")
+    if estimate is not None:
+        click.echo(f"work estimate about {estimate.describe()} on {estimate.device} (--max-minutes {max_minutes:g})")
     L = result.losses
     first = (L["velocity"] or L["material"] or [float("nan")])[0]
     last = (L["material"] or L["velocity"] or [float("nan")])[-1]
@@ -849,24 +790,6 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                f"{sum(result.seconds.values()):.0f} s")
     for kind, path in side.items():
         click.echo(f"  {kind:<12} {path}")
-
-
-def _check_fit_destinations(scene: Path, videos: tuple[Path, ...], out: Path, *, named: bool, preview: bool) -> None:
-    """Before a fit runs: its side outputs and the last-fit record replace only pdtool's
-    own files, and a material file nobody named (SCENE.pdmat) only a pdtool material file."""
-    from pd_tool.atomic import check_destination, check_outputs
-    from pd_tool.errors import OutputError
-    from pd_tool.fit.outputs import check_fit_outputs
-    from pd_tool.material_file import check_record, is_material_file
-
-    inputs = {"SCENE": scene, **{f"VIDEO {i}": v for i, v in enumerate(videos)}}
-    check_outputs({"--out": out}, {}, inputs)
-    if not named and (out.exists() or out.is_symlink()) and not is_material_file(out):
-        raise OutputError(f"{out}: exists and is not a pdtool material file, which the fit would replace; move or "
-                          f"rename it, or name the material file with -o", path=out)
-    check_destination(out)
-    check_fit_outputs(out.parent, out.stem, preview=preview, inputs=inputs)
-    check_record(".")
 
 
 @main.command()
@@ -889,7 +812,7 @@ def demo(out_dir: Path, quality: str, device: str) -> None:
     """
     with user_errors():
         from pd_tool.demo import run_demo
-        from pd_tool.device import resolve_device
+        from pd_tool.core.device import resolve_device
 
         dev = resolve_device(device)
         with bars() as held:
@@ -959,7 +882,7 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
     if workers is not None and ray_address is not None:
         raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
     with user_errors():
-        from pd_tool.atomic import check_destination
+        from pd_tool.core.atomic import check_destination
         from pd_tool.batch import BatchInterrupted, load_jobs, run_batch, write_summary
 
         jobs = load_jobs(jobs_file)
@@ -993,7 +916,7 @@ def presets(kind: str | None) -> None:
     Example:
       pdtool presets materials
     """
-    from pd_tool.presets import KINDS, builtin, load_preset
+    from pd_tool.materials.presets import KINDS, builtin, load_preset
 
     with user_errors():
         for k in [kind] if kind else KINDS:

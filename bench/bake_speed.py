@@ -2,7 +2,7 @@
 
     python bench/bake_speed.py --device cuda --gaussians 300000 --json bake.json
 
-Times the whole `pd_tool.bake.bake` call (after a warm-up bake that compiles the kernels)
+Times the whole `pd_tool.bake.baker.bake` call (after a warm-up bake that compiles the kernels)
 and its parts: setup (preparation, K-Means, nearest drivers), simulation, interpolation,
 USD writing. Peak memory: host RSS (ru_maxrss) and, on CUDA, torch's peak allocation plus
 warp's mempool high-water mark where available.
@@ -35,11 +35,11 @@ def main() -> None:
 
     import torch
 
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.device import init_warp_quietly
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.core.device import init_warp_quietly
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     init_warp_quietly()
     scene = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin)

@@ -63,7 +63,7 @@ def main() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from pd_tool.batch import LocalBackend, RayBackend, load_jobs, run_batch
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     root = a.keep or Path(tempfile.mkdtemp(prefix="pdtool-batch-bench-"))
     root.mkdir(parents=True, exist_ok=True)

@@ -98,7 +98,7 @@ class Run:
 
 def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
     """The scene as a GaussianScene, subsampled to at most `gaussians` (seeded)."""
-    from pd_tool.synthetic import make_plant, make_strip
+    from pd_tool.io.synthetic import make_plant, make_strip
 
     if name == "strip":
         return make_strip(gaussians, **STRIP, seed=seed)
@@ -120,7 +120,7 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it."""
     from fit_recovery import simulate_positions
-    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin, up_rotation
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin, up_rotation
 
     pos = scene.positions.detach().cpu().double().numpy()
     height = pos @ up_rotation(case.up)[2]
@@ -197,7 +197,7 @@ def plot(sources: list[Path], png: Path) -> None:
     """Peak against the reference's, by grid, one line per scene: the runs at the default
     CFL safety and driver ratio (0.5 / 0.5) and the finer check, from earlier --json files;
     a later file's scene replaces an earlier one's point at the same grid."""
-    from pd_tool.plots import line_plot
+    from pd_tool.render.plots import line_plot
 
     points: dict[str, dict[int, float]] = {}
     for src in sources:
@@ -243,9 +243,9 @@ def main() -> None:
         # a third of the thin strip's substeps
         args.gaussians, args.reference, args.strip_thickness = 3000, 48, 0.04
 
-    from pd_tool.device import init_warp_quietly
-    from pd_tool.presets import load_preset
-    from pd_tool.synthetic import clamped_strip_frequency
+    from pd_tool.core.device import init_warp_quietly
+    from pd_tool.materials.presets import load_preset
+    from pd_tool.io.synthetic import clamped_strip_frequency
 
     init_warp_quietly()
     settings = {q: load_preset("quality", q) for q in QUALITIES}

@@ -23,10 +23,10 @@ def bake_positions(scene, device: str, frames: int, quality: str, out: Path) -> 
     """Every frame's Gaussian positions [T, N, 3] of a bake (read back from the USD)."""
     from pxr import Usd, UsdGeom
 
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
+    from pd_tool.io.synthetic import POT_TOP
 
     bake(scene, out, force=ForceSpec(accel=(0.0, 0.0, 1.0)), material=Material.from_preset("flower"),
          prepare_options=PrepareOptions(static_below=POT_TOP),
@@ -56,10 +56,10 @@ def main() -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from memory_estimate import make_video  # the same plant + video as the memory bench
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     res: dict = {"device": a.device, "n": a.n, "frames": a.frames, "runs": a.runs}
     with tempfile.TemporaryDirectory() as tmp:

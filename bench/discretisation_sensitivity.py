@@ -13,7 +13,7 @@ with the true E on the default fit's discretisation (32 cells, 0.1 driving parti
 Gaussian) and on others, among them the default bake preset's (16 cells, 0.5); and the
 uniform 1e6 Pa baseline on the fit's. Reports the RMS Gaussian position difference over
 2 s against the fit's discretisation. This is why a bake of a fitted material simulates as
-the fit did (pd_tool/bake.py).
+the fit did (pd_tool/bake/baker.py).
 
 Both as a fraction of the object's size.
 
@@ -42,8 +42,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
-    from pd_tool.device import init_warp_quietly
-    from pd_tool.synthetic import make_plant
+    from pd_tool.core.device import init_warp_quietly
+    from pd_tool.io.synthetic import make_plant
 
     init_warp_quietly()
     scene = make_plant(args.gaussians, seed=0)
@@ -60,8 +60,8 @@ def grid_part(args, scene) -> dict:
     import numpy as np
 
     from fit_recovery import simulate_positions
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, driver_truth_E
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, driver_truth_E
 
     runs, baseline = {}, None
     for grid, ratio in ((32, 0.1), (16, 0.5), (16, 0.1), (32, 0.5), (24, 0.1)):
@@ -91,10 +91,10 @@ def substep_part(args, scene) -> dict:
     import numpy as np
 
     from fit_recovery import PUSH_SPEED, push_direction
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.reference import push_velocity
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.fit.reference import push_velocity
     from pd_tool.sim import MPMSolver, SimConfig
-    from pd_tool.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E
+    from pd_tool.io.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E
 
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=args.grid))
     drivers = prep.build_drivers(ratio=args.ratio, seed=0)

@@ -50,7 +50,7 @@ def hardware(device: str) -> str:
 
 
 def plant_points(n: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     scene = make_plant(n, seed=0)
     return scene.positions.to(device), scene.quats.to(device)
@@ -134,8 +134,8 @@ POKE_RADIUS = 0.15  # of the object's longest side, around the top free particle
 
 
 def bench_accuracy(args) -> dict:
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 
     dev = args.device
     scene = make_plant(args.gaussians, seed=0)

@@ -46,9 +46,9 @@ def main() -> int:
     from pxr import Usd
 
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.reference import plant_reference_for_fit
-    from pd_tool.synthetic import POT_TOP, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.fit.reference import plant_reference_for_fit
+    from pd_tool.io.synthetic import POT_TOP, make_plant
+    from pd_tool.render.views import scene_camera
 
     from fit_recovery import reference_height
 

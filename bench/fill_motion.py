@@ -53,7 +53,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pd_tool.fill import fill_interior  # noqa: E402
+from pd_tool.prepare.fill import fill_interior  # noqa: E402
 from pd_tool.sim import MPMSolver, SimConfig  # noqa: E402
 
 DX = 0.01  # m, grid spacing (a 4-cell radius is a 4 cm thick branch)

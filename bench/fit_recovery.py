@@ -32,8 +32,8 @@ def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, acce
     import numpy as np
     import torch
 
-    from pd_tool.animate import GaussianAnimator
-    from pd_tool.bake import ForceSpec, force_mask
+    from pd_tool.bake.animate import GaussianAnimator
+    from pd_tool.bake.baker import ForceSpec, force_mask
     from pd_tool.sim import MPMSolver, SimConfig
 
     # substeps is a floor: a fitted E stiffer than the truth needs more (CFL)
@@ -64,7 +64,7 @@ PUSH_SPEED = 0.6  # m/s at the top of each reference video's initial push
 def true_push(x_sim, static, k: int):
     """View k's true initial velocity [N, 3] m/s at points x_sim (simulation axes, m), as
     plant_reference_for_fit gives it below."""
-    from pd_tool.reference import push_velocity
+    from pd_tool.fit.reference import push_velocity
 
     return push_velocity(x_sim, static, direction=push_direction(k), speed=PUSH_SPEED)
 
@@ -153,10 +153,10 @@ def plant_references(folder, scene, *, views: int, size: int, quality, frames: i
     """The benchmark's reference videos, loaded: view k pushed along push_direction(k) and
     seen from 45 + 90 k degrees azimuth (view 0 from the scene camera), `size` px on the
     long side (16:9 from 512 px up), written under `folder`."""
-    from pd_tool.cameras import auto_camera
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.reference import plant_reference_for_fit
-    from pd_tool.views import scene_camera
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.fit.reference import plant_reference_for_fit
+    from pd_tool.render.views import scene_camera
 
     h = reference_height(size)
     refs = []
@@ -173,10 +173,10 @@ def plant_references(folder, scene, *, views: int, size: int, quality, frames: i
 def truth_substeps(scene, quality: dict, fps: float, nu: float) -> int:
     """The substeps per frame the CFL condition gives the reference under the true E and
     the push's top speed (what --substeps truth fixes for every simulation)."""
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.presets import fit_simulation
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.materials.presets import fit_simulation
     from pd_tool.sim.cfl import cfl_substeps, wave_speed
-    from pd_tool.synthetic import POT_TOP, driver_truth_E
+    from pd_tool.io.synthetic import POT_TOP, driver_truth_E
 
     grid, cfl, ratio = fit_simulation(quality)
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=grid))
@@ -194,8 +194,8 @@ def objective_at(scene, refs, settings, res, views: int) -> dict:
     import torch
 
     from pd_tool.fit.pipeline import FitProblem, sequence_loss
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP, driver_truth_E
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP, driver_truth_E
 
     pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP), settings.resolved())
     assert len(pb.x_rest) == len(res.driver_E), "the loss check must see the fit's drivers"
@@ -259,12 +259,12 @@ def main() -> None:
     import numpy as np
     import torch
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
     from pd_tool.fit.pipeline import FitSettings, run_fit
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_regions, driver_truth_E, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import fit_simulation, load_preset
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, driver_regions, driver_truth_E, make_plant
 
     init_warp_quietly()
     if args.device == "cpu":

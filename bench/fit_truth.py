@@ -78,7 +78,7 @@ class Row:
 
 def heights(pos: np.ndarray, up: str) -> np.ndarray:
     """Height fraction [N] in 0-1 along the up axis."""
-    from pd_tool.prepare import up_rotation
+    from pd_tool.prepare.preparation import up_rotation
 
     h = pos @ up_rotation(up)[2]
     return (h - h.min()) / max(float(np.ptp(h)), 1e-12)
@@ -86,7 +86,7 @@ def heights(pos: np.ndarray, up: str) -> np.ndarray:
 
 def truth_field(scene, up: str, kind: str, seed: int) -> np.ndarray:
     """E per Gaussian [N] in Pa."""
-    from pd_tool.prepare import up_rotation
+    from pd_tool.prepare.preparation import up_rotation
 
     pos = scene.positions.detach().cpu().double().numpy()
     t = heights(pos, up)
@@ -146,7 +146,7 @@ def degrade(frames: np.ndarray, rng) -> np.ndarray:
 
 def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str):
     """(prep, drivers, driver E) of one discretisation."""
-    from pd_tool.prepare import PrepareOptions, prepare_scene
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
     drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
@@ -157,9 +157,9 @@ def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, f
                      seed: int) -> tuple[list[Path], np.ndarray]:
     """Write the two reference videos; returns their folders and each Gaussian's largest
     displacement in them [N] (scene units)."""
-    from pd_tool.cameras import auto_camera
-    from pd_tool.fit.video import write_video_folder
-    from pd_tool.reference import push_velocity, simulate_reference
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.video.folder import write_video_folder
+    from pd_tool.fit.reference import push_velocity, simulate_reference
 
     prep, drivers, e = sim
     rest = drivers.positions.double().cpu().numpy()
@@ -182,7 +182,7 @@ def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, f
 def new_force(scene, up: str) -> tuple[tuple[float, float, float], tuple[float, float, float], float, float]:
     """(acceleration, point, radius, size) of the new force in scene units: diagonal in the
     horizontal plane, on the side of the object at NEW_FORCE['height'] of its height."""
-    from pd_tool.prepare import up_rotation
+    from pd_tool.prepare.preparation import up_rotation
 
     pos = scene.positions.detach().cpu().double().numpy()
     R = up_rotation(up)
@@ -210,10 +210,10 @@ def cli(args: list[str]) -> None:
 def bake_positions(folder: Path, name: str, scene_path: Path, material: list[str], force, seconds: float,
                    device: str, up: str, extra: list[str]) -> np.ndarray:
     """`pdtool bake` under the new force; positions [T, N, 3] in scene axes, read back
-    from its USD (whose axes follow pd_tool.bake.usd_frame)."""
+    from its USD (whose axes follow pd_tool.bake.baker.usd_frame)."""
     from pxr import Usd
 
-    from pd_tool.bake import usd_frame
+    from pd_tool.bake.baker import usd_frame
 
     accel, point, radius, _ = force
     out = folder / f"{name}.usd"
@@ -237,10 +237,10 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     from convergence import load_scene
     from fit_recovery import simulate_positions
     from pd_tool.io import save_splats
-    from pd_tool.material_file import MaterialFile
+    from pd_tool.materials.file import MaterialFile
     from pd_tool.fit.pipeline import FitSettings
-    from pd_tool.prepare import up_rotation
-    from pd_tool.presets import fit_simulation, load_preset
+    from pd_tool.prepare.preparation import up_rotation
+    from pd_tool.materials.presets import fit_simulation, load_preset
 
     up = SCENES[name]
     scene = load_scene(name, args.gaussians, data=args.data).to(args.device)
@@ -352,7 +352,7 @@ def main() -> None:
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
 
     init_warp_quietly()
     rows = []

@@ -5,19 +5,19 @@ file or folder) and loads it with the real loader. The property checked for ever
 
 * it loads, and the loaded object is sane (finite arrays, consistent shapes, values in
   the ranges the rest of pdtool assumes), or
-* it raises a ``pd_tool.errors.PdToolError`` subclass whose message is one non-empty line.
+* it raises a ``pd_tool.core.errors.PdToolError`` subclass whose message is one non-empty line.
 
 Anything else (another exception type, a multi-line or empty message, an insane object,
 a Python warning, a hang) is a *bug*. Targets (loaders):
 
     ply       pd_tool.io.load_splats on .ply: binary LE / BE and ASCII
     splat     pd_tool.io.load_splats on .splat
-    cameras   pd_tool.cameras.load_cameras: INRIA cameras.json, NeRF transforms.json,
+    cameras   pd_tool.core.cameras.load_cameras: INRIA cameras.json, NeRF transforms.json,
               pdtool camera.json (single, list, {"cameras": [...]}), and folders of them
-    video     pd_tool.fit.video.load_reference_video: frames, masks/, camera.json, .mp4
-    material  pd_tool.material_file.MaterialFile.load (.pdmat)
-    record    pd_tool.material_file.read_record (.pdtool/last-fit.json)
-    preset    pd_tool.presets.load_preset (user TOML for materials / quality / forces)
+    video     pd_tool.video.folder.load_reference_video: frames, masks/, camera.json, .mp4
+    material  pd_tool.materials.file.MaterialFile.load (.pdmat)
+    record    pd_tool.materials.file.read_record (.pdtool/last-fit.json)
+    preset    pd_tool.materials.presets.load_preset (user TOML for materials / quality / forces)
 
 Mutations: bit flips, byte overwrites, truncation, insertion, deletion, duplication;
 header edits (element counts incl. huge/negative, formats, property types, dropped /
@@ -60,7 +60,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pd_tool.errors import PdToolError  # noqa: E402
+from pd_tool.core.errors import PdToolError  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 # Warnings Python's default filters hide from users (imageio's ffmpeg reader leaves a pipe to
@@ -296,7 +296,7 @@ def sane_scene(scene: Any) -> list[str]:
     opacities [N] in 0-1, sh [N,K,3] with K in 1,4,9,16; all finite float32."""
     import torch
 
-    from pd_tool.scene import GaussianScene
+    from pd_tool.core.scene import GaussianScene
 
     if not isinstance(scene, GaussianScene):
         return [f"type: {type(scene).__name__} is not a GaussianScene"]
@@ -329,7 +329,7 @@ def sane_scene(scene: Any) -> list[str]:
 def sane_camera(cam: Any, where: str = "camera") -> list[str]:
     """Camera: positive integer size, positive finite focal lengths, finite principal point,
     rigid finite world_to_camera with last row 0 0 0 1, fps None or positive finite."""
-    from pd_tool.cameras import Camera
+    from pd_tool.core.cameras import Camera
 
     if not isinstance(cam, Camera):
         return [f"{where}: {type(cam).__name__} is not a Camera"]
@@ -368,7 +368,7 @@ def sane_video(v: Any) -> list[str]:
     camera sane and of size W x H, fps positive finite."""
     import torch
 
-    from pd_tool.fit.video import MIN_FRAMES, ReferenceVideo
+    from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
 
     if not isinstance(v, ReferenceVideo):
         return [f"type: {type(v).__name__} is not a ReferenceVideo"]
@@ -401,7 +401,7 @@ def sane_material(m: Any) -> list[str]:
     """MaterialFile: E [Q>=1] finite > 0 float, v0 / rest [Q,3] finite; the header values
     a bake reads (nu, density, damping, scene_path, scene_sha256, prepare) are present and
     valid; field arrays are finite real numbers."""
-    from pd_tool.material_file import MaterialFile
+    from pd_tool.materials.file import MaterialFile
 
     if not isinstance(m, MaterialFile):
         return [f"type: {type(m).__name__} is not a MaterialFile"]
@@ -457,7 +457,7 @@ def sane_record(r: Any) -> list[str]:
 
 def sane_preset(kind: str) -> Callable[[Any], list[str]]:
     def check(d: Any) -> list[str]:
-        from pd_tool.presets import _RANGES, _REQUIRED
+        from pd_tool.materials.presets import _RANGES, _REQUIRED
 
         if not isinstance(d, dict):
             return [f"preset: {type(d).__name__} is not a dict"]
@@ -501,7 +501,7 @@ PLY_TYPES = ["char", "uchar", "short", "ushort", "int", "uint", "float", "double
 
 def _ply_records(rng: random.Random, n: int, degree: int, *, normals: bool, extra: bool,
                  dtype: str = "<f4") -> np.ndarray:
-    from pd_tool.scene import REQUIRED_PLY_PROPERTIES
+    from pd_tool.core.scene import REQUIRED_PLY_PROPERTIES
 
     k = (degree + 1) ** 2
     names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + ["f_dc_0", "f_dc_1", "f_dc_2"]
@@ -849,7 +849,7 @@ def camera_bytes(rng: random.Random) -> tuple[bytes, str, str]:
 
 
 def make_cameras(rng: random.Random, work: Path, device: str = "cpu") -> Case:  # noqa: ARG001
-    from pd_tool.cameras import load_cameras
+    from pd_tool.core.cameras import load_cameras
 
     data, name, note = camera_bytes(rng)
     if rng.random() < 0.1:  # a folder holding the file (or a folder named like it)
@@ -911,7 +911,7 @@ IMAGE_MODES = ["RGB", "RGB", "L", "LA", "RGBA", "P", "1", "I;16"]
 
 
 def make_video(rng: random.Random, work: Path, device: str = "cpu") -> Case:
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
 
     folder = work / "video"
     folder.mkdir()
@@ -1053,7 +1053,7 @@ def make_video(rng: random.Random, work: Path, device: str = "cpu") -> Case:
 
 # ---------------------------------------------------------------------------- material file
 def _material_arrays(rng: random.Random) -> dict[str, np.ndarray]:
-    from pd_tool.material_file import FORMAT, VERSION
+    from pd_tool.materials.file import FORMAT, VERSION
 
     q = rng.choice([1, 2, 5])
     g = np.random.default_rng(rng.randrange(2 ** 32))
@@ -1100,7 +1100,7 @@ def _npy(arr: np.ndarray) -> bytes:
 
 
 def make_material(rng: random.Random, work: Path, device: str = "cpu") -> Case:  # noqa: ARG001
-    from pd_tool.material_file import MaterialFile
+    from pd_tool.materials.file import MaterialFile
 
     arrays = _material_arrays(rng)
     notes = []
@@ -1166,7 +1166,7 @@ def make_material(rng: random.Random, work: Path, device: str = "cpu") -> Case: 
 
 
 def make_record(rng: random.Random, work: Path, device: str = "cpu") -> Case:  # noqa: ARG001
-    from pd_tool.material_file import RECORD_PATH, read_record
+    from pd_tool.materials.file import RECORD_PATH, read_record
 
     scene = work / "scene.ply"
     scene.write_bytes(b"ply\n")
@@ -1222,7 +1222,7 @@ def toml_number(rng: random.Random) -> Any:
 def make_preset(rng: random.Random, work: Path, device: str = "cpu") -> Case:  # noqa: ARG001
     import datetime as dt
 
-    from pd_tool.presets import builtin, load_preset
+    from pd_tool.materials.presets import builtin, load_preset
 
     kind = rng.choice(["materials", "quality", "forces"])
     presets = builtin(kind)
@@ -1365,7 +1365,7 @@ def cli_one(target: str, rng: random.Random, runner: Any = None, subprocess_too:
         work = Path(d)
         case = TARGETS[target](rng, work, "cpu")
         if target == "video":  # the CLI's own settings: working size 256, fps from the files
-            from pd_tool.fit.video import load_reference_video
+            from pd_tool.video.folder import load_reference_video
 
             src = case.path
             case = Case(lambda: load_reference_video(src, working_size=256), sane_video, src, case.note)

@@ -22,14 +22,14 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
     from pd_tool.fit.pipeline import FitProblem, FitSettings, material_iteration
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video, push_velocity
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.reference import plant_reference_video, push_velocity
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.render.views import scene_camera
 
     init_warp_quietly()
     out = {}

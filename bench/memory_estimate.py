@@ -1,4 +1,4 @@
-"""Measured peak memory of a bake / fit against pd_tool.memory's estimate.
+"""Measured peak memory of a bake / fit against pd_tool.prepare.memory's estimate.
 
 Each size runs in a fresh subprocess: it imports pdtool, torch, warp and usd_export, makes
 the synthetic plant (and, for a fit, loads a reference video rendered beforehand), reads
@@ -39,10 +39,10 @@ def _status(field: str) -> int:
 def make_video(folder: Path, n: int, size: int = FIT_SIZE, frames: int = FIT_FRAMES) -> Path:
     """The plant of n Gaussians and a reference video of it, on disk."""
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.reference import plant_reference_video
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.render.views import scene_camera
 
     folder.mkdir(parents=True, exist_ok=True)
     save_splats(make_plant(n, seed=0), folder / "plant.ply")
@@ -63,14 +63,14 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
     torch.set_num_threads(1)
     wp.config.quiet = True
     import usd_export  # noqa: F401  (the bake imports it; part of the baseline)
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
-    from pd_tool.memory import PREVIEW_PIXELS, estimate_bake_memory, estimate_fit_memory
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.presets import Material, fit_simulation, load_preset
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.memory import PREVIEW_PIXELS, estimate_bake_memory, estimate_fit_memory
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.materials.presets import Material, fit_simulation, load_preset
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     wd = Path(workdir)
     q = load_preset("quality", quality)

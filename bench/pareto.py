@@ -4,7 +4,7 @@
     python bench/pareto.py --device cuda --grids 16,24,32,48,64,96 --reference-grid 128 --json pareto_gpu.json
 
 Bake: one scene (the synthetic plant, `--gaussians`), one force (a poke of the flower
-preset), `--seconds` of animation, baked by `pd_tool.bake.bake` itself (USD written and
+preset), `--seconds` of animation, baked by `pd_tool.bake.baker.bake` itself (USD written and
 read back, so the numbers are the shipped code path) over a sweep of
     grid resolution x CFL safety (at the default driver ratio), and
     grid resolution x driver ratio (at the default CFL safety),
@@ -80,10 +80,10 @@ def bake_plant(scene, case: BakeCase, *, seconds: float, fps: float, device: str
     """Bake `scene` (the synthetic plant) with a poke under `case`'s settings.
 
     Returns (positions [frames, N, 3] scene units, BakeResult)."""
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
+    from pd_tool.io.synthetic import POT_TOP
 
     out = folder / "bake.usd"
     res = bake(scene, out, force=ForceSpec.from_interaction("poke", (accel, 0.0, 0.0)),
@@ -173,12 +173,12 @@ def fit_sweep(args) -> list[dict]:
     import torch
 
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_for_fit
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.reference import plant_reference_for_fit
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+    from pd_tool.render.views import scene_camera
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -243,9 +243,9 @@ def main() -> None:
 
     import torch
 
-    from pd_tool.device import init_warp_quietly
-    from pd_tool.presets import load_preset
-    from pd_tool.synthetic import make_plant
+    from pd_tool.core.device import init_warp_quietly
+    from pd_tool.materials.presets import load_preset
+    from pd_tool.io.synthetic import make_plant
 
     torch.set_num_threads(args.threads)
     init_warp_quietly()
@@ -325,7 +325,7 @@ def main() -> None:
 
 
 def write_plot(path: Path, rows: list[BakeCase], front: list[int], out: dict) -> None:
-    from pd_tool.plots import scatter_plot
+    from pd_tool.render.plots import scatter_plot
 
     # a log axis cannot show an error of 0 (a case identical to the reference)
     keep = [i for i, r in enumerate(rows) if r.error > 0]

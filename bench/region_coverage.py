@@ -27,9 +27,9 @@ def region_coverage(n: int, width: int, height: int, device: str) -> dict[str, f
     import torch
 
     from pd_tool.render.api import render
-    from pd_tool.scene import rgb_to_sh
-    from pd_tool.synthetic import REGIONS, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.core.scene import rgb_to_sh
+    from pd_tool.io.synthetic import REGIONS, make_plant
+    from pd_tool.render.views import scene_camera
 
     scene = make_plant(n, seed=0).to(device)
     cam = scene_camera(scene, width=width, height=height)
@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
 
     init_warp_quietly()
     rows = []

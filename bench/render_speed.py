@@ -22,7 +22,7 @@ import time
 
 import torch
 
-from pd_tool.cameras import Camera, look_at
+from pd_tool.core.cameras import Camera, look_at
 from pd_tool.render import render
 
 CASES = [  # (name, width, height, n_gaussians)

@@ -14,7 +14,7 @@ Skips (each "off" is the plain alternative, same scene, force and material):
   tape       MPMSolver, no tape (bake)                     vs DiffSim forward with autograd on
   graphs     CUDA graph per frame                          vs plain launches (CUDA only)
 box, static, tape and graphs time the simulator alone (MPMSolver.step_frame over the
-frames); drivers, cfl and rest time the whole `pd_tool.bake.bake` call. Times: CPU seconds
+frames); drivers, cfl and rest time the whole `pd_tool.bake.baker.bake` call. Times: CPU seconds
 of this process (robust on a shared machine with --threads 1) and wall seconds.
 """
 from __future__ import annotations
@@ -57,7 +57,7 @@ class Clock:
 def scenes(args) -> dict:
     """name -> (scene, PrepareOptions kwargs, material preset, force accel, force interaction)."""
     from pd_tool.io import load_splats
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     out = {"plant": (make_plant(args.gaussians, seed=0, device=args.device), {"static_below": POT_TOP},
                      "flower", (20.0, 0.0, 0.0), "poke")}
@@ -69,9 +69,9 @@ def scenes(args) -> dict:
 
 
 def timed_bake(spec, args, folder: Path, **settings) -> tuple[Clock, object]:
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
 
     scene, prep_kw, mat, accel, inter = spec
     s = dict(seconds=args.seconds, quality=args.quality, fmt="instancer", device=args.device, stop_at_rest=False)
@@ -87,10 +87,10 @@ def sim_setup(spec, args):
     """Prepared scene, drivers and the bake's SimConfig pieces for simulator-only timings."""
     import torch
 
-    from pd_tool.bake import ForceSpec, force_mask
+    from pd_tool.bake.baker import ForceSpec, force_mask
     from pd_tool.drivers import build_drivers
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.presets import Material, load_preset
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.materials.presets import Material, load_preset
 
     scene, prep_kw, mat_name, accel, inter = spec
     q = load_preset("quality", args.quality)
@@ -182,7 +182,7 @@ def main() -> None:
 
     import torch
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
 
     torch.set_num_threads(args.threads)
     init_warp_quietly()

@@ -5,7 +5,7 @@ clear PdToolError (the stability guard's SimulationUnstable, or a rejected input
     python bench/stress.py --json stress.json --markdown stress.md --timeout 120
     python bench/stress.py --device cuda --json stress_gpu.json
 
-Each case bakes a small scene through `pd_tool.bake.bake` (preparation, driving particles,
+Each case bakes a small scene through `pd_tool.bake.baker.bake` (preparation, driving particles,
 MPM, Gaussian interpolation, USD writing: the whole user path) and checks the USD it wrote:
   stable    every position finite, inside the simulation box (no escape; 2 cells of slack
             for Gaussians carried rigidly by a driver), and the fastest Gaussian no faster
@@ -53,8 +53,8 @@ def make_scene(geometry: str, cov: str, opacity: str, seed: int = 0):
     """A small GaussianScene and its PrepareOptions keyword arguments for one case."""
     import torch
 
-    from pd_tool.scene import GaussianScene, rgb_to_sh
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.core.scene import GaussianScene, rgb_to_sh
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     rng = np.random.default_rng(seed)
     prep_kw: dict = {}
@@ -161,7 +161,7 @@ def quick_matrix() -> list[dict]:
 # ----------------------------------------------------------------------------- one case
 def _cfl_substeps(scene, prep_kw: dict, c: dict, grid: int, cfl: float, fps: float) -> int:
     """The substep count the bake's CFL rule would pick at the first (forced) frame."""
-    from pd_tool.prepare import PrepareOptions, prepare_scene
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
     from pd_tool.sim.cfl import cfl_substeps, wave_speed
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, **prep_kw))
@@ -173,10 +173,10 @@ def _cfl_substeps(scene, prep_kw: dict, c: dict, grid: int, cfl: float, fps: flo
 def run_case(c: dict, *, device: str = "cpu", frames: int = 10, fps: float = 30.0, grid: int = 16,
              cfl: float = 0.5, ratio: float = 0.25, slow_guard: float = 60.0) -> dict:
     """Bake one case and classify it. Returns the case dict plus outcome, message, seconds."""
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.errors import PdToolError, SimulationUnstable
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.presets import Material
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.core.errors import PdToolError, SimulationUnstable
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.materials.presets import Material
 
     r = dict(c)
     t0 = time.perf_counter()
@@ -201,7 +201,7 @@ def run_case(c: dict, *, device: str = "cpu", frames: int = 10, fps: float = 30.
                                              device=device, substeps=substeps, stop_at_rest=False))
             r["substeps"] = res.substeps_per_frame
             r["drivers"] = res.drivers
-            from pd_tool.prepare import PrepareOptions as _PO
+            from pd_tool.prepare.preparation import PrepareOptions as _PO
 
             prep = prepare_scene(scene, _PO(grid_res=grid, **prep_kw))
             pos = _read_positions(tmp / "out.usd", res.frames)
@@ -252,7 +252,7 @@ def _classify(pos: np.ndarray, prep, accel: float, duration: float, fps: float) 
 def _worker(conn, kw: dict) -> None:
     import torch
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
 
     torch.set_num_threads(1)
     init_warp_quietly()

@@ -34,11 +34,11 @@ def main() -> None:
     import torch
 
     from bench.fit_recovery import plant_references, true_pushes
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
     from pd_tool.fit.pipeline import FitProblem, FitSettings, _fit_round, sequence_loss
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP, REGIONS, driver_regions, driver_truth_E, make_plant
 
     init_warp_quietly()
     if args.device == "cpu":

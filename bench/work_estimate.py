@@ -1,4 +1,4 @@
-"""Throughput constants of pd_tool/work.py, measured on this machine.
+"""Throughput constants of pd_tool/prepare/work.py, measured on this machine.
 
 Times, per call, the pieces the work estimate adds up and fits each to a line:
 
@@ -7,10 +7,10 @@ Times, per call, the pieces the work estimate adds up and fits each to a line:
 - a render, forward and forward + backward:                      r0 + g * Gaussians + p * pixels
 - the bake's per-frame work per Gaussian (interpolation and the USD write)
 
-and prints the constants in the form pd_tool/work.py holds them, with each fit's worst
+and prints the constants in the form pd_tool/prepare/work.py holds them, with each fit's worst
 ratio of measured to predicted time. On a shared machine run it twice and keep the slower.
 
-    OMP_NUM_THREADS=1 python bench/work_estimate.py --device cpu --json docs/cpu-runs/work_estimate_cpu.json
+    OMP_NUM_THREADS=1 python bench/work_estimate.py --device cpu --json docs/runs/work_estimate_cpu.json
 """
 from __future__ import annotations
 
@@ -82,10 +82,10 @@ def bake_frame_rate(device: str, counts: list[int], frames: int) -> dict:
     frame, minus its measured simulation time (no force: one substep stays stable)."""
     import tempfile
 
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     per = []
     with tempfile.TemporaryDirectory() as tmp:

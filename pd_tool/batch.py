@@ -39,8 +39,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pd_tool.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, temp_stem
-from pd_tool.errors import PdToolError
+from pd_tool.core.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, temp_stem
+from pd_tool.core.errors import PdToolError
 
 COMMANDS = ("bake", "fit")
 JOB_KEYS = {"name", "command", "args", "after", "sweep"}
@@ -420,7 +420,7 @@ def load_jobs(path: str | Path) -> list[Job]:
     Raises JobsFileError (one line) for a missing, unreadable, too large, too deeply
     nested or malformed file.
     """
-    from pd_tool.inputs import regular_file_problem
+    from pd_tool.core.inputs import regular_file_problem
 
     path = Path(path)
     problem = regular_file_problem(path)  # a pipe or a device would block the read
@@ -555,7 +555,7 @@ def job_files(job: Job) -> JobFiles:
                 p = absolute(v)
                 if _exists(p):
                     ins.append(p)
-    from pd_tool.material_file import RECORD_PATH
+    from pd_tool.materials.file import RECORD_PATH
 
     if job.command == "bake" and params.get("material") is None and params.get("preset") is None:
         ins.append(cwd / RECORD_PATH)  # a bare `bake` uses the folder's last fit
@@ -707,7 +707,7 @@ _TMP_RAND = r"[a-z0-9_]{8}"  # tempfile's random part (mkstemp / mkdtemp)
 
 def temporaries(p: Path) -> list[Path]:
     """The hidden temporaries of output `p` that exist now, as pdtool's writers name them:
-    `.NAME.XXXXXXXX.part.EXT` (pd_tool.atomic, a file), `.NAME.XXXXXXXX.part` (a folder),
+    `.NAME.XXXXXXXX.part.EXT` (pd_tool.core.atomic, a file), `.NAME.XXXXXXXX.part` (a folder),
     `.NAME.XXXXXXXX.old` (the folder being replaced) and `.NAME.tmp-PID-HEX.usdc|usda`
     (usd_export's writer). Nothing else in the folder matches."""
     # a writer keeps only the first bytes of a long name, and of a long suffix, in its
@@ -975,7 +975,7 @@ def _start_resource_tracker_quietly() -> None:
     the terminal the user killed the batch from. Nothing to do when it already runs."""
     from multiprocessing import resource_tracker
 
-    from pd_tool.device import native_stderr_silenced
+    from pd_tool.core.device import native_stderr_silenced
 
     with native_stderr_silenced():
         resource_tracker.ensure_running()

@@ -13,8 +13,15 @@ from typing import Callable
 
 import numpy as np
 
-from pd_tool.atomic import mark_folder
-from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS
+from pd_tool import app
+from pd_tool.bake import BakeSettings, ForceSpec
+from pd_tool.core.atomic import check_replaceable_folder, folder_mark, mark_folder
+from pd_tool.fit.pipeline import FitSettings
+from pd_tool.fit.reference import plant_reference_for_fit
+from pd_tool.io import load_splats, save_splats
+from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+from pd_tool.prepare import PrepareOptions
+from pd_tool.render.views import scene_camera
 
 # Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), and
 # fit iterations (velocity, material). The default demo must finish within 10 minutes on a
@@ -32,8 +39,6 @@ DEMO_NAMES = ("plant.ply", "plant.pdmat", "plant.pdmat.ckpt", "plant.report.json
 def _claim_folder(out: Path) -> None:
     """The demo writes fixed names into `out`: refuse a folder holding anything pdtool did
     not write (a user's own plant.ply would be replaced), then mark it as the demo's."""
-    from pd_tool.atomic import check_replaceable_folder, folder_mark
-
     known = DEMO_NAMES if out.is_dir() and folder_mark(out) == DEMO_MARK else ()
     check_replaceable_folder(out, "--out", known=known)
     out.mkdir(parents=True, exist_ok=True)
@@ -55,17 +60,6 @@ class DemoResult:
 def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cpu",
              say: Callable[[str], None] = print, fit_progress=None, bake_progress=None) -> DemoResult:
     """Run the demo into out_dir (created); returns what it wrote and the comparison."""
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.fit.outputs import write_fit_outputs
-    from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.io import load_splats, save_splats
-    from pd_tool.material_file import MaterialFile, write_record
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_for_fit
-    from pd_tool.synthetic import make_plant
-    from pd_tool.views import scene_camera
-
     if quality not in DEMO_SIZES:
         raise ValueError(f"demo quality must be one of {', '.join(DEMO_SIZES)}")
     n_gauss, n_frames, size, velocity_iters, material_iters = DEMO_SIZES[quality]
@@ -88,25 +82,22 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
 
     # 3. fit, exactly as `pdtool fit plant.ply video/ --static-below 0.2`
     t0 = time.perf_counter()
-    refs = [load_reference_video(video, working_size=size, device=device)]
     settings = FitSettings(quality=quality, device=device, working_long_side=size, velocity_iters=velocity_iters,
                            material_iters=material_iters)
     mat_path = out / "plant.pdmat"
-    result = run_fit(scene, paths["scene"], refs, mat_path, prepare_options=PrepareOptions(static_below=POT_TOP),
-                     settings=settings, progress=fit_progress)
-    side = write_fit_outputs(out, mat_path.stem, scene, result, refs, settings.resolved(), preview=True)
-    write_record(paths["scene"], mat_path, out)
+    done = app.fit(app.FitJob(paths["scene"], [video], mat_path, settings, PrepareOptions(static_below=POT_TOP),
+                              record_dir=out), progress=fit_progress)
+    result = done.result
     fit_s = time.perf_counter() - t0
-    paths.update(material=mat_path, **{f"fit_{k}": v for k, v in side.items()})
+    paths.update(material=mat_path, **{f"fit_{k}": v for k, v in done.side.items()})
 
     # 4. bake a poke with the fitted material, as `pdtool bake --force ... out.usd`
     t0 = time.perf_counter()
     usd = out / "poke.usd"
-    mf = MaterialFile.load(mat_path)
-    bres = bake(scene, usd, force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material_file=mf,
-                settings=BakeSettings(seconds=2.0, fps=30, fmt="both", device=device),  # as the fit simulated
-                prepare_options=PrepareOptions.from_dict(mf.prepare), preview=out / "poke.mp4",
-                progress=bake_progress)
+    bres = app.bake(app.BakeJob(usd, ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)),
+                                BakeSettings(seconds=2.0, fps=30, fmt="both", device=device),  # as the fit simulated
+                                scene=paths["scene"], material=mat_path, preview=out / "poke.mp4"),
+                    progress=bake_progress)
     bake_s = time.perf_counter() - t0
     paths["usd"] = usd
     paths["bake_preview"] = out / "poke.mp4"

@@ -10,10 +10,10 @@ def tiny_plant_video(folder: Path, gaussians: int, seed: int, size: int, n_frame
     """Write folder/plant.ply and the reference video folder/video (size x size px, frame
     0 at rest); returns the scene as loaded back from the .ply."""
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.views import scene_camera
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.reference import plant_reference_video
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.render.views import scene_camera
 
     save_splats(make_plant(gaussians, seed=seed), folder / "plant.ply")
     scene = load_splats(folder / "plant.ply")
@@ -30,10 +30,10 @@ def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_fra
     import torch
 
     from pd_tool.fit.pipeline import FitProblem, FitSettings
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.reference import push_velocity
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.reference import push_velocity
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(folder, gaussians, seed=seed, size=size, n_frames=n_frames)
     refs = [load_reference_video(folder / "video", working_size=size)]

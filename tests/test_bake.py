@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from cli import main
 from pd_tool.io import save_splats
-from pd_tool.synthetic import POT_TOP, make_plant
+from pd_tool.io.synthetic import POT_TOP, make_plant
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +45,10 @@ def test_bake_plant_flower_preset_validates(plant_ply: Path, tmp_path: Path) -> 
 
 
 def test_bake_donut_poke_decays(shared_data: Path, tmp_path: Path) -> None:
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
     from pd_tool.io import load_splats
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
 
     scene = load_splats(shared_data / "donut_fused.ply")
     result = bake(
@@ -113,7 +113,7 @@ def test_bake_raises_the_grid_for_thin_leaves_unless_told_not_to(thin_plant_ply:
 
 def test_a_thin_grid_that_would_run_too_long_falls_back_to_the_quality_grid(thin_plant_ply: Path, tmp_path: Path,
                                                                            monkeypatch) -> None:
-    import pd_tool.work as W
+    import pd_tool.prepare.work as W
 
     real = W.check_bake_work
 

@@ -216,7 +216,7 @@ def killed_then_resumed(tmp_path_factory):
     """Start `pdtool batch --workers 1` in its own process group, SIGKILL the group as soon as
     the first job's record appears, then run `--resume` in-process on two workers."""
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     root = tmp_path_factory.mktemp("batch")
     save_splats(make_plant(600, seed=0), root / "plant.ply")

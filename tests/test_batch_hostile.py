@@ -307,8 +307,8 @@ def test_remove_temporaries_takes_only_the_writers_temporaries(tmp_path: Path) -
         (out / n).mkdir()
         (out / n / "frame_0000.png").write_text("x")
     # the folder replace was cut between its renames: the previous frames wait in .old/,
-    # under the name pd_tool.atomic parks them with
-    from pd_tool.atomic import PARKED
+    # under the name pd_tool.core.atomic parks them with
+    from pd_tool.core.atomic import PARKED
 
     (out / ".frames.a1b2c3d4.old" / PARKED).mkdir()
     (out / ".frames.a1b2c3d4.old" / PARKED / "camera.json").write_text("{}")
@@ -347,7 +347,7 @@ def test_json_to_a_read_only_folder_is_refused_before_the_jobs(tmp_path: Path, m
     ro = tmp_path / "ro"
     with _tmpfs(ro, "ro") as mounted:
         if not mounted:  # what statvfs would say of a read-only mount
-            from pd_tool import atomic
+            from pd_tool.core import atomic
 
             real = atomic.destination_problem
             monkeypatch.setattr(atomic, "destination_problem",

@@ -78,7 +78,7 @@ def running_batch(tmp_path: Path):
     """Start `pdtool batch --workers 1` in its own session and wait until the slow bake is
     writing its USD; yields (process, its worker pids, out folder, stderr file)."""
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     save_splats(make_plant(600, seed=0), tmp_path / "plant.ply")
     project = tmp_path / "project"

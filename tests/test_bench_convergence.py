@@ -34,7 +34,7 @@ def test_peak_is_the_99th_percentile_at_the_worst_frame() -> None:
 
 
 def test_strip_frequency_is_kirchhoff_plate_theory() -> None:
-    from pd_tool.synthetic import clamped_strip_frequency
+    from pd_tool.io.synthetic import clamped_strip_frequency
 
     E, nu, rho, L, t = 2.5e7, 0.3, 700.0, 0.9, 0.04
     D = E * t ** 3 / (12 * (1 - nu ** 2))

@@ -63,7 +63,7 @@ def test_fit_recovery_report_and_oracle_v0(tmp_path: Path) -> None:
 def test_fit_recovery_lean_run_saves_drivers_and_gradients(tmp_path: Path) -> None:
     import numpy as np
 
-    from pd_tool.synthetic import REGION_TRUTH_E
+    from pd_tool.io.synthetic import REGION_TRUTH_E
 
     npz = tmp_path / "drivers.npz"
     rep = _run(tmp_path, "--material-iters", "2", "--no-variants", "--residual-gradients", "--save-drivers", str(npz),

@@ -17,7 +17,7 @@ ft = load_bench("fit_truth")
 
 @pytest.mark.parametrize("kind", ["region", "smooth", "random"])
 def test_every_field_spans_the_stated_range_and_follows_its_shape(kind: str) -> None:
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     scene = make_plant(4000, seed=0, thin=True)
     E = ft.truth_field(scene, "+z", kind, seed=0)

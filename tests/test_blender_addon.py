@@ -148,7 +148,7 @@ def _blender(script: str, args: list[str], env_extra: dict[str, str], consts: di
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory):
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     d = tmp_path_factory.mktemp("addon")
     scene = make_plant(N_SPLATS, seed=0)

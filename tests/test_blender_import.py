@@ -148,13 +148,13 @@ def test_per_splat_colours_reach_blender(imported):
 
 
 def test_pdtool_bake_output_imports(tmp_path):
-    """End to end: a real `pd_tool.bake` of the synthetic plant, imported into Blender."""
+    """End to end: a real `pd_tool.bake.baker` of the synthetic plant, imported into Blender."""
     from pxr import Usd, UsdGeom
 
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import Material
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import Material
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     scene = make_plant(1500, seed=0)
     out = tmp_path / "plant.usd"

@@ -1,4 +1,4 @@
-"""pd_tool.cameras: loaders (INRIA cameras.json, NeRF transforms.json, pdtool camera.json),
+"""pd_tool.core.cameras: loaders (INRIA cameras.json, NeRF transforms.json, pdtool camera.json),
 conventions, resizing, view selection, atomic save, auto framing and error messages."""
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import os
 import numpy as np
 import pytest
 
-from pd_tool.cameras import (
+from pd_tool.core.cameras import (
     Camera, auto_camera, load_cameras, look_at, save_camera_json, select_view,
 )
-from pd_tool.errors import CameraError
+from pd_tool.core.errors import CameraError
 
 
 def rot_z(deg: float) -> np.ndarray:

@@ -162,7 +162,7 @@ def test_output_names_are_checked(args, needle, scene, tmp_path) -> None:
 
 
 def test_name_check_allows_the_longest_name_that_fits(tmp_path) -> None:
-    from pd_tool.atomic import atomic_output
+    from pd_tool.core.atomic import atomic_output
     from pd_tool.cli_types import check_name
 
     ok = tmp_path / ("x" * 251 + ".usd")  # 255 bytes: the writers shorten it inside their temporaries
@@ -212,7 +212,7 @@ def test_help_shows_the_ranges() -> None:
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory) -> Path:
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     return save_splats(make_plant(600, seed=0), tmp_path_factory.mktemp("plant") / "plant.ply")
 
@@ -314,12 +314,12 @@ def test_os_error_on_write_is_one_line_naming_the_users_file(plant, tmp_path, mo
     ro = _read_only_folder(tmp_path)
     try:
         if ro is None:  # cannot mount here: the same error, injected where the PNG is written
-            import pd_tool.preview
+            import pd_tool.render.preview
 
             def full(path, image):
                 raise OSError(errno.EROFS, "Read-only file system", str(Path(path).parent / ".view.png.abcd1234.part.png"))
 
-            monkeypatch.setattr(pd_tool.preview, "save_png", full)
+            monkeypatch.setattr(pd_tool.render.preview, "save_png", full)
         line = _one_error_line(_run(["render", str(plant), "-o", str(out), "--width", "16", "--height", "16",
                                      "--device", "cpu"]))
     finally:

@@ -36,7 +36,7 @@ def test_demo_outputs(demo_dir: Path) -> None:
 def test_demo_folder_is_the_demos_own(demo_dir: Path, tmp_path: Path) -> None:
     """The demo writes fixed names: it may write again into a folder it made, never into
     one that holds a user's file."""
-    from pd_tool.atomic import folder_mark
+    from pd_tool.core.atomic import folder_mark
     from pd_tool.demo import DEMO_MARK, _claim_folder
 
     assert folder_mark(demo_dir) == DEMO_MARK
@@ -62,8 +62,8 @@ def test_demo_fit_separates_stiff_and_soft(demo_dir: Path) -> None:
     import numpy as np
 
     from pd_tool.io import load_splats
-    from pd_tool.material_file import MaterialFile
-    from pd_tool.synthetic import REGIONS
+    from pd_tool.materials.file import MaterialFile
+    from pd_tool.io.synthetic import REGIONS
 
     mf = MaterialFile.load(demo_dir / "plant.pdmat")
     scene = load_splats(demo_dir / "plant.ply")
@@ -88,7 +88,7 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     assert res.exit_code == 0, res.output
     assert (demo_dir / "again.usd").is_file()
     # without --quality the bake simulates on the fit's grid with the fit's drivers, one to one
-    from pd_tool.material_file import MaterialFile
+    from pd_tool.materials.file import MaterialFile
 
     mf = MaterialFile.load(demo_dir / "plant.pdmat")
     sim = mf.fit_simulation()

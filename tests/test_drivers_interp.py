@@ -6,16 +6,8 @@ import math
 import pytest
 import torch
 
-from pd_tool.drivers import (
-    DriverInterpolator,
-    apply_deformation,
-    interpolate,
-    kabsch,
-    matrix_to_quat,
-    quat_multiply,
-    quat_to_matrix,
-    rotate_quats,
-)
+from pd_tool.core.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix, rotate_quats
+from pd_tool.drivers import DriverInterpolator, apply_deformation, interpolate, kabsch
 from pd_tool.drivers._ref import affine_ref, interpolate_rigid_ref, kabsch_ref
 from pd_tool.drivers.interpolate import AFFINE_REG
 from pd_tool.drivers.knn import nearest_drivers

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool import fill as fl
-from pd_tool.errors import PreparationError
-from pd_tool.fill import AUTO_CLOSEDNESS, FillError, fill_interior
+from pd_tool.core.quaternion import quat_to_matrix_np
+from pd_tool.prepare import fill as fl
+from pd_tool.core.errors import PreparationError
+from pd_tool.prepare.fill import AUTO_CLOSEDNESS, FillError, fill_interior
 
 CELL = 0.05  # m; a 0.5 m sphere spans 20 cells, like an object in a 64^3 box
 VOLUME_RTOL = 0.05  # the bound on the filled volume of a closed sphere
@@ -244,7 +245,7 @@ def test_splat_density_matches_reference(device):
     n = 20
     u = rng.uniform(2, 9, (n, 3))
     q = rng.normal(size=(n, 4))
-    rot = fl._rotations(q)
+    rot = quat_to_matrix_np(q)
     sig_v = rng.uniform(0.5, 2.0, (n, 3))
     opa = rng.uniform(0.1, 1.0, n)
     cov_diag = np.einsum("nij,nj,nij->ni", rot, sig_v**2, rot)

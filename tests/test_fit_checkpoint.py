@@ -186,7 +186,7 @@ def plant(tmp_path_factory):
     """A tiny plant, its video, and two genuine checkpoints written in stage 2 (iteration 1):
     one of the fit the tests resume, one of the same fit with another seed."""
     from _plant import tiny_plant_video
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
 
     d = tmp_path_factory.mktemp("ckpt")
     scene = tiny_plant_video(d, 600, seed=1, size=24)
@@ -202,8 +202,8 @@ def plant(tmp_path_factory):
 
 def _fit(inputs, out: Path, stop_at=None, resume: bool = False, seed: int = 0):
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     d, scene, refs = inputs
 
@@ -319,7 +319,7 @@ RESUME_CASES = [
 
 @pytest.mark.parametrize("name,make,message", RESUME_CASES, ids=[c[0] for c in RESUME_CASES])
 def test_resume_refuses_a_crafted_or_foreign_checkpoint(plant, tmp_path: Path, name, make, message) -> None:
-    from pd_tool.errors import PdToolError
+    from pd_tool.core.errors import PdToolError
 
     inputs, genuine = plant
     marker = tmp_path / "marker"
@@ -356,7 +356,7 @@ def test_the_genuine_checkpoint_resumes(plant, tmp_path: Path) -> None:
 def test_a_foreign_file_at_the_checkpoint_path_is_kept(plant, tmp_path: Path, kind: str, resume: bool) -> None:
     """A file pdtool did not write, where the fit keeps its checkpoint: refused before any work,
     neither overwritten nor deleted, with or without --resume."""
-    from pd_tool.errors import PdToolError
+    from pd_tool.core.errors import PdToolError
 
     inputs, _ = plant
     out = tmp_path / "fit.pdmat"

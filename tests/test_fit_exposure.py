@@ -12,9 +12,9 @@ from tests._plant import tiny_plant_video
 
 def _problem(folder: Path, gain: tuple[float, float, float], match: bool):
     from pd_tool.fit.pipeline import FitProblem, FitSettings
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(folder, 1500, seed=0, size=64, n_frames=3)
     ref = load_reference_video(folder / "video", working_size=64)
@@ -41,9 +41,9 @@ def test_match_exposure_off_keeps_the_render_as_it_is(tmp_path: Path) -> None:
 
 def test_a_fit_of_a_darker_video_says_it_matched_the_exposure(tmp_path: Path) -> None:
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(tmp_path, 1500, seed=0, size=64, n_frames=3)
     ref = load_reference_video(tmp_path / "video", working_size=64)

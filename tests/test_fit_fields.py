@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from pd_tool.errors import PdToolError
+from pd_tool.core.errors import PdToolError
 from pd_tool.fit.fields import (
     FieldSettingsError,
     MaterialField,
@@ -230,9 +230,9 @@ def test_field_arrays_round_trip_through_material_file(tmp_path):
     # the lead's .pdmat stores `field.<name>.<param>` float32 arrays + JSON meta
     import numpy as np
 
-    from pd_tool.errors import MaterialFileError
+    from pd_tool.core.errors import MaterialFileError
     from pd_tool.fit.fields import field_arrays, load_field
-    from pd_tool.material_file import MaterialFile
+    from pd_tool.materials.file import MaterialFile
 
     torch.manual_seed(8)
     e = MaterialField(8, 5.0, 20.0, 11.0, channels=4, hidden=16)

@@ -69,9 +69,9 @@ def test_polish_iterations_back_propagate_through_every_frame(tmp_path) -> None:
 
     from _plant import tiny_plant_video
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(tmp_path, 500, seed=3, size=24)
     refs = [load_reference_video(tmp_path / "video", working_size=24)]

@@ -17,13 +17,13 @@ from click.testing import CliRunner
 
 def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
     from cli import main
-    from pd_tool.cameras import auto_camera
+    from pd_tool.core.cameras import auto_camera
     from pd_tool.fit.fields import VelocityField
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.material_file import MaterialFile
-    from pd_tool.prepare import PrepareOptions, SimTransform, prepare_scene
-    from pd_tool.reference import plant_reference_video
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
+    from pd_tool.materials.file import MaterialFile
+    from pd_tool.prepare.preparation import PrepareOptions, SimTransform, prepare_scene
+    from pd_tool.fit.reference import plant_reference_video
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
 
     save_splats(make_plant(600, seed=4), tmp_path / "plant.ply")
     scene = load_splats(tmp_path / "plant.ply")

@@ -11,7 +11,7 @@ import torch
 @pytest.fixture(scope="module")
 def plant_problem(tmp_path_factory):
     from _plant import tiny_plant_problem
-    from pd_tool.synthetic import driver_regions, driver_truth_E
+    from pd_tool.io.synthetic import driver_regions, driver_truth_E
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -24,7 +24,7 @@ def plant_problem(tmp_path_factory):
 
 def test_loss_is_lowest_at_the_true_stem_E(plant_problem) -> None:
     from pd_tool.fit.pipeline import sequence_loss
-    from pd_tool.synthetic import REGIONS
+    from pd_tool.io.synthetic import REGIONS
 
     pb, v0, region, truth = plant_problem
     stem = region == REGIONS.index("stem")
@@ -38,7 +38,7 @@ def test_loss_is_lowest_at_the_true_stem_E(plant_problem) -> None:
 
 def test_gradient_from_the_uniform_start_points_towards_the_truth(plant_problem) -> None:
     from pd_tool.fit.pipeline import sequence_loss
-    from pd_tool.synthetic import REGION_TRUTH_E, REGIONS
+    from pd_tool.io.synthetic import REGION_TRUTH_E, REGIONS
 
     pb, v0, region, truth = plant_problem
     start = pb.s.init_E

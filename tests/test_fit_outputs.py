@@ -32,7 +32,7 @@ def _reference_ticks(lo: float, hi: float) -> list[float] | None:
 @pytest.mark.parametrize("lo,hi", [(1e3, 1e8), (1e4, 1e6), (2e4, 3e6), (1.1e5, 1.1e6), (5.2e4, 9.9e4),
                                    (3.0e5, 4.5e5), (0.7, 1.3)])
 def test_log_ticks_follow_the_range(lo: float, hi: float) -> None:
-    from pd_tool.plots import log_ticks
+    from pd_tool.render.plots import log_ticks
 
     ticks = log_ticks(lo, hi)
     assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)
@@ -49,7 +49,7 @@ def test_log_ticks_follow_the_range(lo: float, hi: float) -> None:
 
 
 def test_log_ticks_on_random_ranges_match_the_reference() -> None:
-    from pd_tool.plots import log_ticks
+    from pd_tool.render.plots import log_ticks
 
     rng = np.random.default_rng(0)
     for _ in range(200):
@@ -62,7 +62,7 @@ def test_log_ticks_on_random_ranges_match_the_reference() -> None:
 
 
 def test_log_ticks_refuse_a_range_a_log_scale_cannot_show() -> None:
-    from pd_tool.plots import log_ticks
+    from pd_tool.render.plots import log_ticks
 
     for lo, hi in [(0.0, 1e5), (-1.0, 1e5), (1e6, 1e5), (1e5, math.inf)]:
         with pytest.raises(ValueError, match="0 < lo <= hi"):
@@ -71,7 +71,7 @@ def test_log_ticks_refuse_a_range_a_log_scale_cannot_show() -> None:
 
 
 def test_sci_label_reads_back_as_its_value() -> None:
-    from pd_tool.plots import sci_label
+    from pd_tool.render.plots import sci_label
 
     assert [sci_label(v) for v in (1e4, 2.5e5, 1e6, 1.15e5)] == ["1e4", "2.5e5", "1e6", "1.15e5"]
     for v in 10 ** np.random.default_rng(1).uniform(-3, 9, 100):
@@ -106,10 +106,10 @@ def _ramp_runs(strip: np.ndarray) -> list[np.ndarray]:
 def plant_fit(tmp_path_factory):
     """A 400-Gaussian plant prepared as the demo's fit prepares it, with an E per simulated
     Gaussian near its region's true E, in a FitResult ready for write_fit_outputs."""
-    from pd_tool.cameras import auto_camera
+    from pd_tool.core.cameras import auto_camera
     from pd_tool.fit.pipeline import FitResult, FitSettings
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 
     scene = make_plant(400, seed=3)
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=24))
@@ -129,8 +129,8 @@ def test_e_picture_is_the_render_over_a_colour_bar(plant_fit, tmp_path: Path) ->
 
     from pd_tool.fit.outputs import e_field_scene, write_fit_outputs
     from pd_tool.fit.pipeline import FitSettings
-    from pd_tool.plots import STRIP_MIN_WIDTH
-    from pd_tool.views import render_image
+    from pd_tool.render.plots import STRIP_MIN_WIDTH
+    from pd_tool.render.views import render_image
 
     scene, result, video = plant_fit
     paths = write_fit_outputs(tmp_path, "fit", scene, result, [video], FitSettings(quality="draft"), preview=False)
@@ -152,8 +152,8 @@ def test_e_picture_is_the_render_over_a_colour_bar(plant_fit, tmp_path: Path) ->
 
 def test_e_picture_notes_give_the_percentiles_and_region_medians(plant_fit) -> None:
     from pd_tool.fit.outputs import e_picture_notes, e_statistics
-    from pd_tool.plots import colorbar_strip, sci_label
-    from pd_tool.synthetic import REGIONS
+    from pd_tool.render.plots import colorbar_strip, sci_label
+    from pd_tool.io.synthetic import REGIONS
 
     scene, result, _ = plant_fit
     prep, E = result.prep, result.gaussian_E
@@ -196,12 +196,12 @@ def test_report_records_what_the_fit_ran_at(fit_dir: Path, tmp_path: Path) -> No
 
     from pd_tool.fit.outputs import write_fit_outputs
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
-    from pd_tool.material_file import MaterialFile
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.presets import fit_simulation, load_preset
-    from pd_tool.synthetic import POT_TOP, REGIONS
+    from pd_tool.materials.file import MaterialFile
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.materials.presets import fit_simulation, load_preset
+    from pd_tool.io.synthetic import POT_TOP, REGIONS
 
     scene = load_splats(fit_dir / "plant.ply")
     refs = [load_reference_video(fit_dir / "video", working_size=24)]

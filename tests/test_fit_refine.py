@@ -9,9 +9,9 @@ import torch
 def test_refine_velocity_moves_v0_with_horizon_one(tmp_path) -> None:
     from _plant import tiny_plant_video
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(tmp_path, 600, seed=2, size=24)
     refs = [load_reference_video(tmp_path / "video", working_size=24)]

@@ -192,7 +192,7 @@ def test_a_still_mp4_is_told_from_a_moving_one(plant: Path, tmp_path: Path) -> N
     import imageio.v3 as iio
 
     from pd_tool.fit.pipeline import FitLearnsNothing, check_videos_can_teach
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
 
     frames = [iio.imread(p) for p in sorted((plant / "video").glob("frame_*.png"))]
     camera = plant / "video" / "camera.json"

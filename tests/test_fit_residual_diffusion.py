@@ -94,9 +94,9 @@ def test_stage_two_diffuses_the_residuals(tmp_path, monkeypatch) -> None:
     not at all when it is 0."""
     from _plant import tiny_plant_video
     from pd_tool.fit.pipeline import FitProblem, FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     scene = tiny_plant_video(tmp_path, 600, seed=2, size=32, n_frames=3)
     refs = [load_reference_video(tmp_path / "video", working_size=32)]

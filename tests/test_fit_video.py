@@ -1,4 +1,4 @@
-"""Tests of pd_tool.fit.video: reference video folders (frames or .mp4, camera.json, masks),
+"""Tests of pd_tool.video.folder: reference video folders (frames or .mp4, camera.json, masks),
 resizing to the working resolution, fps rules and the one-line errors."""
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool.cameras import Camera, load_cameras
-from pd_tool.errors import CameraError, VideoError
-from pd_tool.fit.video import (
+from pd_tool.core.cameras import Camera, load_cameras
+from pd_tool.core.errors import CameraError, VideoError
+from pd_tool.video.folder import (
     DEFAULT_FPS,
     load_reference_video,
     natural_key,
@@ -46,7 +46,7 @@ def test_round_trip_frames_masks_camera(tmp_path, device):
     masks = np.zeros((T, H, W), np.uint8)
     masks[:, 5:15, 8:20] = 255
     folder = write_video_folder(tmp_path / "video", frames, _camera(), 24.0, masks=masks)
-    from pd_tool.atomic import MANIFEST
+    from pd_tool.core.atomic import MANIFEST
 
     assert sorted(p.name for p in folder.iterdir()) == sorted(
         [MANIFEST, "camera.json", "masks"] + [f"frame_{i:04d}.png" for i in range(T)])  # the manifest: pdtool's folder

@@ -85,7 +85,7 @@ def test_oracle_flags_bugs() -> None:
     an insane result and a hang are bugs; a one-line PdToolError and a sane result are not."""
     import warnings
 
-    from pd_tool.errors import CameraError
+    from pd_tool.core.errors import CameraError
 
     def raise_(e):
         def f():

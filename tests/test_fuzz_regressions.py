@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pd_tool.cameras import load_cameras
-from pd_tool.errors import CameraError, MaterialFileError, PlyFormatError, PresetError
+from pd_tool.core.cameras import load_cameras
+from pd_tool.core.errors import CameraError, MaterialFileError, PlyFormatError, PresetError
 from pd_tool.io import load_splats
-from pd_tool.material_file import MaterialFile
-from pd_tool.presets import load_preset
+from pd_tool.materials.file import MaterialFile
+from pd_tool.materials.presets import load_preset
 from test_fuzz_loaders import fuzz
 
 
@@ -276,9 +276,9 @@ def test_camera_huge_rotation_entry_is_quiet(tmp_path: Path) -> None:
 def test_video_frame_declaring_huge_size(tmp_path: Path, size: tuple[int, int]) -> None:
     """A PNG header claiming 10^8 pixels printed Pillow's DecompressionBombWarning before the
     error; both sizes now give one VideoError line."""
-    from pd_tool.cameras import Camera, save_camera_json
-    from pd_tool.errors import VideoError
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.core.cameras import Camera, save_camera_json
+    from pd_tool.core.errors import VideoError
+    from pd_tool.video.folder import load_reference_video
 
     folder = tmp_path / "video"
     folder.mkdir()

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pd_tool.cameras import Camera, load_cameras, save_camera_json
-from pd_tool.errors import CameraError, PresetError, VideoError
-from pd_tool.fit.video import load_reference_video, write_video_folder
-from pd_tool.presets import load_preset
+from pd_tool.core.cameras import Camera, load_cameras, save_camera_json
+from pd_tool.core.errors import CameraError, PresetError, VideoError
+from pd_tool.video.folder import load_reference_video, write_video_folder
+from pd_tool.materials.presets import load_preset
 
 
 def _video(tmp_path: Path, cam: Camera, w: int = 32, h: int = 24) -> Path:

@@ -18,9 +18,9 @@ import torch.nn.functional as F
 from click.testing import CliRunner
 
 from cli import main
-from pd_tool.camera_motion import estimate_camera_motion, phase_correlation, to_gray
-from pd_tool.cameras import Camera, auto_camera, load_cameras, save_camera_json
-from pd_tool.generate import frame_camera
+from pd_tool.video.camera_motion import estimate_camera_motion, phase_correlation, to_gray
+from pd_tool.core.cameras import Camera, auto_camera, load_cameras, save_camera_json
+from pd_tool.video.generate import frame_camera
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = ["--width", "64", "--height", "48"]  # W x H; multiples of the tiny model's 8 px
@@ -94,9 +94,9 @@ def read_png(path: Path) -> np.ndarray:
 
 @needs_extra
 def test_generate_writes_a_video_folder_that_fit_reads(tiny_model: Path, shared_data: Path, tmp_path: Path) -> None:
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
-    from pd_tool.views import scene_camera
+    from pd_tool.render.views import scene_camera
 
     scene, out = shared_data / "udon.ply", tmp_path / "video"
     res = run_cli(scene, "--up", "-y", "--model", tiny_model, *SIZE, *FAST, "--fps", "24", "-o", out)
@@ -322,7 +322,7 @@ def test_camera_motion_on_rendered_views(shared_data: Path) -> None:
     import dataclasses
 
     from pd_tool.io import load_splats
-    from pd_tool.views import render_image, scene_camera
+    from pd_tool.render.views import render_image, scene_camera
 
     scene = load_splats(shared_data / "udon.ply")
     cam = scene_camera(scene, None, None, width=160, height=120, up_axis="-y")
@@ -341,7 +341,7 @@ def test_fp16_only_download_loads(tiny_model: Path, tmp_path: Path) -> None:
     # variant files; inspect_model notices and the pipeline loads them (local files only).
     import shutil
 
-    from pd_tool.generate import inspect_model, load_pipeline
+    from pd_tool.video.generate import inspect_model, load_pipeline
 
     folder = tmp_path / "fp16"
     shutil.copytree(tiny_model, folder)
@@ -355,8 +355,8 @@ def test_fp16_only_download_loads(tiny_model: Path, tmp_path: Path) -> None:
 
 
 def test_overwrite_of_a_folder_holding_someone_elses_file_says_what_overwrite_replaces(tmp_path: Path) -> None:
-    from pd_tool.errors import OutputError
-    from pd_tool.generate import check_output
+    from pd_tool.core.errors import OutputError
+    from pd_tool.video.generate import check_output
 
     out = tmp_path / "videos"
     out.mkdir()

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from pd_tool.cameras import load_cameras
-from pd_tool.errors import CameraError, MaterialFileError, PdToolError
-from pd_tool.inputs import read_small_file
+from pd_tool.core.cameras import load_cameras
+from pd_tool.core.errors import CameraError, MaterialFileError, PdToolError
+from pd_tool.core.inputs import read_small_file
 
 
 def test_regular_file_within_the_limit_is_read(tmp_path: Path) -> None:
@@ -35,7 +35,7 @@ def test_cli_camera_from_a_device_is_one_line(tmp_path: Path) -> None:
 
     from cli import main
     from pd_tool.io import save_ply
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     scene = save_ply(make_plant(200, seed=0), tmp_path / "p.ply")
     res = CliRunner().invoke(main, ["render", str(scene), "--camera", "/dev/zero", "-o", str(tmp_path / "v.png")])
@@ -46,8 +46,8 @@ def test_cli_camera_from_a_device_is_one_line(tmp_path: Path) -> None:
 
 
 def test_a_huge_preset_file_is_one_line(tmp_path: Path) -> None:
-    from pd_tool.errors import PresetError
-    from pd_tool.presets import load_preset
+    from pd_tool.core.errors import PresetError
+    from pd_tool.materials.presets import load_preset
 
     big = tmp_path / "q.toml"
     big.write_text("# " + "x" * (2 << 20) + "\ngrid_res = 16\n")
@@ -56,8 +56,8 @@ def test_a_huge_preset_file_is_one_line(tmp_path: Path) -> None:
 
 
 def test_a_device_as_the_reference_video_is_one_line() -> None:
-    from pd_tool.errors import VideoError
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.core.errors import VideoError
+    from pd_tool.video.folder import load_reference_video
 
     with pytest.raises(VideoError, match="/dev/zero: is not a regular file or a folder"):
         load_reference_video("/dev/zero")

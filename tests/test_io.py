@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool.errors import PlyFormatError, SplatFormatError
+from pd_tool.core.errors import PlyFormatError, SplatFormatError
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.ply import load_ply, save_ply
-from pd_tool.synthetic import make_plant
+from pd_tool.io.synthetic import make_plant
 
 ACTIVATED = ("positions", "quats", "scales", "opacities", "sh")
 

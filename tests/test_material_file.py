@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pd_tool.errors import MaterialFileError
-from pd_tool.material_file import FORMAT, MaterialFile, read_record, scene_fingerprint, write_record
+from pd_tool.core.errors import MaterialFileError
+from pd_tool.materials.file import FORMAT, MaterialFile, read_record, scene_fingerprint, write_record
 
 
 def _material(scene: Path) -> MaterialFile:

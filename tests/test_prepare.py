@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool.errors import PreparationError
-from pd_tool.prepare import (
+from pd_tool.core.errors import PreparationError
+from pd_tool.prepare.preparation import (
     WALL_CELLS, Box, PrepareOptions, SimTransform, fit_transform, particle_volumes,
     prepare_scene, select_outliers, up_rotation,
 )
-from pd_tool.synthetic import POT_TOP, REGIONS, make_plant
+from pd_tool.io.synthetic import POT_TOP, REGIONS, make_plant
 
 
 @pytest.mark.parametrize("up", ["+x", "-x", "+y", "-y", "+z", "-z"])
@@ -99,7 +99,7 @@ def test_synthetic_plant_is_deterministic() -> None:
 
 
 def test_fill_adds_simulated_particles_after_the_gaussians() -> None:
-    from pd_tool.selection import selection_scene
+    from pd_tool.prepare.selection import selection_scene
 
     plant = make_plant(1500, seed=0)
     hollow = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="off"))

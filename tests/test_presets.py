@@ -7,8 +7,8 @@ import pytest
 from click.testing import CliRunner
 
 from cli import main
-from pd_tool.errors import PresetError
-from pd_tool.presets import KINDS, Material, builtin, fit_simulation, load_preset
+from pd_tool.core.errors import PresetError
+from pd_tool.materials.presets import KINDS, Material, builtin, fit_simulation, load_preset
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import pytest
 
-from pd_tool.presets import load_preset
+from pd_tool.materials.presets import load_preset
 from tests._bench import load_bench
 
 conv = load_bench("convergence")
@@ -35,7 +35,7 @@ def test_thin_leaves_move_the_same_at_draft_and_default_with_the_grid_raised() -
     0.51 to 0.77 and default from 0.80 to 1.05; at this scale the particles fill only 64-80
     cells, too few to resolve the leaves, so this checks agreement and that nothing breaks
     (too few drivers on a raised grid made a side poke fly 9x too far)."""
-    from pd_tool.prepare import MIN_DRIVERS_PER_CELL, MIN_PARTICLES_PER_CELL
+    from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, MIN_PARTICLES_PER_CELL
 
     case = replace(conv.CASES["plant"], seconds=0.6)
     scene = conv.load_scene("plant", 10_000)

@@ -1,4 +1,4 @@
-"""pd_tool.atomic.atomic_output: whole or absent, hidden temporaries, usual file modes,
+"""pd_tool.core.atomic.atomic_output: whole or absent, hidden temporaries, usual file modes,
 folders replaced without a half-deleted moment (the SIGKILL tests are in
 test_reliability_kill.py; what pdtool may replace is in test_reliability_outputs.py)."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pd_tool.atomic import MANIFEST, atomic_output
+from pd_tool.core.atomic import MANIFEST, atomic_output
 
 
 def _mode(p: Path) -> int:

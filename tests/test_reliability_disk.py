@@ -3,7 +3,7 @@ the user's path (never a temporary), exit code 2, no traceback, nothing left beh
 
 The destinations are real tmpfs mounts when the tests run as root and mounting works:
 "full" has no block left, "tight" has 8 KiB (the write fails part way), "read-only" is
-mounted ro. Otherwise an injected OSError stands in: pd_tool.atomic.destination_problem
+mounted ro. Otherwise an injected OSError stands in: pd_tool.core.atomic.destination_problem
 reports the errno for paths in the folder, so the writers refuse up front; the write-time
 conversion is then covered by the injected errors of the library tests at the end."""
 from __future__ import annotations
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from _cli import invoke, refusal_line
 
-from pd_tool.atomic import atomic_output
-from pd_tool.errors import OutputError
+from pd_tool.core.atomic import atomic_output
+from pd_tool.core.errors import OutputError
 
 POT_TOP = "0.2"
 BAKE = ["--preset", "flower", "--force", "0,0,1", "--frames", "4", "--quality", "draft", "--device", "cpu"]
@@ -77,7 +77,7 @@ def dest(request, tmp_path: Path, monkeypatch):
             if kind != "read-only":
                 _fill(where, 0 if kind == "full" else 8192)
         else:
-            from pd_tool import atomic
+            from pd_tool.core import atomic
 
             code = errno.EROFS if kind == "read-only" else errno.ENOSPC
             real = atomic.destination_problem
@@ -104,7 +104,7 @@ def _check(res, kind: str, folder: Path, named: str, bar: bool = False) -> None:
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory) -> Path:
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     return save_splats(make_plant(300, seed=0), tmp_path_factory.mktemp("plant") / "plant.ply")
 
@@ -230,7 +230,7 @@ def test_atomic_output_errors_outside_the_body(tmp_path: Path, monkeypatch) -> N
 
 
 def test_errors_that_are_not_write_errors_pass_through(tmp_path: Path) -> None:
-    from pd_tool.errors import PdToolError
+    from pd_tool.core.errors import PdToolError
 
     with pytest.raises(ValueError):
         with atomic_output(tmp_path / "x.json"):
@@ -243,14 +243,14 @@ def test_errors_that_are_not_write_errors_pass_through(tmp_path: Path) -> None:
 
 def test_a_failing_encoder_is_one_line_and_quiet(tmp_path: Path, monkeypatch, capfd) -> None:
     """ffmpeg's own error output goes to pdtool, not to the terminal; its exit status is read."""
-    from pd_tool.preview import PreviewError, write_preview
+    from pd_tool.render.preview import PreviewError, write_preview
 
     frames = [np.zeros((16, 16, 3), np.uint8)] * 3
     script = tmp_path / "fake-ffmpeg"
     for message, expected in (("No space left on device", OutputError), ("Unknown encoder 'libx264'", PreviewError)):
         script.write_text(f"#!/bin/sh\ncat > /dev/null\necho \"[out] {message}\" >&2\nexit 1\n")
         script.chmod(0o755)
-        monkeypatch.setattr("pd_tool.preview._ffmpeg_exe", lambda: str(script))
+        monkeypatch.setattr("pd_tool.render.preview._ffmpeg_exe", lambda: str(script))
         with pytest.raises(expected) as e:
             write_preview(frames, tmp_path / "out" / "p.mp4", 10)
         assert "\n" not in str(e.value) and "out/p.mp4" in str(e.value)

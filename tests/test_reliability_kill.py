@@ -117,7 +117,7 @@ def _check_output(path: Path) -> None:
 
         validate_usd(path, usd_validators=False)
     elif name.endswith(".pdmat"):
-        from pd_tool.material_file import MaterialFile
+        from pd_tool.materials.file import MaterialFile
 
         MaterialFile.load(path)
     elif name.endswith(".ckpt"):

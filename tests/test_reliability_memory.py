@@ -1,6 +1,6 @@
 """Memory estimate and check before a bake or fit.
 
-The estimate (pd_tool.memory) is compared with the peak RSS of a bake in fresh
+The estimate (pd_tool.prepare.memory) is compared with the peak RSS of a bake in fresh
 subprocesses at three sizes (bench/memory_estimate.py does the measuring: the baseline is
 the same process after it imported pdtool, torch, warp and usd_export and made the scene).
 A run that cannot fit is refused before any heavy work, with one line naming --quality,
@@ -43,8 +43,8 @@ def test_bake_estimate_within_30_percent_of_measured_peak(tmp_path: Path) -> Non
 
 
 def test_check_memory_refuses_with_one_line() -> None:
-    from pd_tool.errors import PdToolError
-    from pd_tool.memory import InsufficientMemory, check_memory, estimate_bake_memory
+    from pd_tool.core.errors import PdToolError
+    from pd_tool.prepare.memory import InsufficientMemory, check_memory, estimate_bake_memory
 
     est = estimate_bake_memory(n_gaussians=100_000, n_simulated=90_000, driver_ratio=0.25, grid_dims=(64, 64, 64),
                                frames=61, preview_pixels=480 * 270)
@@ -65,7 +65,7 @@ def test_check_memory_refuses_with_one_line() -> None:
 
 
 def test_estimates_grow_with_every_input() -> None:
-    from pd_tool.memory import estimate_bake_memory, estimate_fit_memory
+    from pd_tool.prepare.memory import estimate_bake_memory, estimate_fit_memory
 
     base = dict(n_gaussians=10_000, n_simulated=9_000, driver_ratio=0.1, grid_dims=(24, 24, 24))
     b = estimate_bake_memory(frames=31, **base).host
@@ -84,7 +84,7 @@ def test_cli_bake_refuses_a_run_that_cannot_fit(tmp_path: Path) -> None:
     """Real inputs, no mocks: a preview of 600,001 frames (600 s at 1000 fps) keeps ~230 GB of images."""
     from cli import main
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     save_splats(make_plant(600, seed=0), tmp_path / "plant.ply")
     out = tmp_path / "out.usd"
@@ -103,16 +103,16 @@ def test_fit_refuses_a_grid_that_cannot_fit(tmp_path: Path, monkeypatch) -> None
     import torch
 
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.fit.video import load_reference_video
-    from pd_tool.memory import InsufficientMemory
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import make_plant
-    from pd_tool.views import scene_camera
-    from pd_tool.fit.video import write_video_folder
+    from pd_tool.video.folder import load_reference_video
+    from pd_tool.prepare.memory import InsufficientMemory
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import make_plant
+    from pd_tool.render.views import scene_camera
+    from pd_tool.video.folder import write_video_folder
 
-    import pd_tool.memory
+    import pd_tool.prepare.memory
 
-    monkeypatch.setattr(pd_tool.memory, "available_memory", lambda device="cpu": (4.0 * 2**30, None))
+    monkeypatch.setattr(pd_tool.prepare.memory, "available_memory", lambda device="cpu": (4.0 * 2**30, None))
     (tmp_path / "huge.toml").write_text("grid_res = 256\ncfl_safety = 0.5\ndriver_ratio = 0.1\n"
                                         "fit_velocity_iters = 1\nfit_material_iters = 1\n")
     scene = make_plant(600, seed=0)

@@ -1,7 +1,7 @@
 """pdtool replaces only its own outputs: folders it made carry a manifest, side outputs
 nobody named carry a mark, and no run deletes an input or another of its outputs.
 
-Library level first (pd_tool.atomic and each writer), then through the CLI
+Library level first (pd_tool.core.atomic and each writer), then through the CLI
 (click.testing.CliRunner on cli.main) on a 300-Gaussian plant at draft quality."""
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ import pytest
 from _cli import invoke, refusal_line
 from click.testing import CliRunner
 
-from pd_tool.atomic import (MANIFEST, atomic_output, check_outputs, check_own_file, check_replaceable_folder,
+from pd_tool.core.atomic import (MANIFEST, atomic_output, check_outputs, check_own_file, check_replaceable_folder,
                             is_own_file)
-from pd_tool.errors import OutputError, PdToolError
+from pd_tool.core.errors import OutputError, PdToolError
 
-POT_TOP = "0.2"  # the synthetic plant's pot (pd_tool.synthetic.POT_TOP)
+POT_TOP = "0.2"  # the synthetic plant's pot (pd_tool.io.synthetic.POT_TOP)
 BAKE = ["--preset", "flower", "--force", "0,0,1", "--frames", "3", "--quality", "draft", "--device", "cpu"]
 
 
@@ -44,7 +44,7 @@ def _tree(folder: Path) -> dict[str, bytes]:
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory) -> Path:
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     return save_splats(make_plant(300, seed=0), tmp_path_factory.mktemp("plant") / "plant.ply")
 
@@ -115,8 +115,8 @@ def test_empty_and_missing_folders_are_fine_links_files_and_the_current_folder_a
 
 def test_a_folder_of_files_pdtool_marked_counts_as_pdtools(tmp_path: Path) -> None:
     """`render -o video/frame_0000.png --write-camera video/` leaves marked files, no manifest."""
-    from pd_tool.cameras import auto_camera, save_camera_json
-    from pd_tool.preview import save_png
+    from pd_tool.core.cameras import auto_camera, save_camera_json
+    from pd_tool.render.preview import save_png
 
     video = tmp_path / "video"
     save_png(video / "frame_0000.png", np.zeros((8, 8, 3), np.uint8))
@@ -170,19 +170,19 @@ def test_outputs_that_destroy_inputs_or_each_other_arerefusal_line(tmp_path: Pat
 
 
 def _scene():
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     return make_plant(200, seed=1)
 
 
 def _writers(tmp_path: Path) -> dict[str, Path]:
     """One file from every writer that marks its files."""
-    from pd_tool.cameras import auto_camera, save_camera_json
+    from pd_tool.core.cameras import auto_camera, save_camera_json
     from pd_tool.fit.outputs import write_report
     from pd_tool.io import save_ply
-    from pd_tool.material_file import write_record
-    from pd_tool.plots import line_plot
-    from pd_tool.preview import save_png, write_preview
+    from pd_tool.materials.file import write_record
+    from pd_tool.render.plots import line_plot
+    from pd_tool.render.preview import save_png, write_preview
 
     frames = [np.full((16, 16, 3), 40 * i, np.uint8) for i in range(3)]
     scene = _scene()
@@ -228,7 +228,7 @@ def test_every_writer_marks_its_files_and_foreign_files_are_not_marked(tmp_path:
 
 
 def test_side_outputs_replace_only_pdtools_files(tmp_path: Path) -> None:
-    from pd_tool.preview import save_png
+    from pd_tool.render.preview import save_png
 
     img = np.zeros((8, 8, 3), np.uint8)
     save_png(tmp_path / "fit.E.png", img, own_only=True)  # new
@@ -264,7 +264,7 @@ def test_fit_side_outputs_refuse_a_foreign_file_before_writing_any(tmp_path: Pat
 
 
 def test_fit_record_replaces_only_a_pdtool_record(tmp_path: Path) -> None:
-    from pd_tool.material_file import RECORD_PATH, read_record, write_record
+    from pd_tool.materials.file import RECORD_PATH, read_record, write_record
 
     (tmp_path / "s.ply").write_text("x")
     (tmp_path / "m.pdmat").write_text("x")
@@ -288,7 +288,7 @@ def test_fit_record_replaces_only_a_pdtool_record(tmp_path: Path) -> None:
 
 
 def test_camera_json_in_a_named_folder_replaces_only_pdtools(tmp_path: Path) -> None:
-    from pd_tool.cameras import auto_camera, load_cameras, save_camera_json
+    from pd_tool.core.cameras import auto_camera, load_cameras, save_camera_json
 
     cam = auto_camera(_scene().positions.numpy(), 32, 24)
     save_camera_json(tmp_path / "camera.json", cam)
@@ -303,8 +303,8 @@ def test_camera_json_in_a_named_folder_replaces_only_pdtools(tmp_path: Path) -> 
 
 
 def test_video_folder_never_replaces_a_foreign_folder(tmp_path: Path) -> None:
-    from pd_tool.cameras import auto_camera
-    from pd_tool.fit.video import load_reference_video, write_video_folder
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.video.folder import load_reference_video, write_video_folder
 
     frames = np.zeros((3, 16, 16, 3), np.uint8)
     cam = auto_camera(_scene().positions.numpy(), 16, 16)
@@ -347,9 +347,9 @@ def test_generate_overwrites_only_folders_it_made(tmp_path: Path, monkeypatch) -
 
     import imageio.v3 as iio
 
-    from pd_tool import generate as gen
-    from pd_tool.camera_motion import CameraMotion
-    from pd_tool.cameras import auto_camera
+    from pd_tool.video import generate as gen
+    from pd_tool.video.camera_motion import CameraMotion
+    from pd_tool.core.cameras import auto_camera
 
     scene = _scene()
     cam = auto_camera(scene.positions.numpy(), 16, 16)
@@ -359,7 +359,7 @@ def test_generate_overwrites_only_folders_it_made(tmp_path: Path, monkeypatch) -
     monkeypatch.setattr(gen, "load_pipeline", lambda info, device: type("P", (), {
         "set_progress_bar_config": lambda self, **kw: None})())
     monkeypatch.setattr(gen, "animate", lambda pipe, image, settings, seed: frames)
-    monkeypatch.setattr("pd_tool.camera_motion.estimate_camera_motion",
+    monkeypatch.setattr("pd_tool.video.camera_motion.estimate_camera_motion",
                         lambda *a, **k: CameraMotion(np.zeros((3, 2)), np.ones(3), np.zeros(3), np.zeros(3), 16))
     settings = gen.GenerateSettings(frames=3)
     out = tmp_path / "video"
@@ -392,10 +392,10 @@ def test_generate_overwrites_only_folders_it_made(tmp_path: Path, monkeypatch) -
 
 
 def test_bake_refuses_before_preparing_or_writing_anything(plant: Path, tmp_path: Path, monkeypatch) -> None:
-    import pd_tool.bake as bake_mod
-    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    import pd_tool.bake.baker as bake_mod
+    from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
     from pd_tool.io import load_splats
-    from pd_tool.presets import Material
+    from pd_tool.materials.presets import Material
 
     def no_work(*a, **k):
         raise AssertionError("the scene was prepared before the outputs were checked")
@@ -615,7 +615,7 @@ def test_cli_fit_default_material_name_replaces_only_a_material_file(fit_dir: Pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.pdmat", "p.ply"]
     res = invoke(["fit", tmp_path / "p.ply", fit_dir / "video", "-o", "p.pdmat", *FIT], tmp_path)
     assert res.exit_code == 0, res.output  # named with -o, it is replaced as asked
-    from pd_tool.material_file import is_material_file
+    from pd_tool.materials.file import is_material_file
 
     assert is_material_file(tmp_path / "p.pdmat")
     res = invoke(["fit", tmp_path / "p.ply", fit_dir / "video", *FIT], tmp_path)

@@ -24,7 +24,7 @@ class Interrupt(Exception):
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     from _plant import tiny_plant_video
-    from pd_tool.fit.video import load_reference_video
+    from pd_tool.video.folder import load_reference_video
 
     d = tmp_path_factory.mktemp("resume")
     scene = tiny_plant_video(d, 600, seed=1, size=24)
@@ -34,8 +34,8 @@ def inputs(tmp_path_factory):
 def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0,
          rounds: int = 1, level: bool = False):
     from pd_tool.fit.pipeline import FitSettings, run_fit
-    from pd_tool.prepare import PrepareOptions
-    from pd_tool.synthetic import POT_TOP
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.io.synthetic import POT_TOP
 
     d, scene, refs = inputs
 
@@ -69,7 +69,7 @@ def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, 
                                                                       int(tag.split("/")[0]) - 1 if tag else 0)
         assert not out.exists()
         if stop_at[0] == "velocity":  # a checkpoint of another fit (another seed) is refused, and kept
-            from pd_tool.errors import PdToolError
+            from pd_tool.core.errors import PdToolError
 
             with pytest.raises(PdToolError, match=r"cut.pdmat.ckpt: the checkpoint belongs to another fit "
                                                   r"\(settings differs\); delete it, or fit without --resume$"):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool.cameras import Camera, auto_camera, look_at
+from pd_tool.core.cameras import Camera, auto_camera, look_at
 from pd_tool.render import RenderInputError, render
 from pd_tool.render._ref import render_ref
 from pd_tool.render.rasterize import RasterSettings, rasterize

@@ -1,4 +1,4 @@
-"""pd_tool.preview: mp4 / gif / png writers (read back with imageio) and animation previews."""
+"""pd_tool.render.preview: mp4 / gif / png writers (read back with imageio) and animation previews."""
 from __future__ import annotations
 
 import os
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pd_tool.cameras import auto_camera
-from pd_tool.preview import PreviewError, render_animation_preview, save_png, write_preview
+from pd_tool.core.cameras import auto_camera
+from pd_tool.render.preview import PreviewError, render_animation_preview, save_png, write_preview
 
 
 def frames(n=6, h=33, w=47):
@@ -79,12 +79,12 @@ def test_missing_mp4_encoder_is_named_and_a_fit_preview_falls_back_to_gif(tmp_pa
     """imageio without imageio-ffmpeg (seen on a machine with a partial install): an .mp4
     preview fails with one clear line naming the package and leaves no file; the fit's
     preview (write_preview_any) writes a .gif beside it instead of failing the fit."""
-    from pd_tool.preview import PreviewEncoderMissing, write_preview_any
+    from pd_tool.render.preview import PreviewEncoderMissing, write_preview_any
 
     def no_ffmpeg(*args, **kwargs):
         raise ImportError("The `FFMPEG` plugin is not installed.")
 
-    monkeypatch.setattr("pd_tool.preview._ffmpeg_exe", no_ffmpeg)
+    monkeypatch.setattr("pd_tool.render.preview._ffmpeg_exe", no_ffmpeg)
     with pytest.raises(PreviewEncoderMissing, match="imageio-ffmpeg"):
         write_preview(frames(), tmp_path / "a.mp4")
     assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -5,7 +5,7 @@ import math
 
 import torch
 
-from pd_tool.rotations import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
+from pd_tool.core.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
 
 
 def _random_quats(n: int, seed: int = 0) -> torch.Tensor:
@@ -38,3 +38,44 @@ def test_known_rotation() -> None:
     q = torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], dtype=torch.float64)
     assert torch.allclose(quat_to_matrix(q) @ torch.tensor([1.0, 0, 0], dtype=torch.float64),
                           torch.tensor([0.0, 1, 0], dtype=torch.float64), atol=1e-12)
+
+
+def test_numpy_matrix_matches_torch_and_repairs_broken_input() -> None:
+    import numpy as np
+
+    from pd_tool.core.quaternion import quat_to_matrix_np
+
+    q = _random_quats(300, 3) * torch.rand(300, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(4)).add(0.5)
+    got = quat_to_matrix_np(q.numpy())
+    assert np.allclose(got, quat_to_matrix(q, normalize=True).numpy(), atol=1e-12)
+    # a zero quaternion is the identity; non-finite entries count as zero
+    broken = np.array([[0.0, 0, 0, 0], [np.inf, 0, 0, 0], [np.nan, 1, 0, 0]])
+    assert np.allclose(quat_to_matrix_np(broken), [np.eye(3), np.eye(3), np.diag([1.0, -1, -1])])
+
+
+def test_warp_functions_match_torch() -> None:
+    import warp as wp
+
+    from pd_tool.core.quaternion import (
+        quat_matrix_wp, quat_multiply_wp, rotation_from_cross_covariance, top_quaternion_wp,
+    )
+
+    @wp.kernel
+    def apply(a: wp.array(dtype=wp.vec4), b: wp.array(dtype=wp.vec4), s: wp.array(dtype=wp.mat33),
+              mats: wp.array(dtype=wp.mat33), prods: wp.array(dtype=wp.vec4), tops: wp.array(dtype=wp.vec4)):
+        i = wp.tid()
+        mats[i] = quat_matrix_wp(a[i])
+        prods[i] = quat_multiply_wp(a[i], b[i])
+        tops[i] = top_quaternion_wp(s[i], 12)
+
+    n = 64
+    a, b = _random_quats(n, 5), _random_quats(n, 6)
+    S = torch.randn(n, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    out = [wp.zeros(n, dtype=t, device="cpu") for t in (wp.mat33, wp.vec4, wp.vec4)]
+    wp.launch(apply, n, inputs=[wp.array(a.float().numpy(), dtype=wp.vec4, device="cpu"),
+                                wp.array(b.float().numpy(), dtype=wp.vec4, device="cpu"),
+                                wp.array(S.float().numpy(), dtype=wp.mat33, device="cpu"), *out], device="cpu")
+    mats, prods, tops = (torch.from_numpy(o.numpy()).double() for o in out)
+    assert torch.allclose(mats, quat_to_matrix(a), atol=1e-5)
+    assert torch.allclose(prods, quat_multiply(a, b), atol=1e-5)
+    assert torch.allclose(tops, rotation_from_cross_covariance(S), atol=1e-4)

@@ -8,7 +8,7 @@ import pytest
 import torch
 import warp as wp
 
-from pd_tool.errors import SimulationUnstable
+from pd_tool.core.errors import SimulationUnstable
 from pd_tool.sim import MPMSolver, SimConfig, SimConfigError
 from pd_tool.sim import _ref
 from pd_tool.sim import kernels as K

@@ -23,7 +23,7 @@ _CASES = _stress().quick_matrix()
 def _one_thread():
     import torch
 
-    from pd_tool.device import init_warp_quietly
+    from pd_tool.core.device import init_warp_quietly
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)  # 2 shared cores: oversubscription only slows these small bakes
@@ -71,7 +71,7 @@ def test_guard_and_rejection_paths_are_exercised():
 def test_check_force_stops_only_hopeless_forces():
     """The preflight fires only when a force both flings a free particle out of the box and
     needs > HOPELESS_STRAIN x the stress E can give; its message names the limit."""
-    from pd_tool.errors import SimulationUnstable
+    from pd_tool.core.errors import SimulationUnstable
     from pd_tool.sim.guard import HOPELESS_STRAIN, check_force
 
     # the stress matrix's absurd poke: 1.8e6 m/s^2 for 0.1 s on a 0.3 m region of 1e5 Pa

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pd_tool import thickness as T
+from pd_tool.prepare import thickness as T
 
 
 def _slab(n: int, t: float, side: float, rng) -> np.ndarray:
@@ -70,7 +70,7 @@ def test_static_particles_are_not_judged() -> None:
 
 
 def test_the_line_names_thickness_cell_and_the_quality_that_resolves() -> None:
-    from pd_tool.presets import builtin
+    from pd_tool.materials.presets import builtin
 
     grids = {name: int(q["grid_res"]) for name, q in builtin("quality").items()}
     near = T.ThinParts(share=0.3, thickness_m=0.02, dx_m=0.06, grid_needed=grids["default"] - 1)
@@ -85,8 +85,8 @@ def test_the_line_names_thickness_cell_and_the_quality_that_resolves() -> None:
 
 
 def test_prepare_reports_thin_leaves_and_the_quality_to_try() -> None:
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     thin = prepare_scene(make_plant(6000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=48))
     lines = [line for line in thin.report if line.startswith("thin parts:")]
@@ -95,7 +95,7 @@ def test_prepare_reports_thin_leaves_and_the_quality_to_try() -> None:
     coarse = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=16))
     line = next(line for line in coarse.report if line.startswith("thin parts:"))
     named = line.split("--quality ")[1].split()[0]
-    from pd_tool.presets import load_preset
+    from pd_tool.materials.presets import load_preset
 
     grid = int(load_preset("quality", named)["grid_res"])
     fine = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=grid))
@@ -106,8 +106,8 @@ def test_prepare_reports_thin_leaves_and_the_quality_to_try() -> None:
 def test_the_thin_plant_reads_its_leaves_thickness_or_an_upper_bound(grid: int) -> None:
     """A fine cell's window holds only the leaf: it reads the leaf's 3 mm. A 15 cm cell's
     can take in the stem beside it too: it reads more, never less, and under a quarter cell."""
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, THIN_THICKNESS, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, THIN_THICKNESS, make_plant
 
     prep = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=grid))
     found = T.thin_parts(prep.positions_sim, ~prep.static, prep.dx, max(prep.grid_dims), prep.volumes)
@@ -129,8 +129,8 @@ def test_a_line_of_particles_reads_zero_and_the_line_still_forms() -> None:
 
 
 def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceiling() -> None:
-    from pd_tool.prepare import MIN_PARTICLES_PER_CELL, PrepareOptions, prepare_scene, refine_for_thin
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import MIN_PARTICLES_PER_CELL, PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     coarse = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=32))
     assert coarse.thin is not None and coarse.thin.thin
@@ -146,7 +146,7 @@ def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceili
     assert 48 < g <= asked and g % 16 == 0
     assert full.n_particles >= MIN_PARTICLES_PER_CELL * full.occupied_cells()
     if g < asked:  # the next grid up would hold fewer particles per cell than the floor
-        from pd_tool.prepare import cell_size
+        from pd_tool.prepare.preparation import cell_size
 
         nxt = cell_size(full.object_size_m, full.options.padding, g + 16)[0]
         assert full.n_particles < MIN_PARTICLES_PER_CELL * full.occupied_cells(nxt)
@@ -155,8 +155,8 @@ def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceili
 
 
 def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
-    from pd_tool.prepare import MIN_PARTICLES_PER_CELL, PrepareOptions, cell_size, prepare_scene, refine_for_thin
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import MIN_PARTICLES_PER_CELL, PrepareOptions, cell_size, prepare_scene, refine_for_thin
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     sparse = prepare_scene(make_plant(2500, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=48))
     assert sparse.thin is not None and sparse.thin.thin and sparse.thin.grid_needed > 64
@@ -167,8 +167,8 @@ def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
 
 
 def test_connected_ratio_gives_every_occupied_cell_two_drivers() -> None:
-    from pd_tool.prepare import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     prep = prepare_scene(make_plant(3000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=64))
     occupied = prep.occupied_cells()
@@ -179,8 +179,8 @@ def test_connected_ratio_gives_every_occupied_cell_two_drivers() -> None:
 
 
 def test_refine_for_thin_leaves_a_scene_without_thin_parts_alone() -> None:
-    from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
-    from pd_tool.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.io.synthetic import POT_TOP, make_plant
 
     thick = prepare_scene(make_plant(6000), PrepareOptions(static_below=POT_TOP, grid_res=48))  # 2 cm leaves
     assert thick.thin is None or not thick.thin.thin

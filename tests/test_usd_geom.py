@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pd_tool.core.quaternion import quat_to_matrix_np
 from usd_export._geom import (
-    ellipsoid_extent, ellipsoid_extent_dense, ellipsoid_half_extents, normalize_quats, quat_to_rotmat, rgb_to_sh_dc,
+    ellipsoid_extent, ellipsoid_extent_dense, ellipsoid_half_extents, normalize_quats, rgb_to_sh_dc,
     sh_dc_to_rgb, sh_degree, sphere_extent, wxyz_to_xyzw, xyzw_to_wxyz,
 )
 
@@ -20,7 +21,7 @@ def test_rotmat_matches_pxr():
     Gf = pytest.importorskip("pxr.Gf")
     rng = np.random.default_rng(RNG_SEED)
     q = _random_quats(20, rng)
-    r = quat_to_rotmat(q)
+    r = quat_to_matrix_np(q)
     for qi, ri in zip(q, r):
         gq = Gf.Quatd(float(qi[0]), Gf.Vec3d(*map(float, qi[1:])))
         # Gf matrices act on row vectors (v * M), so Gf's matrix is our R transposed.
@@ -37,7 +38,7 @@ def test_ellipsoid_half_extents_against_dense_surface_samples():
     # approaches the supremum from below, so the exact value must be >= and close.
     u = rng.normal(size=(200_000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    m = quat_to_rotmat(q) * radii.astype(np.float64)[:, None, :]
+    m = quat_to_matrix_np(q) * radii.astype(np.float64)[:, None, :]
     ref = np.abs(np.einsum("nij,kj->nki", m, u)).max(axis=1)
     got = ellipsoid_half_extents(q, radii)
     assert (got >= ref - 1e-12).all()
@@ -56,7 +57,7 @@ def test_ellipsoid_extent_candidates_equal_dense(spread):
     # and the box holds every ellipsoid's densely sampled surface
     u = rng.normal(size=(64, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    surf = p[:, None, :] + np.einsum("nij,kj->nki", quat_to_rotmat(q) * radii[:, None, :], u)
+    surf = p[:, None, :] + np.einsum("nij,kj->nki", quat_to_matrix_np(q) * radii[:, None, :], u)
     box = ellipsoid_extent(p, q, radii)
     assert (surf >= box[0]).all() and (surf <= box[1]).all()
 

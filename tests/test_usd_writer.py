@@ -10,7 +10,7 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Sdf, Usd, UsdGeom  # noqa: E402
 
-from pd_tool.errors import UsdExportError  # noqa: E402
+from pd_tool.core.errors import UsdExportError  # noqa: E402
 from usd_export import UsdBakeWriter, validate_usd  # noqa: E402
 from usd_export._geom import normalize_quats  # noqa: E402
 
@@ -343,14 +343,14 @@ def test_dropped_writer_removes_its_temporary(tmp_path, data):
 def test_usd_instance_transforms_match_our_convention(both_file, data):
     # USD's own instancer math (quath -> rotation, scale, translation) must put the
     # unit sphere where we meant it: R(q) diag(2 sigma) u + p, in row-vector form.
-    from usd_export._geom import quat_to_rotmat
+    from pd_tool.core.quaternion import quat_to_matrix_np
     pos, quats, sig, sh, opac = data
     stage = Usd.Stage.Open(str(both_file))
     inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
     f = 3
     mats = inst.ComputeInstanceTransformsAtTime(Usd.TimeCode(1 + f), Usd.TimeCode(1 + f))
     m = np.array([np.array(x) for x in mats])  # [N, 4, 4], row vectors: v' = v M
-    want = quat_to_rotmat(quats[f]) * (2.0 * sig[f])[:, None, :]  # column form R S
+    want = quat_to_matrix_np(quats[f]) * (2.0 * sig[f])[:, None, :]  # column form R S
     np.testing.assert_allclose(m[:, :3, :3].transpose(0, 2, 1), want, atol=2e-3 * sig[f].max())
     np.testing.assert_allclose(m[:, 3, :3], pos[f], atol=1e-6)
     # and USD's bound (prototype box through these transforms) contains ours

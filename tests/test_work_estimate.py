@@ -16,7 +16,7 @@ from cli import main
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory) -> Path:
     from pd_tool.io import save_splats
-    from pd_tool.synthetic import make_plant
+    from pd_tool.io.synthetic import make_plant
 
     return save_splats(make_plant(600, seed=0), tmp_path_factory.mktemp("plant") / "plant.ply")
 
@@ -30,7 +30,7 @@ def _one_error_line(res) -> str:
 
 # ----------------------------------------------------------------------------- the estimates
 def test_bake_estimate_grows_with_every_count() -> None:
-    from pd_tool.work import estimate_bake_work
+    from pd_tool.prepare.work import estimate_bake_work
 
     base = dict(n_gaussians=10_000, n_particles=1_000, grid_nodes=17**3, frames=61, substeps=10)
     t = estimate_bake_work(**base).seconds
@@ -43,7 +43,7 @@ def test_bake_estimate_grows_with_every_count() -> None:
 
 
 def test_fit_estimate_grows_with_every_count() -> None:
-    from pd_tool.work import estimate_fit_work
+    from pd_tool.prepare.work import estimate_fit_work
 
     base = dict(n_gaussians=3_000, n_particles=300, grid_nodes=25**3, frames=[12], image_pixels=144 * 144,
                 substeps=30, velocity_iters=30, material_iters=20)
@@ -55,7 +55,7 @@ def test_fit_estimate_grows_with_every_count() -> None:
 
 
 def test_stiffer_material_and_faster_push_need_more_substeps() -> None:
-    from pd_tool.work import cfl_substeps_estimate
+    from pd_tool.prepare.work import cfl_substeps_estimate
 
     n = cfl_substeps_estimate(1 / 30, 0.05, 1e6, 1000.0, 0.3, 0.0, 0.5)
     assert cfl_substeps_estimate(1 / 30, 0.05, 1e12, 1000.0, 0.3, 0.0, 0.5) > 100 * n
@@ -65,8 +65,8 @@ def test_stiffer_material_and_faster_push_need_more_substeps() -> None:
 
 
 def test_check_work_refuses_over_the_limit_with_the_override_named(monkeypatch) -> None:
-    from pd_tool.errors import PdToolError
-    from pd_tool.work import DEFAULT_MAX_MINUTES, WorkEstimate, WorkTooLarge, check_work, work_policy
+    from pd_tool.core.errors import PdToolError
+    from pd_tool.prepare.work import DEFAULT_MAX_MINUTES, WorkEstimate, WorkTooLarge, check_work, work_policy
 
     monkeypatch.delenv("PDTOOL_SKIP_WORK_CHECK", raising=False)
     long = WorkEstimate(seconds=DEFAULT_MAX_MINUTES * 60 * 3, what="bake", device="cpu", summary="600 frames x ...")
@@ -118,9 +118,9 @@ def test_max_minutes_refuses_and_the_environment_overrides(plant, tmp_path, monk
 def test_fit_is_refused_before_the_drivers(plant, tmp_path, monkeypatch) -> None:
     import numpy as np
 
-    from pd_tool.fit.video import write_video_folder
+    from pd_tool.video.folder import write_video_folder
     from pd_tool.io import load_splats
-    from pd_tool.views import scene_camera
+    from pd_tool.render.views import scene_camera
 
     monkeypatch.delenv("PDTOOL_SKIP_WORK_CHECK", raising=False)
     cam = scene_camera(load_splats(plant), width=16, height=16)
@@ -164,9 +164,9 @@ def test_knn_finishes_at_any_coordinate_scale() -> None:
 
 
 def test_preparation_refuses_an_object_outside_the_simulated_sizes() -> None:
-    from pd_tool.errors import PreparationError
-    from pd_tool.prepare import PrepareOptions, prepare_scene
-    from pd_tool.synthetic import make_plant
+    from pd_tool.core.errors import PreparationError
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.io.synthetic import make_plant
 
     scene = make_plant(300, seed=0)
     for mpu in (1e30, 1e-30):
@@ -176,8 +176,8 @@ def test_preparation_refuses_an_object_outside_the_simulated_sizes() -> None:
 
 
 def test_box_without_volume_is_refused_by_the_library_too() -> None:
-    from pd_tool.errors import PreparationError
-    from pd_tool.prepare import Box
+    from pd_tool.core.errors import PreparationError
+    from pd_tool.prepare.preparation import Box
 
     with pytest.raises(PreparationError, match="no volume"):
         Box.parse("0,0,0,1,1,0", "--static-box")
@@ -190,8 +190,8 @@ def test_box_without_volume_is_refused_by_the_library_too() -> None:
     "grid_res = 32\ncfl_safety = 0.5\ndriver_ratio = 0.1\nfit_velocity_iters = 100000\nfit_material_iters = 1\n",
 ])
 def test_quality_presets_are_bounded(tmp_path, text) -> None:
-    from pd_tool.errors import PresetError
-    from pd_tool.presets import load_preset
+    from pd_tool.core.errors import PresetError
+    from pd_tool.materials.presets import load_preset
 
     (tmp_path / "q.toml").write_text(text)
     with pytest.raises(PresetError, match="outside"):

@@ -17,7 +17,7 @@ Public API (importing `usd_export` itself does not import pxr):
         returned) plus pdtool's own checks (array lengths agree, unit quaternions,
         extent contains the points, stage metadata) at every time sample, or at the
         first and last with every_sample=False; raises UsdExportError.
-    UsdExportError   (pd_tool.errors; a PdToolError: the CLI exits 2)
+    UsdExportError   (pd_tool.core.errors; a PdToolError: the CLI exits 2)
 
 Scales: the PointInstancer's unit-sphere prototype is scaled by
 sigma * scale_factor (default 2: the ~2-sigma ellipsoid); the splat schema gets
@@ -42,7 +42,7 @@ See docs/usd.md.
 """
 from __future__ import annotations
 
-from pd_tool.errors import UsdExportError
+from pd_tool.core.errors import UsdExportError
 
 __all__ = ["UsdBakeWriter", "validate_usd", "UsdExportError"]
 

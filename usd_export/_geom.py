@@ -38,22 +38,6 @@ def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(q[:, [3, 0, 1, 2]])
 
 
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [N, 3, 3] from unit quaternions [N, 4] (w, x, y, z)."""
-    w, x, y, z = (q[:, i].astype(np.float64) for i in range(4))
-    r = np.empty((q.shape[0], 3, 3), dtype=np.float64)
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - w * z)
-    r[:, 0, 2] = 2 * (x * z + w * y)
-    r[:, 1, 0] = 2 * (x * y + w * z)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - w * x)
-    r[:, 2, 0] = 2 * (x * z - w * y)
-    r[:, 2, 1] = 2 * (y * z + w * x)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
-
-
 def ellipsoid_half_extents(quats: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Axis-aligned half sizes [N, 3] float32 of ellipsoids R diag(radii) (unit sphere).
 

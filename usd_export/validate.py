@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdValidation
 
-from pd_tool.errors import UsdExportError
+from pd_tool.core.errors import UsdExportError
 
 from ._geom import col_max, col_min
 

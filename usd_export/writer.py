@@ -12,7 +12,7 @@ destination (same file system) and moved into place with os.replace only by
 `close()`, after validation. An exception inside `with UsdBakeWriter(...)`
 (or `abort()`) deletes the temporary file, so a failed bake leaves nothing.
 A destination that cannot be written (full, read-only, a name too long) raises
-pd_tool.errors.OutputError, one line naming the destination, never the temporary.
+pd_tool.core.errors.OutputError, one line naming the destination, never the temporary.
 """
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Kind, Sdf, Usd, UsdGeom
 
-from pd_tool import atomic as _atomic
-from pd_tool.errors import UsdExportError
+from pd_tool.core import atomic as _atomic
+from pd_tool.core.errors import UsdExportError
 
 from ._geom import normalize_quats, sh_dc_to_rgb, rgb_to_sh_dc
 from .instancer import InstancerPart

@@ -31,11 +31,11 @@ Public API (torch, CPU or CUDA; shapes in the docstrings of each function):
   mode="rigid") -> (points_now [N,3], quats_now [N,4] wxyz) for "rigid", plus
   F [N,3,3] for "affine". DriverInterpolator is the same with the rest state computed
   once (use it per frame). Differentiable in drivers_now with finite gradients even for
-  pure translations (Horn quaternion + power method, no SVD/eigh backward).
+  pure translations (Horn quaternion + power method in pd_tool.core.quaternion, no
+  SVD/eigh backward).
   Default "rigid", the paper's: shape-preserving, robust for thin (coplanar)
   neighbourhoods; "affine" also stretches/shears Gaussians (apply_deformation turns
   F into new quats and scales for baking).
-- rotate_quats(q_rot, quats_rest) = normalise(q_rot * quats_rest), wxyz.
 - kabsch(rest [...,K,3], now [...,K,3]) -> (q, R, c_rest, c_now): batched rigid fit.
 """
 from pd_tool.drivers.build import MIN_PER_CELL, NEIGHBORS, DriverSet, build_drivers, driver_count
@@ -44,10 +44,6 @@ from pd_tool.drivers.interpolate import (
     apply_deformation,
     interpolate,
     kabsch,
-    matrix_to_quat,
-    quat_multiply,
-    quat_to_matrix,
-    rotate_quats,
 )
 from pd_tool.drivers.kmeans import DriverError, kmeans
 from pd_tool.drivers.knn import knn, nearest_drivers
@@ -65,9 +61,5 @@ __all__ = [
     "kabsch",
     "kmeans",
     "knn",
-    "matrix_to_quat",
     "nearest_drivers",
-    "quat_multiply",
-    "quat_to_matrix",
-    "rotate_quats",
 ]

@@ -12,7 +12,7 @@ from pd_tool.drivers.knn import nearest_drivers
 MIN_PER_CELL = 8  # paper: occupied grid cells hold at least 8 drivers on average
 # A ratio never asks for more than this many drivers per occupied cell: the grid cannot
 # resolve motion finer than a cell, so more particles cost time and memory and add no
-# accuracy (docs/benchmark_study.md: 4 to 39 per cell give the same error at grid 16).
+# accuracy (4 to 39 per cell gave the same error at grid 16 on the procedural plant).
 # Without it a 300k-Gaussian scene at ratio 0.5 on a 16-cell grid would put thousands of
 # particles in each cell.
 MAX_PER_CELL = 64

@@ -21,140 +21,23 @@ their Gaussians (covariance F Sigma F^T); use it for visibly stretching material
 """
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor
 
-POWER_SQUARINGS = 12  # squarings of the 4x4 matrix: the power method runs 2^12 steps
+from pd_tool.core.quaternion import (
+    POWER_SQUARINGS,
+    matrix_to_quat,
+    quat_to_matrix,
+    rotate_quats,
+    rotation_from_cross_covariance,
+)
+
 AFFINE_REG = 1e-3  # pull of the affine fit towards the rotation, relative to mean(eig(S))
 MODES = ("rigid", "affine")
 
 
-# --------------------------------------------------------------------------- quaternions
-
-
-def _bilinear_basis(rows: list[str]) -> Tensor:
-    """[16, len(rows)] float64 coefficients of c_k = sum_ij B[4i+j, k] a_i b_j, from rows of
-    text such as "+0*0 -1*1": each term is sign, index into a, index into b."""
-    B = torch.zeros(16, len(rows), dtype=torch.float64)
-    for k, row in enumerate(rows):
-        for term in row.split():
-            sign, i, j = (1.0 if term[0] == "+" else -1.0), int(term[1]), int(term[3])
-            B[4 * i + j, k] += sign
-    return B
-
-
-# Hamilton product (w, x, y, z): c = a * b as one small matmul over the 16 products a_i b_j
-# (one kernel instead of thirty on a GPU).
-_QMUL = _bilinear_basis([
-    "+0*0 -1*1 -2*2 -3*3", "+0*1 +1*0 +2*3 -3*2", "+0*2 -1*3 +2*0 +3*1", "+0*3 +1*2 -2*1 +3*0",
-])
-# Rotation matrix of a unit quaternion, row-major, from the products q_i q_j; the
-# constant 1 of the diagonal is written as w^2 + x^2 + y^2 + z^2.
-_QMAT = _bilinear_basis([
-    "+0*0 +1*1 -2*2 -3*3", "+1*2 +2*1 -0*3 -3*0", "+1*3 +3*1 +0*2 +2*0",
-    "+1*2 +2*1 +0*3 +3*0", "+0*0 -1*1 +2*2 -3*3", "+2*3 +3*2 -0*1 -1*0",
-    "+1*3 +3*1 -0*2 -2*0", "+2*3 +3*2 +0*1 +1*0", "+0*0 -1*1 -2*2 +3*3",
-])
-_CACHE: dict = {}
-
-
-def _basis(name: str, B: Tensor, like: Tensor) -> Tensor:
-    key = (name, like.dtype, like.device)
-    if key not in _CACHE:
-        _CACHE[key] = B.to(like.device, like.dtype)
-    return _CACHE[key]
-
-
-def _bilinear(a: Tensor, b: Tensor, name: str, B: Tensor) -> Tensor:
-    ab = (a[..., :, None] * b[..., None, :]).reshape(a.shape[:-1] + (16,))
-    return ab @ _basis(name, B, ab)
-
-
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a * b of wxyz quaternions [..., 4] (apply b, then a)."""
-    a, b = torch.broadcast_tensors(a, b)
-    return _bilinear(a, b, "qmul", _QMUL)
-
-
-def quat_to_matrix(q: Tensor) -> Tensor:
-    """Rotation matrices [..., 3, 3] of unit wxyz quaternions [..., 4]."""
-    return _bilinear(q, q, "qmat", _QMAT).reshape(q.shape[:-1] + (3, 3))
-
-
-def rotate_quats(q_rot: Tensor, quats_rest: Tensor) -> Tensor:
-    """Orientation after rotating by q_rot: normalise(q_rot * quats_rest), wxyz [..., 4]."""
-    q = quat_multiply(q_rot, quats_rest)
-    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
 # --------------------------------------------------------------------------- rigid fit
-
-
-def _horn_basis() -> Tensor:
-    """[9, 16] map from S (row-major) to Horn's 4x4 matrix (row-major)."""
-    sym = {  # entry (r, c) of N as signed S entries "ab"
-        (0, 0): "+xx +yy +zz", (0, 1): "+yz -zy", (0, 2): "+zx -xz", (0, 3): "+xy -yx",
-        (1, 1): "+xx -yy -zz", (1, 2): "+xy +yx", (1, 3): "+zx +xz",
-        (2, 2): "-xx +yy -zz", (2, 3): "+yz +zy", (3, 3): "-xx -yy +zz",
-    }
-    axis = {"x": 0, "y": 1, "z": 2}
-    B = torch.zeros(9, 16, dtype=torch.float64)
-    for (r, c), text in sym.items():
-        for term in text.split():
-            k = 3 * axis[term[1]] + axis[term[2]]
-            sign = 1.0 if term[0] == "+" else -1.0
-            B[k, 4 * r + c] += sign
-            if r != c:
-                B[k, 4 * c + r] += sign
-    return B
-
-
-_HORN = _horn_basis()
-
-
-def horn_matrix(S: Tensor) -> Tensor:
-    """Horn's symmetric 4x4 matrix [..., 4, 4] of a cross-covariance S [..., 3, 3].
-
-    S[a, b] = sum_j P_j[a] Y_j[b] (rest offsets P, current offsets Y). Its top eigenvector
-    is the wxyz quaternion of the rotation R maximising sum_j Y_j . R P_j.
-    """
-    flat = S.reshape(S.shape[:-2] + (9,))
-    return (flat @ _basis("horn", _HORN, flat)).reshape(S.shape[:-2] + (4, 4))
-
-
-def rotation_from_cross_covariance(S: Tensor, squarings: int = POWER_SQUARINGS) -> Tensor:
-    """Best proper rotation for a cross-covariance S [..., 3, 3] as wxyz quaternions [..., 4].
-
-    Power method by repeated squaring of N + s I, where s = sqrt(3) |S|_F bounds |eig(N)|
-    so that the shifted matrix is positive semi-definite and its top eigenvector is N's.
-    Convergence per squaring: the ratio (lambda_2 + s) / (lambda_1 + s) is squared; it is
-    at most about 0.55 for planar and 0.33 for well-spread neighbourhoods, so 12
-    squarings reach float64 precision unless the neighbourhood is nearly a line (where
-    the rotation about that line is undetermined anyway) or nearly a mirror image of
-    its rest state. S = 0 gives the identity.
-    Returns the quaternion with w >= 0.
-    """
-    N = horn_matrix(S)
-    tiny = torch.finfo(S.dtype).tiny ** 0.5
-    s = math.sqrt(3.0) * torch.sqrt((S * S).sum((-1, -2)) + tiny * tiny) + tiny
-    eye = torch.eye(4, dtype=S.dtype, device=S.device)
-    M = N + s[..., None, None] * eye
-    # (lambda_1 + s) / (2 s) >= (1 + sqrt 3) / (2 sqrt 3) = 0.79, so the top eigenvalue of
-    # M / (2 s) shrinks at most to 0.79^8 over three squarings: normalising every third
-    # squaring is enough to stay far from underflow (and saves GPU kernels).
-    M = M / (2.0 * s)[..., None, None]
-    for i in range(squarings):
-        if i % 3 == 2:
-            M = M / M.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]  # trace > 0: PSD
-        M = M @ M
-    # M ~ q q^T (times a scale): the column on the largest diagonal entry is a safe pick
-    # (q_j^2 >= 1/4 there).
-    j = M.diagonal(dim1=-2, dim2=-1).argmax(-1)
-    col = torch.gather(M, -1, j[..., None, None].expand(M.shape[:-1] + (1,)))[..., 0]
-    q = col / col.norm(dim=-1, keepdim=True)
-    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def kabsch(rest: Tensor, now: Tensor, squarings: int = POWER_SQUARINGS) -> tuple[Tensor, Tensor, Tensor]:
@@ -295,7 +178,7 @@ class DriverInterpolator:
         """Forward-only fused kernel (kernels.rigid_interpolate); no autograd."""
         import warp as wp
 
-        from pd_tool.device import init_warp_quietly
+        from pd_tool.core.device import init_warp_quietly
         from pd_tool.drivers.kernels import rigid_interpolate
 
         init_warp_quietly()
@@ -371,10 +254,3 @@ def apply_deformation(quats: Tensor, scales: Tensor, F: Tensor) -> tuple[Tensor,
         evecs = evecs * torch.where(det < 0, -1.0, 1.0)[:, None, None].to(evecs)
         q = matrix_to_quat(evecs)
         return q.to(quats.dtype), evals.clamp_min(0).sqrt().to(scales.dtype)
-
-
-def matrix_to_quat(R: Tensor) -> Tensor:
-    """wxyz unit quaternions [..., 4] (w >= 0) of rotation matrices [..., 3, 3]."""
-    # Shepperd's method through Horn's matrix: the quaternion of R is the top eigenvector
-    # of horn_matrix(R^T) (R is its own best rotation).
-    return rotation_from_cross_covariance(R.transpose(-1, -2))

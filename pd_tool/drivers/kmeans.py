@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from pd_tool.drivers.knn import DEFAULT_CHUNK, _pick_cell, knn
-from pd_tool.errors import PdToolError
+from pd_tool.core.errors import PdToolError
 
 DEFAULT_ITERS = 20  # Lloyd iterations at most
 DEFAULT_TOL = 1e-4  # stop once fewer than this fraction of the points change cluster

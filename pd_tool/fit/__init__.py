@@ -16,7 +16,7 @@ from pd_tool.fit.fields import (
 )
 from pd_tool.fit.losses import frame_loss, ssim, ssim_map
 from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
-from pd_tool.fit.video import ReferenceVideo, load_reference_video, write_video_folder
+from pd_tool.video.folder import ReferenceVideo, load_reference_video, write_video_folder
 
 __all__ = [
     "FieldSettingsError",

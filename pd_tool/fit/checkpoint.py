@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from pd_tool.atomic import atomic_output
-from pd_tool.errors import PdToolError
+from pd_tool.core.atomic import atomic_output
+from pd_tool.core.errors import PdToolError
 
 FORMAT = "pdtool-fit-checkpoint"
 VERSION = 1

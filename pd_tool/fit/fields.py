@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pd_tool.errors import MaterialFileError, PdToolError
+from pd_tool.core.errors import MaterialFileError, PdToolError
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: which coordinates index each plane
 PLANE_NAMES = ("xy", "xz", "yz")

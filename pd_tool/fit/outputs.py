@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from pd_tool.atomic import WRITTEN_BY, atomic_output
-from pd_tool.plots import STRIP_MIN_WIDTH, colorbar_strip, sci_label
-from pd_tool.scene import GaussianScene, rgb_to_sh
+from pd_tool.core.atomic import WRITTEN_BY, atomic_output
+from pd_tool.render.plots import STRIP_MIN_WIDTH, colorbar_strip, sci_label
+from pd_tool.core.scene import GaussianScene, rgb_to_sh
 
 if TYPE_CHECKING:
     from pd_tool.fit.pipeline import FitResult, FitSettings
@@ -131,7 +131,7 @@ def fit_output_paths(out_dir: str | Path, stem: str, *, preview: bool = True) ->
     if preview:
         paths["preview"] = (out_dir / f"{stem}.preview.mp4", "the fit's preview video")
         try:
-            from pd_tool.preview import _ffmpeg_exe
+            from pd_tool.render.preview import _ffmpeg_exe
 
             _ffmpeg_exe()
         except (ImportError, RuntimeError):
@@ -144,7 +144,7 @@ def check_fit_outputs(out_dir: str | Path, stem: str, *, preview: bool = True,
     """Refuse (OutputError, one line naming the file), before a fit runs, side outputs
     that would replace a file pdtool did not write or one of the fit's inputs (the scene,
     a video). Nobody named these files, so unlike -o they never replace someone else's."""
-    from pd_tool.atomic import check_destination, check_outputs, check_own_file
+    from pd_tool.core.atomic import check_destination, check_outputs, check_own_file
 
     paths = fit_output_paths(out_dir, stem, preview=preview)
     check_outputs({f"{what}{' (gif)' if kind.endswith('gif') else ''}": p for kind, (p, what) in paths.items()}, {},
@@ -189,10 +189,10 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
     Each one replaces only a file that pdtool wrote (they are checked together first, so
     a refusal writes none of them) and none of the fit's inputs. Raises OutputError."""
     from pd_tool.io import save_ply
-    from pd_tool.plots import line_plot
-    from pd_tool.preview import save_png, write_preview_any
-    from pd_tool.reference import simulate_reference
-    from pd_tool.views import render_image
+    from pd_tool.render.plots import line_plot
+    from pd_tool.render.preview import save_png, write_preview_any
+    from pd_tool.fit.reference import simulate_reference
+    from pd_tool.render.views import render_image
 
     inputs: dict[str, str | Path | None] = {"SCENE": getattr(scene, "source", None)}
     for i, v in enumerate(videos):

@@ -27,10 +27,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from pd_tool.errors import PdToolError, VideoError
-from pd_tool.prepare import PreparedScene, PrepareOptions, prepare_scene
-from pd_tool.presets import fit_simulation, load_preset
-from pd_tool.scene import GaussianScene
+from pd_tool.core.errors import PdToolError, VideoError
+from pd_tool.prepare.preparation import PreparedScene, PrepareOptions, prepare_scene
+from pd_tool.materials.presets import fit_simulation, load_preset
+from pd_tool.core.scene import GaussianScene
 
 
 @dataclass
@@ -199,7 +199,7 @@ class FitProblem:
     """Everything one fit needs, set up once: preparation, drivers, videos, fields, sim."""
 
     def __init__(self, scene: GaussianScene, videos: list, prep_options: PrepareOptions, settings: FitSettings) -> None:
-        from pd_tool.animate import GaussianAnimator
+        from pd_tool.bake.animate import GaussianAnimator
         from pd_tool.fit.fields import MaterialField, VelocityField
 
         self.s = settings
@@ -213,7 +213,7 @@ class FitProblem:
         self.prep = prepare_scene(self.scene, prep_options)
         p = self.prep
         # refuse now, before drivers, simulator and graph, when the fit cannot fit in memory
-        from pd_tool.memory import check_memory, estimate_fit_memory
+        from pd_tool.prepare.memory import check_memory, estimate_fit_memory
 
         check_memory(estimate_fit_memory(
             n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=settings.driver_ratio,
@@ -222,7 +222,7 @@ class FitProblem:
             stage1_frames=settings.stage1_frames, device=settings.device),
             what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio, device=settings.device,
             resolution=f"--working-size {settings.working_long_side}")
-        from pd_tool.work import check_fit_work  # ... or would take longer than allowed
+        from pd_tool.prepare.work import check_fit_work  # ... or would take longer than allowed
 
         check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety)
         self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed)
@@ -550,7 +550,7 @@ def _save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, optimizers
 def _resume_key(pb: FitProblem, scene_path: str | Path) -> dict:
     """What a checkpoint must share with the fit that resumes it: the scene file, the
     preparation's result, the videos and the settings (the device may change)."""
-    from pd_tool.material_file import scene_fingerprint
+    from pd_tool.materials.file import scene_fingerprint
 
     settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(pb.s).items() if k != "device"}
     return {"scene_sha256": scene_fingerprint(scene_path), "drivers": int(len(pb.x_rest)),
@@ -862,7 +862,7 @@ def check_videos_can_teach(videos: list) -> None:
             if weight is not None:
                 change = change * (weight[k] > 0)
             largest = max(largest, float(change.max()))
-        from pd_tool.fit.video import VIDEO_EXTS
+        from pd_tool.video.folder import VIDEO_EXTS
 
         source = v.frame_paths[0] if len(v.frame_paths) == 1 and v.frame_paths[0].suffix.lower() in VIDEO_EXTS \
             else v.folder
@@ -952,7 +952,7 @@ def _check_destination(out: Path, ckpt_path: Path) -> None:
     """Before any work: the checkpoint's path holds nothing but a pdtool checkpoint (a fit
     replaces and deletes that file, so it must be pdtool's own), and out's folder takes new
     files (a read-only folder is found now, not at the first checkpoint)."""
-    from pd_tool.atomic import check_destination
+    from pd_tool.core.atomic import check_destination
     from pd_tool.fit.checkpoint import is_pdtool_checkpoint
 
     if ckpt_path.exists() or ckpt_path.is_symlink():
@@ -983,7 +983,7 @@ def run_fit(
     """Fit and write the material file `out` (.pdmat). A checkpoint `out`.ckpt is kept
     while fitting (every settings.checkpoint_every iterations) and removed at the end;
     resume=True continues from it."""
-    from pd_tool.material_file import MaterialFile, scene_fingerprint
+    from pd_tool.materials.file import MaterialFile, scene_fingerprint
 
     s = (settings or FitSettings()).resolved()
     out = Path(out)

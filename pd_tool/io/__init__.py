@@ -5,10 +5,10 @@ from pathlib import Path
 
 import torch
 
-from pd_tool.errors import SplatFormatError
+from pd_tool.core.errors import SplatFormatError
 from pd_tool.io.ply import load_ply, save_ply
 from pd_tool.io.splat import load_splat, save_splat
-from pd_tool.scene import GaussianScene
+from pd_tool.core.scene import GaussianScene
 
 SPLAT_SUFFIXES = (".ply", ".splat")
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pd_tool.atomic import MARK_TEXT, atomic_output
-from pd_tool.errors import PlyFormatError
-from pd_tool.scene import REQUIRED_PLY_PROPERTIES, GaussianScene, sh_coeff_count
+from pd_tool.core.atomic import MARK_TEXT, atomic_output
+from pd_tool.core.errors import PlyFormatError
+from pd_tool.core.scene import REQUIRED_PLY_PROPERTIES, GaussianScene, sh_coeff_count
 
 NORMAL_PROPERTIES = ("nx", "ny", "nz")
 LABEL_PROPERTY = "region"  # optional integer region label (pdtool's synthetic scenes write it)
@@ -226,7 +226,7 @@ def save_ply(scene: GaussianScene, path: str | Path, *, text: bool = False, byte
 
     A scene read by load_ply is written from its raw records, so a round trip is
     bit-identical in every value, extra properties included. The header carries the
-    comment "written by pdtool" (pd_tool.atomic's mark). own_only: replace an existing
+    comment "written by pdtool" (pd_tool.core.atomic's mark). own_only: replace an existing
     file only when pdtool wrote it (a side output); `what` names it in that refusal.
     Raises OutputError when the file cannot be written.
     """

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pd_tool.atomic import atomic_output
-from pd_tool.errors import SplatFormatError
-from pd_tool.scene import GaussianScene, rgb_to_sh, sh_to_rgb
+from pd_tool.core.atomic import atomic_output
+from pd_tool.core.errors import SplatFormatError
+from pd_tool.core.scene import GaussianScene, rgb_to_sh, sh_to_rgb
 
 RECORD_BYTES = 32  # bytes per Gaussian
 SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])

@@ -19,24 +19,11 @@ import math
 import numpy as np
 import torch
 
+from pd_tool.core.quaternion import quat_to_matrix
 from pd_tool.render import kernels as K
 
 SH_C2 = (K.SH_C2_0, K.SH_C2_1, K.SH_C2_2, K.SH_C2_3, K.SH_C2_4)
 SH_C3 = (K.SH_C3_0, K.SH_C3_1, K.SH_C3_2, K.SH_C3_3, K.SH_C3_4, K.SH_C3_5, K.SH_C3_6)
-
-
-def quat_wxyz_to_mat_ref(q: torch.Tensor) -> torch.Tensor:
-    """[N, 4] (w, x, y, z), any norm -> [N, 3, 3] rotation matrices."""
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(-1, 3, 3)
 
 
 def eval_sh_ref(sh: torch.Tensor, degree: int, d: torch.Tensor) -> torch.Tensor:
@@ -96,7 +83,7 @@ def project_gaussians_ref(means, quats, scales, sh, settings):
         [s.fx / tz_safe, zero, -s.fx * txc / tz_safe**2, zero, s.fy / tz_safe, -s.fy * tyc / tz_safe**2],
         -1,
     ).reshape(-1, 2, 3)
-    M = quat_wxyz_to_mat_ref(quats) * scales[:, None, :]
+    M = quat_to_matrix(quats, normalize=True) * scales[:, None, :]
     T = J @ rot
     cov = T @ (M @ M.transpose(1, 2)) @ T.transpose(1, 2)
     a = cov[:, 0, 0] + K.COV2D_DILATION

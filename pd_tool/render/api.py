@@ -6,8 +6,8 @@ from typing import NamedTuple, Sequence
 
 import torch
 
-from pd_tool.cameras import Camera
-from pd_tool.errors import PdToolError
+from pd_tool.core.cameras import Camera
+from pd_tool.core.errors import PdToolError
 
 
 class RenderInputError(PdToolError, ValueError):
@@ -52,7 +52,7 @@ def render(
         sh: [N, K, 3] SH coefficients, K = (degree + 1)^2 in {1, 4, 9, 16}, sh[:, 0] the DC
             term (graphdeco ordering: colour = 0.5 + 0.28209479 * sh_dc + ...,
             clamped at >= 0).
-        camera: pd_tool.cameras.Camera (OpenCV world-to-camera, pixels).
+        camera: pd_tool.core.cameras.Camera (OpenCV world-to-camera, pixels).
         background: RGB colour behind the Gaussians (added as T_final * background).
         sh_degree: SH degree to evaluate (0-3, at most what K holds); None = all of K.
         near: Gaussians with camera z <= near (world units) are culled.
@@ -63,7 +63,7 @@ def render(
         means.device (cpu or cuda). Gradients flow to means, quats, scales, opacities
         and sh (float32 inputs; other float dtypes are cast, and their gradients cast back).
     """
-    _check(isinstance(camera, Camera), f"render: camera must be a pd_tool.cameras.Camera, got {type(camera).__name__}")
+    _check(isinstance(camera, Camera), f"render: camera must be a pd_tool.core.cameras.Camera, got {type(camera).__name__}")
     tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh)
     for name, t in tensors.items():
         _check(isinstance(t, torch.Tensor), f"render: {name} must be a torch.Tensor, got {type(t).__name__}")

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from pd_tool.core.quaternion import quat_matrix_wp
+
 TILE_SIZE = 16  # pixels per tile side; one CUDA block of 256 threads renders one tile
 BLOCK_DIM = TILE_SIZE * TILE_SIZE
 ALPHA_MAX = 0.99  # per-Gaussian alpha clamp (3DGS)
@@ -40,21 +42,6 @@ SH_C3_3 = 0.3731763325901154
 SH_C3_4 = -0.4570457994644658
 SH_C3_5 = 1.445305721320277
 SH_C3_6 = -0.5900435899266435
-
-
-@wp.func
-def quat_wxyz_to_mat(q: wp.vec4) -> wp.mat33:
-    """Rotation matrix of a (w, x, y, z) quaternion; normalises q (so its gradient is tangent)."""
-    qn = wp.normalize(q)
-    w = qn[0]
-    x = qn[1]
-    y = qn[2]
-    z = qn[3]
-    return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
-    )
 
 
 @wp.func
@@ -142,7 +129,7 @@ def project_gaussians(
     rz = 1.0 / tz
     rz2 = rz * rz
     J = wp.mat33(fx * rz, 0.0, -fx * txc * rz2, 0.0, fy * rz, -fy * tyc * rz2, 0.0, 0.0, 0.0)
-    R = quat_wxyz_to_mat(quats[i])
+    R = quat_matrix_wp(wp.normalize(quats[i]))  # normalised here, so the gradient of q is tangent
     s = scales[i]
     M = R * wp.diag(s)
     T = J * rot_wc

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from pd_tool.errors import SimulationUnstable
+from pd_tool.core.errors import SimulationUnstable
 from pd_tool.sim import kernels as K
 
 

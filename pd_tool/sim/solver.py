@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from pd_tool.errors import PdToolError
+from pd_tool.core.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
 from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned

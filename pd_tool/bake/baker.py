@@ -1,0 +1,454 @@
+"""Bake: simulate a prepared object under a force and stream the animation to USD.
+
+Data flow: scene -> prepare (foreground, static, simulation box) -> driving particles ->
+fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
+usd_export (streamed, atomic). Frames after the object is at rest again are held (no
+simulation, no new samples), see REST_*.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import torch
+
+from pd_tool.core.errors import PdToolError, PreparationError
+from pd_tool.prepare.memory import InsufficientMemory
+from pd_tool.prepare.preparation import PreparedScene, PrepareOptions, prepare_scene, refine_for_thin, up_rotation
+from pd_tool.materials.presets import Material, load_preset
+from pd_tool.core.scene import GaussianScene
+from pd_tool.prepare.work import WorkTooLarge
+
+# The object is at rest again when its kinetic energy has stayed below REST_FRACTION of
+# the peak (after the force ended) for REST_FRAMES frames in a row.
+REST_FRACTION = 1e-4
+REST_FRAMES = 10
+DEFAULT_DURATION_S = 0.25  # force duration when neither --duration nor an interaction says
+
+
+class ForceRegionError(PdToolError):
+    """The force's region selects no free particle."""
+
+
+@dataclass
+class ForceSpec:
+    """An acceleration applied to a region for a time window.
+
+    accel: (3,) scene units / s^2. at: a point (scene units), "top" (the free particle
+    highest along up) or None (every free particle). radius: scene units (with a point or
+    "top"); radius_fraction: the radius as a fraction of the object's longest side, used
+    when radius is None. box: x0,y0,z0,x1,y1,z1 in scene units instead of at/radius.
+    start, duration: seconds.
+    """
+
+    accel: tuple[float, float, float]
+    at: tuple[float, float, float] | str | None = None
+    radius: float | None = None
+    radius_fraction: float = 0.15
+    box: tuple[float, ...] | None = None
+    start: float = 0.0
+    duration: float = DEFAULT_DURATION_S
+    magnitude: float = 1.0  # accel / --force: a force preset's factor, to quote limits in --force's units
+
+    @classmethod
+    def from_interaction(cls, name_or_path: str | Path, accel: tuple[float, float, float], **overrides: Any) -> "ForceSpec":
+        """A force preset (poke, gust, drag or a TOML file) scaled by accel, then overrides."""
+        p = load_preset("forces", name_or_path)
+        at = None if p["at"] == "all" else p["at"]
+        spec = cls(accel=tuple(float(a) * p["magnitude"] for a in accel), at=at,
+                   radius_fraction=p["radius"], start=p["start"], duration=p["duration"],
+                   magnitude=float(p["magnitude"]) or 1.0)
+        for k, v in overrides.items():
+            if v is not None:
+                setattr(spec, k, v)
+        return spec
+
+
+@dataclass
+class BakeSettings:
+    """How to bake. seconds and fps set the frame count (frames = round(seconds * fps) + 1,
+    frame 0 being the rest state)."""
+
+    seconds: float = 2.0
+    fps: float = 30.0
+    # Quality preset (grid, CFL safety, driver ratio). None: with a fitted material, simulate
+    # as the fit did (its E is calibrated to that grid and driver count: at the plant's scale
+    # a 16-cell grid moves the true E about as far from its 32-cell motion as the uniform
+    # baseline is; docs/benchmarks.md); with a preset material, "default".
+    quality: str | Path | None = None
+    fmt: str = "both"  # instancer | splat | both
+    device: str = "cpu"
+    gravity: bool = False  # the scan is already in equilibrium under gravity
+    substeps: int | None = None  # None: CFL
+    driver_ratio: float | None = None  # None: from the quality preset
+    seed: int = 0
+    stop_at_rest: bool = True
+    # raise the grid, up to the quality's thin_grid_res, when moving parts are thinner than
+    # its grid resolves (pd_tool.prepare.preparation.refine_for_thin); never for a fitted material
+    # simulated as its fit was
+    refine_thin: bool = True
+
+    @property
+    def frames(self) -> int:
+        return int(round(self.seconds * self.fps)) + 1
+
+
+@dataclass
+class BakeResult:
+    out: Path
+    frames: int
+    simulated_frames: int
+    substeps_per_frame: int
+    gaussians: int
+    drivers: int
+    seconds_elapsed: float
+    bytes_written: int
+    peak_displacement: float  # scene units, over all Gaussians and frames
+    displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: setup, simulate, interpolate, write, total
+    report: list[str] = field(default_factory=list)
+
+
+def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np.ndarray, spec: ForceSpec) -> np.ndarray:
+    """Which driving particles [Q] the force pushes."""
+    free = ~drivers_static
+    tr = prep.transform
+    if spec.box is not None:
+        from pd_tool.prepare.preparation import Box
+
+        box = Box.parse(spec.box, "--box")
+        mask = box.contains(tr.to_scene(drivers_rest)) & free
+        where = f"box {spec.box}"
+    elif spec.at is None:
+        mask = free.copy()
+        where = "the whole object"
+    else:
+        if isinstance(spec.at, str):
+            if spec.at != "top":
+                raise ForceRegionError(f"force position '{spec.at}' is not a point x,y,z or 'top'")
+            if not free.any():
+                raise ForceRegionError("every particle is static, so nothing can move; shrink the static region")
+            centre = drivers_rest[free][np.argmax(drivers_rest[free][:, 2])]
+        else:
+            centre = tr.to_sim(np.asarray(spec.at, np.float64)[None])[0]
+        radius_m = (spec.radius * tr.scale) if spec.radius is not None else spec.radius_fraction * prep.object_size_m
+        mask = (np.linalg.norm(drivers_rest - centre, axis=1) <= radius_m) & free
+        where = f"within {radius_m / tr.scale:.3g} scene units of {np.round(tr.to_scene(centre[None])[0], 4).tolist()}"
+    if not mask.any():
+        raise ForceRegionError(
+            f"the force region ({where}) holds no free particle; move --at onto the object, "
+            f"enlarge --radius, or check the static region"
+        )
+    return mask
+
+
+def _free_space(prep: PreparedScene) -> float:
+    """Least distance, m, between the simulated particles' bounding box and the grid cells
+    the solver keeps for its walls, over the three axes."""
+    from pd_tool.prepare.preparation import WALL_CELLS
+
+    lo = prep.positions_sim.min(axis=0) - WALL_CELLS * prep.dx
+    hi = np.asarray(prep.domain) - WALL_CELLS * prep.dx - prep.positions_sim.max(axis=0)
+    return float(max(min(lo.min(), hi.min()), prep.dx))
+
+
+def usd_frame(up: str) -> tuple[np.ndarray, str]:
+    """Rotation [3, 3] from scene axes to the USD file's axes (x_usd = R @ x_scene) for a
+    scene whose up axis is `up`, and the file's upAxis. +y and +z scenes are written as
+    they are; other up axes are rotated so that up is +Z (USD knows only Y, Z)."""
+    if up == "+z":
+        return np.eye(3), "Z"
+    if up == "+y":
+        return np.eye(3), "Y"
+    return up_rotation(up), "Z"
+
+
+def check_bake_outputs(
+    out: str | Path,
+    *,
+    preview: str | Path | None = None,
+    frames_dir: str | Path | None = None,
+    inputs: Mapping[str, str | Path | None] | None = None,
+) -> None:
+    """Refuse, before any work, a bake whose outputs cannot be written or would destroy
+    something: OUT, --preview and --frames-out with names the file system takes, in
+    writable folders; --frames-out a new, empty or pdtool-made folder that holds neither
+    another output, an input nor the current folder; no output that is an input.
+    inputs: {option: path} of the files the bake reads (--scene, --material, --camera).
+    Raises OutputError / PreviewError / UsdExportError (one line each)."""
+    from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder
+    from pd_tool.core.errors import UsdExportError
+    from pd_tool.render.preview import PREVIEW_SUFFIXES, PreviewError
+    from usd_export.writer import SUFFIXES
+
+    out = Path(out)
+    if out.suffix.lower() not in SUFFIXES:
+        raise UsdExportError(f"{out}: output must end in {', '.join(SUFFIXES)}")
+    if preview is not None and Path(preview).suffix.lower() not in PREVIEW_SUFFIXES:
+        raise PreviewError(f"--preview {preview}: must end in .mp4 or .gif, not '{Path(preview).suffix}'")
+    check_outputs({"OUT": out, "--preview": preview}, {"--frames-out": frames_dir}, inputs or {})
+    check_destination(out, "OUT")
+    if not os.path.isdir(out.parent):
+        raise UsdExportError(f"{out}: folder {out.parent} does not exist; create it or choose another output path")
+    if preview is not None:
+        check_destination(preview, "--preview")
+    if frames_dir is not None:
+        check_destination(frames_dir, "--frames-out", folder=True)
+        check_replaceable_folder(frames_dir, "--frames-out")
+
+
+def bake(
+    scene: GaussianScene,
+    out: str | Path,
+    *,
+    force: ForceSpec,
+    material: Material | None = None,
+    material_file: Any = None,
+    prepare_options: PrepareOptions | None = None,
+    settings: BakeSettings | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    preview: str | Path | None = None,
+    frames_dir: str | Path | None = None,
+    camera=None,
+    inputs: Mapping[str, str | Path | None] | None = None,
+) -> BakeResult:
+    """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
+
+    Give either a homogeneous `material` (a preset) or a fitted `material_file`
+    (pd_tool.materials.file.MaterialFile). `progress(done, total)` is called once per frame.
+    preview: also render the animation to this .mp4/.gif; frames_dir: also write the
+    rendered frames with their camera.json as a reference-video folder (what `pdtool fit`
+    reads); camera: the pd_tool.core.cameras.Camera for both (default: an automatic view).
+    inputs: {option: path} of the files read for this bake (the scene's own file is
+    added); outputs are checked against them and against each other before any work
+    (`check_bake_outputs`).
+    """
+    from pd_tool.bake.animate import GaussianAnimator
+    from pd_tool.core.quaternion import matrix_to_quat, quat_multiply
+    from pd_tool.sim import MPMSolver, SimConfig
+    from pd_tool.sim.guard import check_force
+    from usd_export import UsdBakeWriter
+
+    t_start = time.perf_counter()
+    read = {"--scene": getattr(scene, "source", None), **(inputs or {})}
+    check_bake_outputs(out, preview=preview, frames_dir=frames_dir, inputs=read)
+    settings = settings or BakeSettings()
+    if material is None and material_file is None:
+        raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
+    opts = prepare_options or PrepareOptions()
+    grid, thin_grid, cfl_safety, quality_ratio, seed, follows_fit, sim_note = _discretisation(settings, material_file)
+    opts.grid_res = grid
+    if material is None:
+        nu, damping = material_file.nu, material_file.damping
+        opts.density_kg_m3 = material_file.density
+    else:
+        nu, damping = material.nu, material.damping
+        opts.density_kg_m3 = material.density
+    flat = ~(scene.scales > 0).all(dim=1).cpu().numpy()
+    if flat.any():  # USD needs a positive size; found here, the message can name the user's file
+        raise PreparationError(
+            f"{scene.source or 'the scene'}: {int(flat.sum())} Gaussians have a size of 0 (a scale_* log-scale "
+            f"below about -100), first at index {int(np.flatnonzero(flat)[0])}; remove them in your splat editor "
+            f"or export the scene again")
+    prep = prepare_scene(scene, opts)
+    dev = settings.device
+    frame_dt = 1.0 / settings.fps
+    n_frames = settings.frames
+    ratio = settings.driver_ratio if settings.driver_ratio is not None else quality_ratio
+    from pd_tool.prepare.memory import PREVIEW_PIXELS
+
+    px = 0 if preview is None and frames_dir is None else (
+        camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
+    E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
+    push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
+
+    def check_cost(p: PreparedScene, ratio: float) -> None:
+        # refuse before drivers and simulator when the run cannot fit in memory or would
+        # take longer than allowed (substeps from the CFL rule at the stiffest material and
+        # the speed the force can give)
+        from pd_tool.prepare.memory import check_memory, estimate_bake_memory
+        from pd_tool.prepare.work import check_bake_work
+
+        check_memory(estimate_bake_memory(
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
+            frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
+            what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
+            resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
+                       f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
+        speed = float(np.linalg.norm(p.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
+        check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
+                        frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
+                        speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
+
+    finer = refine_for_thin(prep, thin_grid) if settings.refine_thin and thin_grid else None
+    if finer is not None:
+        # the finer grid's cells need their drivers (an explicit --driver-ratio stands)
+        finer_ratio = finer.connected_ratio(ratio) if settings.driver_ratio is None else ratio
+        why = None
+        try:
+            check_cost(finer, finer_ratio)
+        except InsufficientMemory:
+            why = "need more memory than is available"
+        except WorkTooLarge:
+            why = "take longer than --max-minutes allows"
+        if why is None:
+            prep, ratio = finer, finer_ratio
+        else:  # the quality's own grid may still run: bake there, and say so
+            prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} cells "
+                               f"would {why} (raise --max-minutes, or use --device cuda)")
+    if prep is not finer:
+        check_cost(prep, ratio)
+    accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+
+    # ---- driving particles
+    drivers = prep.build_drivers(ratio=ratio, seed=seed)
+    d_rest = drivers.positions.double().cpu().numpy()
+    d_static = drivers.static.cpu().numpy().astype(bool)
+    if material_file is not None:
+        E = material_file.E_at(prep.transform.to_scene(d_rest))
+    else:
+        E = np.full(len(d_rest), material.E, np.float64)
+
+    # ---- simulator
+    cfg = SimConfig(
+        grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu,
+        gravity=(0.0, 0.0, -9.81) if settings.gravity else (0.0, 0.0, 0.0), damping=damping,
+        substeps=settings.substeps, cfl_safety=cfl_safety,
+    )
+    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
+    mask = force_mask(prep, d_rest, d_static, force)
+    free_E = E[~d_static] if (~d_static).any() else E
+    check_force(float(np.linalg.norm(accel_sim)), push_s,
+                float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx, opts.density_kg_m3,
+                float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale), nu=nu,
+                gap_m=_free_space(prep), magnitude=force.magnitude)
+    solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
+    force_end = force.start + force.duration
+
+    # ---- every Gaussian follows its drivers; the USD file may use rotated axes
+    animator = GaussianAnimator(scene, prep, drivers, device=dev)
+    R_usd, up_axis = usd_frame(prep.options.up_axis)
+    R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
+    q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
+    all_scales = scene.scales.detach().cpu().numpy()
+
+    def frame_arrays(d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        with torch.no_grad():
+            if d_now is None:
+                pos, q = animator.scene_positions, animator.scene_quats
+            else:
+                pos, q = animator(d_now)
+            pos = pos @ R_usd_t.T
+            q = quat_multiply(q_usd.expand_as(q), q)
+        return pos.cpu().numpy(), q.cpu().numpy()
+
+    colors = scene.colors.cpu().numpy()
+    writer = UsdBakeWriter(
+        out, n_points=scene.count, fps=settings.fps, start_frame=0, up_axis=up_axis,
+        meters_per_unit=float(prep.transform.scale), fmt=settings.fmt, colors=colors,
+        opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
+    )
+    preview_images: list[np.ndarray] = []
+    rendering = preview is not None or frames_dir is not None
+    if rendering:
+        from pd_tool.render.views import render_image, scene_camera
+
+        preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
+        q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
+
+    def snap(pos: np.ndarray, q: np.ndarray) -> None:
+        # back from the USD axes to the scene's, where the automatic camera looks
+        preview_images.append(render_image(
+            scene, preview_cam, positions=torch.as_tensor(pos @ R_usd, device=scene.device),
+            quats=quat_multiply(q_back.expand(len(q), 4), torch.as_tensor(q, device=scene.device))))
+    disp: list[float] = []
+    peak_ke = 0.0
+    calm = 0
+    simulated = 0
+    substeps = solver.substeps_per_frame(frame_dt)
+    timings = {"setup": time.perf_counter() - t_start, "simulate": 0.0, "interpolate": 0.0, "write": 0.0}
+    with writer:
+        pos0, q0 = frame_arrays(None)
+        writer.write_frame(0, pos0, q0, all_scales)
+        disp.append(0.0)
+        if rendering:
+            snap(pos0, q0)
+        if progress:
+            progress(1, n_frames)
+        for f in range(1, n_frames):
+            t = time.perf_counter()
+            substeps = solver.step_frame(frame_dt)
+            simulated += 1
+            d_now = solver.positions()  # the host copy synchronises, so the timing is honest
+            timings["simulate"] += time.perf_counter() - t
+            t = time.perf_counter()
+            pos, q = frame_arrays(d_now)
+            timings["interpolate"] += time.perf_counter() - t
+            t = time.perf_counter()
+            writer.write_frame(f, pos, q, all_scales)
+            timings["write"] += time.perf_counter() - t
+            disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
+            if rendering:
+                snap(pos, q)
+            if progress:
+                progress(f + 1, n_frames)
+            ke = solver.kinetic_energy()
+            peak_ke = max(peak_ke, ke)
+            if settings.stop_at_rest and solver.time >= force_end:
+                calm = calm + 1 if ke <= REST_FRACTION * peak_ke else 0
+                if calm >= REST_FRAMES and f + 1 < n_frames:
+                    writer.hold_frames(n_frames - 1)
+                    disp.extend([disp[-1]] * (n_frames - 1 - f))
+                    preview_images.extend(preview_images[-1:] * (n_frames - 1 - f))
+                    if progress:
+                        progress(n_frames, n_frames)
+                    break
+    timings["total"] = time.perf_counter() - t_start
+    out = Path(out)
+    result = BakeResult(
+        out=out, frames=n_frames, simulated_frames=simulated, substeps_per_frame=substeps,
+        gaussians=scene.count, drivers=len(d_rest), seconds_elapsed=time.perf_counter() - t_start,
+        bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
+        report=list(prep.report) + ([sim_note] if sim_note else []), timings=timings,
+    )
+    if simulated < n_frames - 1:
+        result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
+    if preview is not None:
+        from pd_tool.render.preview import write_preview
+
+        write_preview(preview_images, preview, settings.fps)
+        result.report.append(f"preview {preview}")
+    if frames_dir is not None:
+        from pd_tool.video.folder import write_video_folder
+
+        write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True,
+                           what="--frames-out")
+        result.report.append(f"frames {frames_dir}/ ({len(preview_images)} PNG + camera.json)")
+    return result
+
+
+def _discretisation(settings: BakeSettings, material_file) -> tuple[int, int | None, float, float, int, bool,
+                                                                    str | None]:
+    """(grid cells along the longest side, the most cells for thin parts (None: never
+    raised), CFL safety, driver ratio, driver seed, whether these are the fit's, a note for
+    the report) of a bake: the fit's for a fitted material
+    unless a quality is named, else the quality preset's."""
+    fit = material_file.fit_simulation() if material_file is not None else None
+    if settings.quality is None and fit is not None:
+        default = load_preset("quality", "default")
+        cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else float(default["cfl_safety"])
+        note = (f"simulating as the fit did: {fit['grid_res']}-cell grid, {fit['driver_ratio']:g} driving particles "
+                f"per Gaussian, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
+        return fit["grid_res"], None, cfl, fit["driver_ratio"], fit["driver_seed"], True, note
+    q = load_preset("quality", settings.quality or "default")
+    thin = int(q.get("thin_grid_res", q["grid_res"]))
+    note = None
+    if fit is not None and (int(q["grid_res"]) != fit["grid_res"] or float(q["driver_ratio"]) != fit["driver_ratio"]):
+        note = (f"note: the material was fitted on a {fit['grid_res']}-cell grid with {fit['driver_ratio']:g} driving "
+                f"particles per Gaussian; --quality {settings.quality} simulates on {int(q['grid_res'])} cells with "
+                f"{float(q['driver_ratio']):g}, which moves differently (leave --quality out to match the fit)")
+    return int(q["grid_res"]), thin, float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, False, note

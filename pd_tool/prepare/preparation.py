@@ -1,0 +1,448 @@
+"""Scene preparation: which Gaussians move, which stay fixed, and where they sit in the
+simulation box.
+
+Coordinates: the simulation works in SI metres inside the box [0, Lx] x [0, Ly] x [0, Lz]
+with +z up. `SimTransform` maps scene units to that box (axis permutation for the up
+axis, uniform scale by metres-per-unit, shift) and back, in float64, so results map back
+to scene units exactly up to float64 rounding.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from pd_tool.core.errors import PreparationError
+from pd_tool.core.scene import GaussianScene
+
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+DEFAULT_OBJECT_SIZE_M = 1.0  # longest object extent when no --meters-per-unit is given
+# Longest object extent, m, that the float32 simulation can hold: its squared distances,
+# cell volumes and masses stay normal numbers (a micrometre to a thousand kilometres).
+OBJECT_SIZE_RANGE_M = (1e-6, 1e6)
+WALL_CELLS = 3  # grid cells at each face that the solver reserves for domain walls
+OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
+
+
+# ----------------------------------------------------------------------------- boxes
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned box in scene units: lo [3], hi [3]."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @classmethod
+    def parse(cls, text: str | Sequence[float], what: str = "box") -> "Box":
+        """From 'x0,y0,z0,x1,y1,z1' (or six numbers); corners in any order."""
+        try:
+            vals = [float(v) for v in (text.split(",") if isinstance(text, str) else text)]
+        except ValueError:
+            raise PreparationError(f"{what} '{text}' is not six numbers; write x0,y0,z0,x1,y1,z1") from None
+        if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
+            raise PreparationError(f"{what} '{text}' needs six finite numbers: x0,y0,z0,x1,y1,z1")
+        a, b = np.array(vals[:3]), np.array(vals[3:])
+        if np.any(a == b):
+            # a flat box holds (almost) nothing, and what it holds depends on rounding
+            raise PreparationError(f"{what} '{text}' has no volume: give two corners that differ on every axis")
+        return cls(tuple(np.minimum(a, b).tolist()), tuple(np.maximum(a, b).tolist()))
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask [N] of points [N, 3] inside the box (faces included)."""
+        return np.all((points >= np.array(self.lo)) & (points <= np.array(self.hi)), axis=1)
+
+
+def up_rotation(up_axis: str) -> np.ndarray:
+    """A proper rotation (3x3, float64) that takes the scene's up axis to +z."""
+    if up_axis not in UP_AXES:
+        raise PreparationError(f"up axis '{up_axis}' is not one of {', '.join(UP_AXES)}")
+    sign = 1.0 if up_axis[0] == "+" else -1.0
+    axis = "xyz".index(up_axis[1])
+    up = np.zeros(3)
+    up[axis] = sign
+    # choose the two other rows as a right-handed frame with z = up
+    if axis == 2:
+        x = np.array([1.0, 0.0, 0.0])
+    else:
+        x = np.zeros(3)
+        x[(axis + 1) % 3] = 1.0
+    y = np.cross(up, x)
+    return np.stack([x, y, up])
+
+
+# ----------------------------------------------------------------------------- transform
+@dataclass(frozen=True)
+class SimTransform:
+    """x_sim = scale * (R @ x_scene) + shift, x_sim in metres inside the simulation box.
+
+    rotation [3, 3] (scene axes -> simulation axes, +z up), scale (metres per scene unit),
+    shift [3] metres. All float64.
+    """
+
+    rotation: tuple[tuple[float, float, float], ...]
+    scale: float
+    shift: tuple[float, float, float]
+
+    @property
+    def R(self) -> np.ndarray:
+        return np.asarray(self.rotation, dtype=np.float64)
+
+    def to_sim(self, x: np.ndarray) -> np.ndarray:
+        """Scene units [N, 3] -> simulation metres [N, 3] (float64)."""
+        return self.scale * (np.asarray(x, np.float64) @ self.R.T) + np.asarray(self.shift)
+
+    def to_scene(self, x: np.ndarray) -> np.ndarray:
+        """Simulation metres [N, 3] -> scene units [N, 3] (float64)."""
+        return ((np.asarray(x, np.float64) - np.asarray(self.shift)) / self.scale) @ self.R
+
+    def vector_to_sim(self, v: np.ndarray) -> np.ndarray:
+        """A direction or acceleration in scene units -> metres in simulation axes."""
+        return self.scale * (np.asarray(v, np.float64) @ self.R.T)
+
+    def vector_to_scene(self, v: np.ndarray) -> np.ndarray:
+        return (np.asarray(v, np.float64) / self.scale) @ self.R
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rotation": [list(r) for r in self.rotation], "scale": self.scale, "shift": list(self.shift)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "SimTransform":
+        return cls(tuple(tuple(float(v) for v in r) for r in d["rotation"]), float(d["scale"]),
+                   tuple(float(v) for v in d["shift"]))
+
+
+# ----------------------------------------------------------------------------- options
+@dataclass
+class PrepareOptions:
+    """Everything that decides how a scene becomes simulation particles (saved with a fit).
+
+    Lengths are in scene units unless named _m (metres). density_kg_m3 in kg/m^3.
+    """
+
+    foreground_box: tuple[float, ...] | None = None  # x0,y0,z0,x1,y1,z1; None = everything
+    min_opacity: float = 0.02  # nearly invisible Gaussians do not carry the object
+    remove_outliers: bool = True
+    outlier_min_neighbors: int = 3  # points in the 3x3x3 voxel neighbourhood, self included
+    static_box: tuple[float, ...] | None = None  # Gaussians in this box stay fixed
+    static_below: float | None = None  # ... or everything below this height along up
+    up_axis: str = "+z"
+    meters_per_unit: float | None = None  # None: scale the object to DEFAULT_OBJECT_SIZE_M
+    padding: float = 0.25  # free space around the object, as a fraction of its longest extent
+    grid_res: int = 32  # cells along the longest axis of the simulation box
+    density_kg_m3: float = 1000.0
+    fill: str = "auto"  # interior filling of closed shells: auto | on | off (pd_tool/prepare/fill.py)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "PrepareOptions":
+        known = {f for f in cls.__dataclass_fields__}
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in known}
+        return cls(**kw)
+
+    def updated(self, **changes: Any) -> "PrepareOptions":
+        """A copy with the options that are not None in `changes` replaced (a user's options
+        over a fit's). Boxes are six numbers, low corner first, already checked."""
+        known = set(self.__dataclass_fields__)
+        bad = sorted(set(changes) - known)
+        if bad:
+            raise TypeError(f"unknown preparation options: {', '.join(bad)}")
+        return replace(self, **{k: (tuple(v) if isinstance(v, list) else v)
+                                for k, v in changes.items() if v is not None})
+
+
+@dataclass
+class PreparedScene:
+    """A scene ready to simulate.
+
+    foreground: indices [F] into scene of the simulated Gaussians; static [F] bool;
+    positions_sim [F, 3] float64 metres; volumes [F] m^3; masses [F] kg;
+    dx metres (grid spacing); grid_dims (nx, ny, nz) cells; domain (Lx, Ly, Lz) metres.
+    """
+
+    scene: GaussianScene
+    options: PrepareOptions
+    foreground: np.ndarray
+    static: np.ndarray
+    transform: SimTransform
+    positions_sim: np.ndarray
+    volumes: np.ndarray
+    masses: np.ndarray
+    dx: float
+    grid_dims: tuple[int, int, int]
+    report: list[str] = field(default_factory=list)
+    fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
+    thin: Any = None  # pd_tool.prepare.thickness.ThinParts of the moving particles at this grid, or None
+
+    # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
+    # interior particles added by filling (simulated, never rendered).
+    @property
+    def n_filled(self) -> int:
+        return 0 if self.fill_source is None else int(len(self.fill_source))
+
+    @property
+    def n_particles(self) -> int:
+        return int(len(self.positions_sim))
+
+    @property
+    def domain(self) -> tuple[float, float, float]:
+        return tuple(float(n * self.dx) for n in self.grid_dims)
+
+    @property
+    def count(self) -> int:
+        return int(len(self.foreground))
+
+    def occupied_cells(self, dx: float | None = None) -> int:
+        """Grid cells (of edge `dx` m, default this grid's) that hold a simulated particle."""
+        return int(len(np.unique(np.floor(self.positions_sim / (dx or self.dx)).astype(np.int64), axis=0)))
+
+    def connected_ratio(self, ratio: float) -> float:
+        """`ratio`, raised where needed so that the drivers number at least
+        MIN_DRIVERS_PER_CELL per occupied cell (at most one per particle). Fewer, and parts of
+        the object hold no driver within a kernel's reach: a pushed driver there has nothing
+        to pull it back and flies off (a 3,000-Gaussian plant poked at its side on 64 cells
+        with 0.23 drivers per occupied cell moved 9x as far as a converged simulation)."""
+        need = MIN_DRIVERS_PER_CELL * self.occupied_cells() / max(self.n_particles, 1)
+        return float(max(ratio, min(1.0, need)))
+
+    def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu"):
+        """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle,
+        clustered on `device` (K-Means with a driver per Gaussian is slow on a CPU)."""
+        from pd_tool.drivers import build_drivers
+
+        def t(a, dtype=torch.float32):
+            return torch.as_tensor(a, dtype=dtype, device=device)
+
+        return build_drivers(t(self.positions_sim), t(self.volumes), t(self.masses), t(self.static, torch.bool),
+                             self.dx, ratio=ratio, seed=seed)
+
+    @property
+    def object_size_m(self) -> float:
+        """Longest extent of the simulated Gaussians in metres."""
+        return float(np.ptp(self.positions_sim, axis=0).max())
+
+
+# ----------------------------------------------------------------------------- steps
+def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float) -> np.ndarray:
+    """Points [N] in each point's 3x3x3 block of voxels of size h (self included)."""
+    keys = np.floor((points - lo) / h).astype(np.int64)
+    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    base = uniq.min(axis=0) - 1
+    span = uniq.max(axis=0) - base + 2
+
+    def lin(k: np.ndarray) -> np.ndarray:
+        return ((k[:, 0] - base[0]) * span[1] + (k[:, 1] - base[1])) * span[2] + (k[:, 2] - base[2])
+
+    ukeys = lin(uniq)
+    order = np.argsort(ukeys)
+    sorted_keys = ukeys[order]
+    total = np.zeros(len(uniq), np.int64)
+    for d in np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3):
+        q = lin(uniq + d)
+        pos = np.clip(np.searchsorted(sorted_keys, q), 0, len(sorted_keys) - 1)
+        hit = sorted_keys[pos] == q
+        total[hit] += counts[order[pos[hit]]]
+    return total[inverse.reshape(-1)]
+
+
+def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS) -> np.ndarray:
+    """Mask [N] of isolated points: fewer than `min_neighbors` points (self included) in
+    their 3x3x3 voxel neighbourhood. The voxel size adapts to the point density: the finest
+    of max_cells, max_cells/2, ... voxels along the robust extent at which the median point
+    has at least 8 * min_neighbors neighbours. O(N log N), no pairwise distances."""
+    if len(points) == 0:
+        return np.zeros(0, bool)
+    lo = np.quantile(points, 0.01, axis=0)
+    hi = np.quantile(points, 0.99, axis=0)
+    extent = max(float((hi - lo).max()), 1e-12)
+    cells = max_cells
+    while True:
+        total = _neighbourhood_counts(points, lo, extent / cells)
+        if cells <= 4 or np.median(total) >= 8 * min_neighbors:
+            return total < min_neighbors
+        cells //= 2
+
+
+def select_foreground(scene: GaussianScene, options: PrepareOptions) -> tuple[np.ndarray, list[str]]:
+    """Indices [F] of the Gaussians to simulate, and report lines saying why others were left out."""
+    pos = scene.positions.detach().cpu().double().numpy()
+    keep = np.ones(len(pos), bool)
+    report = []
+    if options.foreground_box is not None:
+        keep &= Box.parse(options.foreground_box, "--foreground-box").contains(pos)
+        report.append(f"foreground box keeps {int(keep.sum()):,} of {len(pos):,} Gaussians")
+    if options.min_opacity > 0:
+        opaque = scene.opacities.detach().cpu().numpy() >= options.min_opacity
+        report.append(f"opacity >= {options.min_opacity:g} drops {int((keep & ~opaque).sum()):,}")
+        keep &= opaque
+    if options.remove_outliers and keep.sum() > 0:
+        idx = np.flatnonzero(keep)
+        out = select_outliers(pos[idx], options.outlier_min_neighbors)
+        keep[idx[out]] = False
+        report.append(f"outlier removal drops {int(out.sum()):,}")
+    if not keep.any():
+        raise PreparationError(
+            "the foreground selection keeps no Gaussians; widen --foreground-box or lower --min-opacity "
+            "(see `pdtool info` for the scene's bounding box)"
+        )
+    return np.flatnonzero(keep), report
+
+
+def select_static(positions_scene: np.ndarray, options: PrepareOptions) -> np.ndarray:
+    """Mask [F] of Gaussians that stay fixed (Dirichlet cells in the simulator)."""
+    static = np.zeros(len(positions_scene), bool)
+    if options.static_box is not None:
+        static |= Box.parse(options.static_box, "--static-box").contains(positions_scene)
+    if options.static_below is not None:
+        height = positions_scene @ up_rotation(options.up_axis)[2]
+        static |= height < options.static_below
+    return static
+
+
+def cell_size(longest_m: float, padding: float, grid_res: int) -> tuple[float, float]:
+    """(dx, padding) in metres of a grid of `grid_res` cells along the longest side around
+    an object `longest_m` long, `padding` of it free on each side."""
+    pad_m = padding * longest_m
+    dx = (longest_m + 2 * pad_m) / (grid_res - 2 * WALL_CELLS)
+    if pad_m < dx:
+        # The solver keeps particles half a cell off its walls; with (nearly) no padding the
+        # object's faces would sit on them. Keep at least one free cell around the object.
+        dx = longest_m / (grid_res - 2 * WALL_CELLS - 2)
+        pad_m = dx
+    return dx, pad_m
+
+
+def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple[SimTransform, float, tuple[int, int, int]]:
+    """Map the object into a simulation box that covers only its bounds plus padding.
+
+    Returns the transform, the grid spacing dx (metres) and the grid size in cells.
+    The longest axis gets options.grid_res cells; WALL_CELLS of them at each face are
+    kept free for the solver's walls.
+    """
+    R = up_rotation(options.up_axis)
+    rotated = positions_scene @ R.T
+    lo, hi = rotated.min(axis=0), rotated.max(axis=0)
+    extent = hi - lo
+    longest = float(extent.max())
+    if not math.isfinite(longest) or longest <= 0:
+        raise PreparationError("the foreground has zero extent (a single point?); select more Gaussians")
+    mpu = options.meters_per_unit or DEFAULT_OBJECT_SIZE_M / longest
+    if not (mpu > 0 and math.isfinite(mpu)):
+        raise PreparationError(f"--meters-per-unit {options.meters_per_unit} must be a positive number")
+    lo_m, hi_m = OBJECT_SIZE_RANGE_M
+    if not lo_m <= longest * mpu <= hi_m:
+        raise PreparationError(
+            f"--meters-per-unit {mpu:g} makes the object {longest * mpu:.3g} m long; pdtool simulates objects "
+            f"of {lo_m:g} m to {hi_m:g} m: give --meters-per-unit between {lo_m / longest:.3g} and "
+            f"{hi_m / longest:.3g}, or leave it out (the object is then 1 m long)")
+    res = int(options.grid_res)
+    if res < 2 * WALL_CELLS + 4:
+        raise PreparationError(f"grid resolution {res} is too small; use at least {2 * WALL_CELLS + 4}")
+    longest_m = longest * mpu
+    dx, pad_m = cell_size(longest_m, options.padding, res)
+    dims = tuple(int(math.ceil((e * mpu + 2 * pad_m) / dx - 1e-9)) + 2 * WALL_CELLS for e in extent)
+    dims = tuple(max(d, 2 * WALL_CELLS + 2) for d in dims)
+    # centre the object in the box
+    box = np.array(dims, np.float64) * dx
+    shift = box / 2 - mpu * (lo + hi) / 2
+    return SimTransform(tuple(map(tuple, R.tolist())), float(mpu), tuple(shift.tolist())), float(dx), dims
+
+
+def particle_volumes(positions_sim: np.ndarray, dx: float) -> np.ndarray:
+    """Per-particle volume [N] m^3: a grid cell's volume divided by the particles in it."""
+    keys = np.floor(positions_sim / dx).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return (dx ** 3) / counts[inverse.reshape(-1)].astype(np.float64)
+
+
+def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -> PreparedScene:
+    """Select, fix, map and weigh the Gaussians of `scene` for simulation."""
+    options = options or PrepareOptions()
+    if options.density_kg_m3 <= 0 or not math.isfinite(options.density_kg_m3):
+        raise PreparationError(f"density {options.density_kg_m3} must be a positive number of kg/m^3")
+    fg, report = select_foreground(scene, options)
+    pos_scene = scene.positions.detach().cpu().double().numpy()[fg]
+    static = select_static(pos_scene, options)
+    transform, dx, dims = fit_transform(pos_scene, options)
+    pos_sim = transform.to_sim(pos_scene)
+    fill_source = None
+    if options.fill not in ("auto", "on", "off"):
+        raise PreparationError(f"--fill {options.fill!r} must be auto, on or off")
+    if options.fill != "off":
+        from pd_tool.prepare.fill import fill_interior
+
+        fg_t = torch.as_tensor(fg, device=scene.device)
+        res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
+                            scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
+                            scene.opacities[fg_t].detach().cpu().numpy(), cell=dx, mode=options.fill)
+        report.append(f"fill ({options.fill}): {res.reason}")
+        if res.decision and len(res.points):
+            fill_source = np.asarray(res.source, np.int64)
+            pos_sim = np.concatenate([pos_sim, np.asarray(res.points, np.float64)])
+            static = np.concatenate([static, static[fill_source]])
+    volumes = particle_volumes(pos_sim, dx)
+    report.append(
+        f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
+        f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
+    )
+    from pd_tool.prepare.thickness import thin_parts
+
+    thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes)
+    if thin is not None and thin.thin:
+        report.append(thin.line(max(dims)))
+    return PreparedScene(
+        scene=scene, options=options, foreground=fg, static=static, transform=transform,
+        positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,
+        dx=dx, grid_dims=dims, report=report, fill_source=fill_source, thin=thin,
+    )
+
+
+# A finer grid for thin parts only where the particles still fill it: the convergence
+# benchmark's 192- and 256-cell runs of the thin plant (4.4 and 2.9 particles per occupied
+# cell) agree within 1%; a 3,000-Gaussian plant on 64 cells (2.8) moved a third further than
+# on 48 (4.8).
+MIN_PARTICLES_PER_CELL = 4.0
+MIN_DRIVERS_PER_CELL = 2.0  # PreparedScene.connected_ratio
+
+
+def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | None:
+    """`prep` prepared again on a finer grid that resolves its thin moving parts, at most
+    `max_grid_res` cells along the longest side; None when it has no thin parts or the grid
+    cannot grow.
+
+    The grid is the one ThinParts.grid_needed asks for, rounded up to a multiple of 16 (the
+    benchmark's plant with 3 mm leaves asks for 123-135 cells and moves as the converged
+    reference does at 128: docs/benchmarks.md, "Convergence against a fine reference").
+    The new preparation's report ends with one line that says what was raised and why; a
+    scene too sparse for any finer grid gets a line in `prep.report` saying so.
+    """
+    from pd_tool.prepare.thickness import describe_refinement
+
+    thin, grid = prep.thin, int(prep.options.grid_res)
+    if thin is None or not thin.thin or max_grid_res <= grid:
+        return None
+    asked = min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16))
+    target = asked
+    # a grid finer than the particles fill resolves nothing: keep MIN_PARTICLES_PER_CELL
+    longest = float(np.ptp(prep.positions_sim[: prep.count], axis=0).max())
+    while target > grid and prep.n_particles < MIN_PARTICLES_PER_CELL * prep.occupied_cells(
+            cell_size(longest, prep.options.padding, target)[0]):
+        target -= 16
+    if target <= grid:
+        if target < asked:
+            prep.report.append(f"thin parts: kept the {grid}-cell grid: {prep.n_particles:,} particles are too few "
+                               f"to fill a finer one ({MIN_PARTICLES_PER_CELL:g} per occupied cell), so only a "
+                               f"denser capture would resolve them")
+        return None
+    finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
+    still = finer.thin is not None and finer.thin.thin
+    if still:  # one line says it all: drop the finer grid's own notice
+        finer.report.remove(finer.thin.line(max(finer.grid_dims)))
+    finer.report.append(describe_refinement(thin, grid, finer.thin if still else None, max(finer.grid_dims),
+                                            finer.dx))
+    return finer
+

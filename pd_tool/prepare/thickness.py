@@ -1,0 +1,219 @@
+"""How thick the moving parts of a prepared scene are, against the simulation's cell.
+
+MPM has no degrees of freedom below a grid cell, so a leaf, petal or brim thinner than a
+cell bends as if it were much thicker and moves too little (docs/simulator.md, "Thin
+parts"). This module measures each particle's local thickness from the particles around it
+and turns it into the one line that bake, fit and select print.
+
+Thickness at a window of w cells: the particles within w cells around a particle (3x3x3
+bins of w/3 cells, the particle's bin in the middle), their covariance, and
+sqrt(12 * smallest eigenvalue). That is a slab's exact thickness, a filled window's edge,
+and 0.87 of a rod's diameter.
+
+A part is thin where it reads under RESOLVED_CELLS of a cell through two windows: one cell,
+and a wide one of three cells but at most WIDE_SHARE of the object's size. The cell window
+sees the part at the grid's scale. The wide one tells a sheet from the surface of a bulk
+part, which a scan samples only on its outside and which reads as a sheet within one cell
+but not within three; capped, it does not take in the other parts of the object (the stem
+beside a leaf) on a coarse grid, where a cell is already a large share of the object.
+Particles are weighted by their simulated volume. A coarse cell's window can still take in
+more than the part, so the reading is an upper bound. The surface of a bulk part whose
+radius of curvature exceeds about two cells reads as a sheet, filled or not (a known false
+report: a ball ten cells wide).
+
+Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported,
+and every one moves 36-84% too little; from 32 cells up udon, the donut and the tree are
+not reported, and udon and the tree move within 8% of the reference; the plant with 3 mm
+leaves is reported at 16-96 cells (17-50% short) and not at 128, where it moves within 5%
+of a 192-cell reference. A bake raises its grid to ThinParts.grid_needed
+(pd_tool.prepare.preparation.refine_for_thin).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+WINDOW_BINS = 3  # bins along a window's edge
+WIDE_WINDOW = 3.0  # cells: the second window, which a bulk part's surface does not pass...
+WIDE_SHARE = 0.15  # ...and at most this share of the object's longest side (never under a cell)
+MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenvalue of a
+# covariance of a few points reads low: windows of about 10 in a solid stem read a third of a cell)
+# A part is resolved when it is at least this many cells thick. The convergence benchmark's
+# plant with 3 mm leaves moves as a converged simulation does at 128 cells (0.29 of a cell)
+# and 17-20% too little at 64 and 96 (0.13, 0.2); in a 2D MLS-MPM a strip of two particle layers was about
+# 20% too stiff at a quarter cell (../shared/docs/thin-parts.md). One 3D thin scene so far:
+# recheck this figure as more are measured.
+RESOLVED_CELLS = 0.25
+THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
+MAX_GRID = 256  # the largest grid the CLI accepts
+SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5 s on a CPU core)
+
+
+def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray, ...]:
+    """Per particle: count [N], weight [N], weighted sum [N, 3] and weighted sum of outer
+    products [N, 3, 3] of the particles in the 3x3x3 bins of edge h around its own, positions
+    in units of h relative to its bin's corner (so that the covariance does not cancel at
+    large coordinates). w [N]: the particles' weights."""
+    keys = np.floor(x / h).astype(np.int64)
+    lo = keys.min(axis=0) - 1
+    k = keys - lo
+    span = k.max(axis=0) + 2
+    lin = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+    cells, inverse = np.unique(lin, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    # moments per occupied cell, about each cell's own corner
+    local = x / h - keys
+    c_c = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+    n_c = np.bincount(inverse, w, len(cells))
+    s_c = np.stack([np.bincount(inverse, w * local[:, a], len(cells)) for a in range(3)], 1)
+    q_c = np.stack([np.bincount(inverse, w * local[:, a] * local[:, b], len(cells))
+                    for a in range(3) for b in range(3)], 1).reshape(-1, 3, 3)
+    cell_k = np.stack([cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]], 1)
+    c_w = np.zeros(len(cells))
+    n_w = np.zeros(len(cells))
+    s_w = np.zeros((len(cells), 3))
+    q_w = np.zeros((len(cells), 3, 3))
+    half = WINDOW_BINS // 2
+    for off in np.ndindex(WINDOW_BINS, WINDOW_BINS, WINDOW_BINS):
+        o = np.array(off) - half
+        nb = cell_k + o
+        nb_lin = (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2]
+        pos = np.searchsorted(cells, nb_lin).clip(0, len(cells) - 1)
+        hit = cells[pos] == nb_lin
+        j = pos[hit]
+        # shift the neighbour's moments from its corner to ours: y = local + o
+        n, s, q = n_c[j], s_c[j], q_c[j]
+        s_shift = s + n[:, None] * o
+        q_shift = q + np.einsum("ka,b->kab", s, o) + np.einsum("a,kb->kab", o, s) + n[:, None, None] * np.outer(o, o)
+        c_w[hit] += c_c[j]
+        n_w[hit] += n
+        s_w[hit] += s_shift
+        q_w[hit] += q_shift
+    return c_w[inverse], n_w[inverse], s_w[inverse], q_w[inverse]
+
+
+def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
+    """Local thickness [N] in metres of the part each particle lies in, seen through a window
+    `window` metres wide; NaN where it holds fewer than MIN_POINTS particles.
+    positions [N, 3] metres; weights [N] (> 0; default 1): the simulation's particle volumes,
+    so that a filled inside, a few particles each holding a cell, counts for its volume
+    against the many on the surface."""
+    x = np.asarray(positions, np.float64)
+    out = np.full(len(x), np.nan)
+    if len(x) == 0 or not window > 0.0:
+        return out
+    w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
+    h = window / WINDOW_BINS
+    count, n, s, q = _window_moments(x, w, h)
+    ok = count >= MIN_POINTS
+    mean = s[ok] / n[ok, None]
+    cov = q[ok] / n[ok, None, None] - np.einsum("ka,kb->kab", mean, mean)
+    lam = np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)
+    out[ok] = np.sqrt(12.0 * lam) * h
+    return out
+
+
+def local_thickness_ref(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
+    """Brute-force twin of local_thickness: each particle's window gathered explicitly."""
+    x = np.asarray(positions, np.float64)
+    w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
+    keys = np.floor(x / (window / WINDOW_BINS)).astype(np.int64)
+    out = np.full(len(x), np.nan)
+    half = WINDOW_BINS // 2
+    for i in range(len(x)):
+        sel = np.all(np.abs(keys - keys[i]) <= half, axis=1)
+        if sel.sum() < MIN_POINTS:
+            continue
+        cov = np.cov(x[sel].T, aweights=w[sel], bias=True)
+        out[i] = math.sqrt(12.0 * max(float(np.linalg.eigvalsh(cov)[0]), 0.0))
+    return out
+
+
+@dataclass(frozen=True)
+class ThinParts:
+    """What local_thickness says about a scene's moving particles at one cell size.
+
+    share: fraction of the moving particles that are thin (thinner than RESOLVED_CELLS
+    cells through both windows); thickness_m: their median thickness through one cell;
+    dx_m: the cell; grid_needed: cells along the longest side that would resolve that median.
+    """
+
+    share: float
+    thickness_m: float
+    dx_m: float
+    grid_needed: int
+
+    @property
+    def thin(self) -> bool:
+        return self.share >= THIN_SHARE
+
+    def found(self, grid_res: int, article: str) -> str:
+        """What is thin, against `article` ("this", "the") `grid_res`-cell grid's cell:
+        the start of every thin-parts line."""
+        return (f"thin parts: {self.share:.0%} of the moving particles lie in parts {_length(self.thickness_m)} "
+                f"thick or thinner, under a quarter of {article} {grid_res}-cell grid's {_length(self.dx_m)} cell")
+
+    def line(self, grid_res: int) -> str:
+        """The notice bake, fit and select print: what is thin, and the shipped quality (or
+        the grid_res of a quality file) to try. A coarse cell's window can take in more than
+        the part (the stem beside a leaf), so the thickness is an upper bound and the grid a
+        lower one: a finer grid may report a thinner part again."""
+        head = (self.found(grid_res, "this")
+                + "; MPM bends them as if they were thicker, so they move too little")
+        from pd_tool.materials.presets import builtin
+
+        shipped = sorted((int(q["grid_res"]), name) for name, q in builtin("quality").items())
+        if self.grid_needed > MAX_GRID:
+            finest, name = shipped[-1]
+            return head + (f"; resolving them needs {self.grid_needed} cells or more along the longest side, "
+                           f"beyond the {MAX_GRID} pdtool allows (--quality {name}, {finest} cells, comes closest)")
+        fits = [name for grid, name in shipped if grid >= self.grid_needed]
+        if fits:
+            return head + f"; try --quality {fits[0]} or finer"
+        return head + f"; try a --quality file with grid_res = {self.grid_needed} or more"
+
+
+def describe_refinement(coarse: ThinParts, grid_res: int, still: ThinParts | None, new_grid: int,
+                        new_dx: float) -> str:
+    """The line a bake prints when it raised its grid for thin parts: what was thin at
+    `grid_res` (`coarse`), the grid it simulates on instead, and, when the parts are
+    still thin there (`still`, the quality's ceiling), what would resolve them."""
+    head = coarse.found(grid_res, "the") + f"; simulating on {new_grid} cells ({_length(new_dx)})"
+    keep = f"--no-refine-thin keeps {grid_res}"
+    if still is None:
+        return head + f", which resolves them ({keep})"
+    return (head + f", the most this quality allows; they are still thinner than that resolves and move too "
+            f"little ({still.grid_needed} cells would: a finer --quality or a quality file; {keep})")
+
+
+def _length(m: float) -> str:
+    return f"{m * 1000:.2g} mm" if m < 0.01 else f"{m * 100:.2g} cm"
+
+
+def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: int,
+               volumes: np.ndarray | None = None) -> ThinParts | None:
+    """ThinParts of the moving particles, or None when too few have an estimate.
+
+    positions [N, 3] metres, moving [N] bool, dx metres, grid_res cells along the longest
+    side of the simulation box (grid_res * dx is that side), volumes [N] m^3 (the weights).
+    """
+    x = np.asarray(positions, np.float64)
+    moving = np.asarray(moving, bool)
+    vol = np.ones(len(x)) if volumes is None else np.asarray(volumes, np.float64)
+    if len(x) > SAMPLE:
+        # a fixed subset: the covariance of a window is unbiased under uniform thinning
+        keep = np.random.default_rng(0).choice(len(x), SAMPLE, replace=False)
+        x, moving, vol = x[keep], moving[keep], vol[keep]
+    t = local_thickness(x, dx, vol)[moving]
+    if np.isfinite(t).sum() < MIN_POINTS:
+        return None
+    size = float(np.ptp(x[moving], axis=0).max())
+    wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol)[moving]
+    # a particle whose window is too sparse to judge counts as not thin
+    with np.errstate(invalid="ignore"):
+        thin = (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
+    thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
+    needed = math.ceil(grid_res * dx / (max(thick, 1e-9) / RESOLVED_CELLS))
+    return ThinParts(share=float(thin.mean()), thickness_m=thick, dx_m=dx, grid_needed=int(needed))
