@@ -883,13 +883,15 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
         raise click.UsageError("give --workers or --ray, not both (Ray places the jobs itself)")
     with user_errors():
         from pd_tool.core.atomic import check_destination
-        from pd_tool.batch import BatchInterrupted, load_jobs, run_batch, write_summary
+        from pd_tool.batch import BatchInterrupted, CommandLines, load_jobs, run_batch, write_summary
+
+        BATCH_COMMANDS = CommandLines(parse=batch_parse, run=batch_run)
 
         jobs = load_jobs(jobs_file)
         if json_out is not None:
             check_destination(json_out, "--json")  # before the jobs run, not after
         try:
-            result = run_batch(jobs, workers=workers, ray_address=ray_address, resume=resume,
+            result = run_batch(jobs, BATCH_COMMANDS, workers=workers, ray_address=ray_address, resume=resume,
                                allow_outside=allow_outside)
         except BatchInterrupted as e:
             click.echo(f"Error: pdtool batch stopped by {e.args[0]}: the running jobs were stopped and their "
@@ -902,6 +904,34 @@ def batch(jobs_file: Path, workers: int | None, ray_address: str | None, resume:
             write_summary(result, json_out)
     if not result.ok:
         raise click.exceptions.Exit(1)
+
+
+def batch_parse(command: str, args: list[str]) -> dict[str, Any] | None:
+    """A batch job's parameters, parsed by the command itself; None when they do not parse."""
+    cmd = main.commands[command]
+    try:
+        return dict(cmd.make_context(command, list(args), resilient_parsing=True).params)
+    except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+        return None
+
+
+def batch_run(command: str, args: list[str]) -> str | None:
+    """Run a batch job's command line in this process, as typed; its error as one line, or
+    None when it ran."""
+    try:
+        rc = main.main([command, *args], prog_name="pdtool", standalone_mode=False)
+    except click.UsageError as e:
+        return f"usage: {e.format_message()}"
+    except click.ClickException as e:
+        return e.format_message()
+    except click.exceptions.Abort:
+        return "aborted"
+    # With standalone_mode=False click returns an exit code only when the command ended
+    # early (help, version, Exit); bake and fit return None when they ran.
+    if isinstance(rc, int):
+        return (f"exited with code {rc}" if rc else
+                "the command exited without running (did its args ask for help or the version?)")
+    return None
 
 
 @main.command()

@@ -1,9 +1,10 @@
 """`pdtool batch`: many bake/fit jobs from one TOML file, on a local process pool or a Ray cluster.
 
-A job is a pdtool command line. The worker runs the very same click command in-process
-(`cli.main.main([command, *args], standalone_mode=False)`), so a batch job and a typed
-command take one code path: same option checks, same defaults, same atomic outputs, same
-one-line errors. The scheduler here only decides *when* and *where* a job runs:
+A job is a pdtool command line. The frontend that offers batch hands in `CommandLines`: how
+to parse a command line and how to run one in-process. `pdtool batch` hands in its own click
+commands, so a batch job and a typed command take one code path (same option checks, same
+defaults, same atomic outputs, same one-line errors) while this scheduler imports no
+frontend. It only decides *when* and *where* a job runs:
 
 - jobs file: `[[job]]` tables, sweeps expanded into a cartesian product, `after` edges;
 - fingerprints: sha256 over the job's command line and the bytes of every input file it
@@ -456,6 +457,21 @@ def load_jobs(path: str | Path) -> list[Job]:
 # ----------------------------------------------------------------------- inputs, outputs
 
 
+@dataclass(frozen=True)
+class CommandLines:
+    """How batch reads and runs a job's command line; the frontend supplies both.
+
+    parse(command, args): the command's parameters by option name (None for an option left
+    unset), or None when the args do not parse. Called in the job's folder.
+    run(command, args): runs the command in this process; returns None when it ran, else
+    its error as one line. Must be a module-level function: process pools and Ray send it
+    to their workers by reference.
+    """
+
+    parse: Callable[[str, list[str]], dict[str, Any] | None]
+    run: Callable[[str, list[str]], str | None]
+
+
 @dataclass
 class JobFiles:
     """What a job reads and writes, as absolute paths. `outputs[0]` is its main output
@@ -511,21 +527,14 @@ def _exists(p: Path) -> bool:
         return False
 
 
-def job_files(job: Job) -> JobFiles:
-    """Split a job's paths into inputs and outputs by parsing its args with the CLI's own
-    click command (no option table is duplicated here)."""
-    import click
-
-    import cli
-
+def job_files(job: Job, commands: CommandLines) -> JobFiles:
+    """Split a job's paths into inputs and outputs by parsing its args with the frontend's
+    own parser (no option table is duplicated here)."""
     cwd = Path(job.cwd)
-    cmd = cli.main.commands[job.command]
-    try:
-        # click checks exists=True paths against the process's folder: parse from the job's.
-        with contextlib.chdir(cwd), contextlib.redirect_stderr(io.StringIO()):
-            ctx = cmd.make_context(job.command, list(job.args), resilient_parsing=True)
-        params = dict(ctx.params)
-    except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+    # A parser checks exists=True paths against the process's folder: parse from the job's.
+    with contextlib.chdir(cwd), contextlib.redirect_stderr(io.StringIO()):
+        params = commands.parse(job.command, list(job.args))
+    if params is None:
         return JobFiles(parsed=False)
 
     def absolute(p: Any) -> Path:
@@ -822,16 +831,14 @@ def _init_worker(cuda_visible: str | None, driver: int | None = None) -> None:
 
 
 def run_job(spec: dict[str, Any]) -> dict[str, Any]:
-    """Run one job in this process: the click command itself, output captured.
+    """Run one job in this process through the frontend's `run`, output captured.
 
-    spec: {'command', 'args', 'cwd', 'threads'} and, from the local pool, 'driver' (the
-    driver's pid: a job is not started once it is gone). Returns {'ok', 'error',
-    'seconds', 'log', 'host', 'pid'}; `error` is one line (the CLI's own message for a
-    user error). Module-level so that both process pools and Ray can pickle it.
+    spec: {'command', 'args', 'cwd', 'run' (CommandLines.run), 'threads'} and, from the local
+    pool, 'driver' (the driver's pid: a job is not started once it is gone). Returns {'ok',
+    'error', 'seconds', 'log', 'host', 'pid'}; `error` is one line (the frontend's own
+    message for a user error). Module-level so that both process pools and Ray can pickle it.
     """
     import platform
-
-    import click
 
     t0 = time.perf_counter()
 
@@ -855,7 +862,6 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
         import torch
 
         torch.set_num_threads(threads)
-    import cli
 
     buf = io.StringIO()
     error = None
@@ -863,18 +869,7 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
         _WORKER["running"] = True
         with _capture_fds() as native, contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
             try:
-                rc = cli.main.main([spec["command"], *spec["args"]], prog_name="pdtool", standalone_mode=False)
-                # With standalone_mode=False click returns an exit code only when the command
-                # ended early (help, version, Exit); bake and fit return None when they ran.
-                if isinstance(rc, int):
-                    error = (f"exited with code {rc}" if rc else
-                             "the command exited without running (did its args ask for help or the version?)")
-            except click.UsageError as e:
-                error = f"usage: {e.format_message()}"
-            except click.ClickException as e:
-                error = e.format_message()
-            except click.exceptions.Abort:
-                error = "aborted"
+                error = spec["run"](spec["command"], list(spec["args"]))
             except SystemExit as e:  # a library calling sys.exit must not end the worker
                 if e.code not in (0, None):
                     error = f"exited with code {e.code}"
@@ -1022,9 +1017,9 @@ class LocalBackend:
             return (self._rr - 1) % self.gpus
         return None
 
-    def submit(self, job: Job) -> cf.Future:
+    def submit(self, job: Job, run: Callable[[str, list[str]], str | None]) -> cf.Future:
         gpu = self.route(job)
-        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
+        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd, "run": run,
                 "threads": self.threads, "driver": os.getpid()}
         return (self.cpu if gpu is None else self.gpu[gpu]).submit(run_job, spec)
 
@@ -1117,8 +1112,8 @@ class RayBackend:
         self.name = (f"ray ({int(res.get('CPU', 0))} CPU, {self.cluster_gpus} GPU, "
                      f"{len(ray.nodes())} node{'s' * (len(ray.nodes()) != 1)})")
 
-    def submit(self, job: Job):
-        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd,
+    def submit(self, job: Job, run: Callable[[str, list[str]], str | None]):
+        spec = {"command": job.command, "args": list(job.args), "cwd": job.cwd, "run": run,
                 "threads": max(1, int(self.cpus_per_job))}
         return self._task.options(**ray_resources(job, self.cluster_gpus, self.cpus_per_job)).remote(spec)
 
@@ -1219,14 +1214,14 @@ def write_summary(result: BatchResult, path: str | Path) -> Path:
     return path
 
 
-def check_outputs(jobs: list[Job], allow_outside: bool = False) -> None:
+def check_outputs(jobs: list[Job], commands: CommandLines, allow_outside: bool = False) -> None:
     """Unless allow_outside, refuse the whole batch when a job writes outside its jobs
     file's folder, before any job runs. Raises JobsFileError. (run_batch finds each job's
     files again when it starts it: inputs made by earlier jobs exist by then.)"""
     if allow_outside:
         return
     for job in jobs:
-        bad = outside(job_files(job), job.cwd)
+        bad = outside(job_files(job, commands), job.cwd)
         if bad:
             raise JobsFileError(_outside_message(job, bad[0]))
 
@@ -1274,7 +1269,7 @@ def _signals_held():
             signal.signal(s, h)
 
 
-def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str | None = None,
+def run_batch(jobs: list[Job], commands: CommandLines, *, workers: int | None = None, ray_address: str | None = None,
               resume: bool = False, echo: Callable[[str], None] | None = None,
               show_progress: bool = True, backend: Any = None, allow_outside: bool = False) -> BatchResult:
     """Run `jobs` respecting their `after` edges; return every job's result.
@@ -1294,7 +1289,7 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
     results: dict[str, JobResult] = {}
     # Everything that can refuse the batch comes before the backend and the bar, so that a
     # refusal is one line.
-    check_outputs(jobs, allow_outside)
+    check_outputs(jobs, commands, allow_outside)
     if backend is None:
         backend = RayBackend(ray_address) if ray_address else LocalBackend(workers)
     bar = None
@@ -1337,7 +1332,7 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
                     if arg is not None:
                         failed(job, help_error(job, arg))
                         continue
-                    files = job_files(job)  # inputs made by earlier jobs exist now
+                    files = job_files(job, commands)  # inputs made by earlier jobs exist now
                     away = [] if allow_outside else outside(files, job.cwd)
                     if away:  # a symlink changed since the start
                         failed(job, _outside_message(job, away[0]))
@@ -1360,7 +1355,7 @@ def run_batch(jobs: list[Job], *, workers: int | None = None, ray_address: str |
                         finish(JobResult(job.name, job.command, UP_TO_DATE, outputs=[str(p) for p in files.outputs],
                                          fingerprint=fp))
                         continue
-                    in_flight[backend.submit(job)] = (job, files, fp)
+                    in_flight[backend.submit(job, commands.run)] = (job, files, fp)
                     say(f"start {job.name}")
                 waiting = still
                 if not in_flight:

@@ -16,9 +16,11 @@ from pathlib import Path
 
 import pytest
 
-from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, JobsFileError, LocalBackend, RayBackend, job_files,
-                           load_jobs, parse_jobs, ray_resources, run_batch, run_job)
+from cli import batch_parse, batch_run
+from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, CommandLines, JobsFileError, LocalBackend, RayBackend,
+                           job_files, load_jobs, parse_jobs, ray_resources, run_batch, run_job)
 
+COMMANDS = CommandLines(parse=batch_parse, run=batch_run)
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
 
@@ -134,19 +136,21 @@ def test_job_files_use_the_cli_parser(tmp_path: Path) -> None:
         {"name": "b", "command": "bake", "args": ["--scene", "s.ply", "--preset", "flower", "--force", "0,0,1",
                                                   "--preview", "p.mp4", "o/b.usd"]},
     ]}, cwd=tmp_path)
-    f = job_files(fit)
+    f = job_files(fit, COMMANDS)
     assert f.outputs == [tmp_path.resolve() / "s.pdmat"]  # the CLI's default --out
     assert set(f.inputs) == {tmp_path.resolve() / p for p in ("s.ply", "v", "q.toml")}
-    b = job_files(bake)
+    b = job_files(bake, COMMANDS)
     assert b.outputs == [tmp_path.resolve() / "o/b.usd", tmp_path.resolve() / "p.mp4"]
     assert b.inputs == [tmp_path.resolve() / "s.ply"]  # 'flower' is a built-in preset, not a file
 
 
 def test_run_job_reports_one_line_errors(tmp_path: Path) -> None:
     # What a worker runs, in this process: the click command's own usage error, one line.
-    r = run_job({"command": "bake", "args": ["--force", "0,0,1", "x.txt"], "cwd": str(tmp_path), "threads": 0})
+    r = run_job({"command": "bake", "args": ["--force", "0,0,1", "x.txt"], "cwd": str(tmp_path), "threads": 0,
+                 "run": batch_run})
     assert not r["ok"] and r["error"].startswith("usage: ") and "must end in .usd" in r["error"]
-    r = run_job({"command": "bake", "args": ["x.usd"], "cwd": str(tmp_path / "gone"), "threads": 0})
+    r = run_job({"command": "bake", "args": ["x.usd"], "cwd": str(tmp_path / "gone"), "threads": 0,
+                 "run": batch_run})
     assert not r["ok"] and "does not exist on" in r["error"] and "same path" in r["error"]
 
 
@@ -158,9 +162,9 @@ class InProcess:
     def __init__(self) -> None:
         self.done: list[tuple[int, dict]] = []
 
-    def submit(self, job):
+    def submit(self, job, run):
         self.done.append((len(self.done), run_job({"command": job.command, "args": list(job.args),
-                                                   "cwd": job.cwd, "threads": 0})))
+                                                   "cwd": job.cwd, "threads": 0, "run": run})))
         return self.done[-1][0]
 
     def wait(self, handles):
@@ -174,7 +178,7 @@ def test_two_jobs_one_output_is_refused(tmp_path: Path) -> None:
     args = ["--preset", "flower", "--force", "0,0,1", "out/x.usd"]  # no --scene: the CLI's own error
     jobs = parse_jobs({"job": [{"name": "a", "command": "bake", "args": args},
                                {"name": "b", "command": "bake", "args": args}]}, cwd=tmp_path)
-    res = run_batch(jobs, backend=InProcess(), show_progress=False, echo=lambda s: None)
+    res = run_batch(jobs, COMMANDS, backend=InProcess(), show_progress=False, echo=lambda s: None)
     a, b = res.jobs
     assert a.status == FAILED and "no scene" in a.error
     assert b.status == FAILED and "which job a also writes" in b.error
@@ -278,7 +282,7 @@ def test_a_fits_side_outputs_are_known_to_the_batch(killed_then_resumed) -> None
     # every file the real fit left in fits/ (but the batch's own record) is in its list.
     root = killed_then_resumed[0]
     (fit,) = [j for j in load_jobs(root / "local" / "jobs.toml") if j.name == "fit"]
-    written = set(job_files(fit).written())
+    written = set(job_files(fit, COMMANDS).written())
     left = {p for p in (root / "local" / "fits").iterdir() if not p.name.endswith(".batch.json")}
     assert left and left <= written, left - written
 
@@ -302,7 +306,7 @@ def test_ray_gives_the_same_usd_bytes_as_the_local_pool(killed_then_resumed) -> 
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
              _node_ip_address="127.0.0.1")
     try:
-        result = run_batch(load_jobs(root / "ray" / "jobs.toml"), backend=RayBackend(None),
+        result = run_batch(load_jobs(root / "ray" / "jobs.toml"), COMMANDS, backend=RayBackend(None),
                            show_progress=False, echo=lambda s: None)
     finally:
         ray.shutdown()

@@ -16,9 +16,13 @@ from click.testing import CliRunner
 
 from cli import main
 from pd_tool import batch as B
-from pd_tool.batch import FAILED, OK, JobsFileError, load_jobs, parse_jobs, run_batch, run_job
+from cli import batch_parse, batch_run
+from pd_tool.batch import CommandLines, FAILED, OK, JobsFileError, load_jobs, parse_jobs, run_batch, run_job
 
 BAKE = ["--scene", "plant.ply", "--preset", "flower", "--force", "0,0,1"]
+
+
+COMMANDS = CommandLines(parse=batch_parse, run=batch_run)
 
 
 class Recorder:
@@ -29,7 +33,7 @@ class Recorder:
     def __init__(self) -> None:
         self.submitted: list[str] = []
 
-    def submit(self, job):
+    def submit(self, job, run):
         self.submitted.append(job.name)
         return job.name
 
@@ -69,7 +73,7 @@ def _one_error_line(r, lines: list[str], *words: str) -> str:
 
 def _run(jobs: list[dict], folder: Path, **kw):
     rec = Recorder()
-    res = run_batch(parse_jobs({"job": jobs}, cwd=folder), backend=rec, show_progress=False,
+    res = run_batch(parse_jobs({"job": jobs}, cwd=folder), COMMANDS, backend=rec, show_progress=False,
                     echo=lambda s: None, **kw)
     return res, rec
 
@@ -284,7 +288,7 @@ def test_a_job_that_asks_for_help_fails(project: Path, arg: str) -> None:
 def test_the_worker_refuses_help_too(tmp_path: Path) -> None:
     # What a worker runs, as a second line of defence (the API lets anyone call it).
     for args in (["--help"], ["--force", "0,0,1", "-h", "x.usd"]):
-        r = run_job({"command": "bake", "args": args, "cwd": str(tmp_path), "threads": 0})
+        r = run_job({"command": "bake", "args": args, "cwd": str(tmp_path), "threads": 0, "run": batch_run})
         assert not r["ok"] and "help" in r["error"]
 
 
@@ -404,5 +408,5 @@ def test_fingerprints_read_inputs_only_up_to_their_size(tmp_path: Path) -> None:
     (tmp_path / "plant.ply").write_bytes(b"x")
     (job,) = parse_jobs({"job": [{"name": "a", "command": "bake",
                                   "args": [*BAKE, "--camera", "fifo", "out.usd"]}]}, cwd=tmp_path)
-    files = B.job_files(job)
+    files = B.job_files(job, COMMANDS)
     assert tmp_path / "fifo" in files.inputs and len(B.fingerprint(job, files)) == 64
