@@ -30,8 +30,11 @@ def main() -> None:
     ap.add_argument("--fmt", default="instancer")
     ap.add_argument("--preset", default="flower")
     ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 3000 Gaussians, 0.2 s of animation, draft")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.quick:
+        args.gaussians, args.seconds, args.quality = 3000, 0.2, "draft"
 
     import torch
 

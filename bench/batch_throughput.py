@@ -54,9 +54,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads per CPU job (0: pdtool's default, cores // workers)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 300 Gaussians, 2 frames, 1 and 2 workers")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     a = ap.parse_args()
+    if a.quick:
+        a.gaussians, a.frames, a.workers = 300, 2, "1,2"
 
     global LOAD0
     LOAD0 = os.getloadavg()[0]

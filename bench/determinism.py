@@ -45,8 +45,11 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--quality", default="draft")
     ap.add_argument("--fit-iters", type=int, default=2, help="iterations per fit stage (0: no fit)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 500 Gaussians, 4 frames, 1 fit iteration per stage")
     ap.add_argument("--json", help="write the results here")
     a = ap.parse_args()
+    if a.quick:
+        a.n, a.frames, a.fit_iters = 500, 4, 1
     import torch
 
     if a.device == "cpu":

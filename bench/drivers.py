@@ -265,6 +265,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", choices=["speed", "accuracy", "all"], default="all")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: speed on 20,000 Gaussians and 1,000 drivers, "
+                    "accuracy on 3000 Gaussians, 5 frames, ratios 1/4 and rule")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     ap.add_argument("--points", type=int, default=1_000_000, help="speed: Gaussians")
@@ -282,6 +284,10 @@ def main() -> None:
     ap.add_argument("--ratios", type=parse_ratios, default=list(RATIOS) + ["rule"],
                     help="accuracy: comma list, e.g. 1/4,1/10,rule (rule: 8 drivers per occupied cell)")
     args = ap.parse_args()
+    if args.quick:
+        args.points, args.clusters, args.reps = 20_000, 1_000, 3
+        args.gaussians, args.grid_res, args.frames = 3000, 16, 5
+        args.ratios = args.ratios[:1] + ["rule"]
     if args.threads:
         torch.set_num_threads(args.threads)
     try:

@@ -310,8 +310,11 @@ def main(argv=None) -> int:
     ap.add_argument("--scan-per-cell", type=float, default=SCAN_PER_CELL,
                     help="Gaussians per surface cell of the scanned shell")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the fill)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: a 3-cell rod, 0.3 s")
     ap.add_argument("--json", type=Path, help="write the results here")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.radius_cells, a.seconds = 3, 0.3
     import torch
     import warp as wp
 

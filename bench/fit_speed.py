@@ -25,8 +25,11 @@ def main() -> None:
     ap.add_argument("--quality", default="default")
     ap.add_argument("--velocity-iters", type=int, default=None)
     ap.add_argument("--material-iters", type=int, default=None)
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 2000 Gaussians, 128x72 px, 6 frames, draft")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.quick:
+        args.gaussians, args.width, args.height, args.frames, args.quality = 2000, 128, 72, 6, "draft"
 
     import numpy as np
     import torch

@@ -24,5 +24,4 @@ if [ "$part" = b ]; then
   run usd_write 120 bench/usd_write.py --device cuda --points 300000 --frames 30 --fmt instancer,splat,both
   run physics 120 bench/physics.py --quick --device cuda
   run fit_speed 300 bench/fit_speed.py --device cuda --gaussians 100000 --width 1024 --height 576
-  run fit_parts 60 bench/fit_parts_speed.py --device cuda
 fi

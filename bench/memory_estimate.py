@@ -140,8 +140,11 @@ def main() -> None:
     ap.add_argument("--preview", action="store_true", help="bake: also write a preview video")
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     ap.add_argument("--parallel", type=int, default=1, help="measurements at once (each is its own process)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: one 2000-Gaussian bake")
     ap.add_argument("--json", help="write the results here")
     a = ap.parse_args()
+    if a.quick:
+        a.sizes = "2000"
     sizes = [int(s) for s in a.sizes.split(",")]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

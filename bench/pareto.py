@@ -237,9 +237,13 @@ def main() -> None:
     ap.add_argument("--fit-gaussians", type=int, default=1500)
     ap.add_argument("--fit-size", type=int, default=128)
     ap.add_argument("--fit-frames", type=int, default=8)
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 1500 Gaussians, 0.3 s, two grids, one CFL and ratio, reference 48 cells")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--png", type=Path)
     args = ap.parse_args()
+    if args.quick:
+        args.gaussians, args.seconds = 1500, 0.3
+        args.grids, args.cfls, args.ratios, args.reference_grid = "16,24", "0.5", "0.25", 48
 
     import torch
 

@@ -95,11 +95,14 @@ def cpu_model() -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--quick", action="store_true", help="the 256x256 case, one repetition")
     p.add_argument("--json", dest="json_path", default=None, help="write results to this JSON file")
     p.add_argument("--reps", type=int, default=None,
                    help="timed repetitions (default: cuda 20; cpu 3, and 1 for 300k Gaussians)")
     p.add_argument("--cases", default=",".join(c[0] for c in CASES), help="comma-separated case names")
     a = p.parse_args(argv)
+    if a.quick:
+        a.cases, a.reps = CASES[0][0], 1
     if a.device == "cuda" and not torch.cuda.is_available():
         print("cuda requested but torch.cuda.is_available() is False", file=sys.stderr)
         return 2

@@ -89,8 +89,11 @@ def main(argv=None) -> int:
     ap.add_argument("--backward", action="store_true", help="profile the differentiable backward instead")
     ap.add_argument("--segment", type=int, default=None, help="backward: substeps per recomputed segment "
                     "(default SimConfig's)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 particles on a 32-cell grid, 4 substeps, 1 frame")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.quick:
+        args.sizes, args.substeps, args.frames = "20000:32", 4, 1
     wp.config.quiet = True
     wp.init()
     out = {"hardware": hardware(args.device), "rows": []}

@@ -177,8 +177,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--only", default=None, help="comma list of skips to run")
     ap.add_argument("--no-donut", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 1500 Gaussians, short animations, no donut")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.quick:
+        args.gaussians, args.seconds, args.rest_seconds, args.fixed_seconds = 1500, 0.3, 1.0, 0.2
+        args.no_donut = True
 
     import torch
 

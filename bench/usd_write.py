@@ -115,9 +115,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1,
                     help="run each configuration R times, keep the fastest (shared CPUs)")
     ap.add_argument("--dir", default=None, help="where to write (default: a temp dir)")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 points, 5 frames, instancer only")
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--_one", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.quick:
+        a.points, a.frames, a.fmt = "20000", "5", "instancer"
     if a._one:  # child: one configuration, result as JSON on stdout
         p, f, fmt, fl, th = a._one.split(":")
         res = run_one(int(p), int(f), fmt, float(fl), a.device, a.validate, a.dir,

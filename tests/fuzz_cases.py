@@ -28,7 +28,7 @@ deep nesting, wrong shapes); folder edits (missing / extra / resized frames, mas
 The same generators drive the CI tests (tests/test_fuzz_*.py, through hypothesis's
 ``st.randoms()``) and this full run:
 
-    python bench/fuzz.py --n 12000 --seed 0 --json fuzz.json [--cli 300] [--device cpu]
+    python tests/fuzz_cases.py --n 12000 --seed 0 --json fuzz.json [--cli 300] [--device cpu]
 
 --n is the total number of inputs, split over the targets by WEIGHTS. Exit code 1 when
 any bug was found; --save-failures DIR keeps each failing input for replay.

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from test_fuzz_loaders import fuzz
+import fuzz_cases as fuzz
 
 TARGETS = sorted(fuzz.CLI_WEIGHTS)
 

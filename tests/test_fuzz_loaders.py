@@ -1,9 +1,9 @@
-"""Property-based fuzzing of every loader (issue 10, item 1), the CI-sized part.
+"""Property-based fuzzing of every loader, the CI-sized part.
 
 Every generated malformed input either loads into a sane object (finite arrays,
 consistent shapes, values in range) or raises a PdToolError whose message is one line;
 any other exception, a multi-line message, a printed warning or an insane object fails.
-The generators are bench/fuzz.py's (the full run there tries >= 10,000 inputs);
+The generators are tests/fuzz_cases.py's (its command-line run tries >= 10,000 inputs);
 hypothesis drives them through ``st.randoms()``, so a failure shrinks to a small
 sequence of mutation choices and is replayed deterministically (derandomize=True).
 """
@@ -17,16 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from _bench import load_bench
+import fuzz_cases as fuzz
 
-
-def _load_fuzz():
-    return load_bench("fuzz")
-
-
-fuzz = _load_fuzz()
-
-# Inputs per loader in CI (about 500 in all, ~10 s on 2 cores); bench/fuzz.py runs 12,000+.
+# Inputs per loader in CI (about 500 in all, ~10 s on 2 cores); tests/fuzz_cases.py runs 12,000+.
 EXAMPLES = {"ply": 110, "splat": 40, "cameras": 100, "video": 40, "material": 90, "record": 30, "preset": 90}
 
 

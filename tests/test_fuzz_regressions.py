@@ -1,5 +1,5 @@
-"""One input per loader bug that bench/fuzz.py found (see docs/reliability.md): each used to
-crash with a foreign exception, print a warning, or load an insane object; each must now
+"""One input per loader bug that tests/fuzz_cases.py found (see docs/reliability.md): each
+crashed with a foreign exception, printed a warning, or loaded an insane object; each must
 raise the loader's PdToolError subclass with a one-line message naming the file."""
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pd_tool.core.errors import CameraError, MaterialFileError, PlyFormatError, 
 from pd_tool.io import load_splats
 from pd_tool.materials.file import MaterialFile
 from pd_tool.materials.presets import load_preset
-from test_fuzz_loaders import fuzz
+import fuzz_cases as fuzz
 
 
 def _one_line(e: pytest.ExceptionInfo, path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Input sanity checks that live in the loaders (issue 10, item 6): values that parse but
+"""Input sanity checks that live in the loaders: values that parse but
 cannot be meant, each refused at load time with one clear line.
 
 - a video whose frames disagree with the camera: another aspect ratio, or a camera whose
