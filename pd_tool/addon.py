@@ -15,6 +15,7 @@ import shutil
 import zipfile
 from pathlib import Path
 
+from pd_tool.core.atomic import atomic_output, check_destination, path_kind
 from pd_tool.core.errors import PdToolError
 
 ADDON_NAME = "pdtool_blender"
@@ -54,7 +55,6 @@ def install_addon(dest_dir: str | Path) -> Path:
     add-on's own files and Python's caches); anything else there is refused
     (OutputError), as is a target inside pdtool's own copy of the add-on.
     """
-    from pd_tool.core.atomic import atomic_output, check_destination, path_kind
 
     dest_dir = Path(dest_dir)
     if path_kind(dest_dir) in ("file", "other") or (path_kind(dest_dir) == "link" and not os.path.isdir(dest_dir)):
@@ -76,7 +76,6 @@ def install_addon(dest_dir: str | Path) -> Path:
 def zip_addon(out: str | Path) -> Path:
     """Write the add-on as a zip (top folder pdtool_blender/) to `out`; returns `out`.
     Raises OutputError when it cannot be written."""
-    from pd_tool.core.atomic import atomic_output, check_destination
 
     out = Path(out)
     if out.suffix.lower() != ".zip":

@@ -22,6 +22,7 @@ from pd_tool.materials.file import MaterialFile, check_record, is_material_file,
 from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import PrepareOptions
 from pd_tool.prepare.work import WorkEstimate, work_policy
+from pd_tool.render.views import scene_camera
 from pd_tool.video.folder import load_reference_video
 
 FitProgress = Callable[[str, int, int, float], None]  # (stage, iteration, total, loss)
@@ -173,7 +174,6 @@ def bake(job: BakeJob, *, progress: BakeProgress | None = None, max_minutes: flo
     splats = load_splats(got.scene, device=job.settings.device)
     cam = None
     if job.camera is not None:
-        from pd_tool.render.views import scene_camera
 
         cam = scene_camera(splats, job.camera, job.view)
     with work_policy(max_minutes, on_estimate):

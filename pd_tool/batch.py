@@ -25,7 +25,6 @@ import hashlib
 import io
 import itertools
 import json
-import math
 import multiprocessing as mp
 import os
 import re

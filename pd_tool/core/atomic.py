@@ -31,6 +31,8 @@ import errno
 import json
 import os
 import shutil
+import stat
+import struct
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
@@ -76,7 +78,6 @@ def _first_line(e: BaseException) -> str:
 def path_kind(path: str | Path) -> str | None:
     """"dir", "file", "link" (a symbolic link, not followed) or "other" (a device, a
     socket...); None when nothing can be found there, including names too long to look up."""
-    import stat
 
     try:
         mode = os.lstat(path).st_mode
@@ -175,8 +176,6 @@ def as_output_error(path: str | Path, e: BaseException) -> OutputError | None:
 
 
 def _png_is_own(path: Path) -> bool:
-    import struct
-
     with open(path, "rb") as fh:
         if fh.read(8) != b"\x89PNG\r\n\x1a\n":
             return False
@@ -231,8 +230,6 @@ def _json_is_own(path: Path) -> bool:
 
 
 def _mp4_is_own(path: Path) -> bool:
-    import struct
-
     # walk the top-level boxes to `moov` (metadata, small) and look for the comment there
     size = path.stat().st_size
     with open(path, "rb") as fh:

@@ -35,7 +35,9 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from pd_tool.core.atomic import WRITTEN_BY, atomic_output
 from pd_tool.core.errors import CameraError
+from pd_tool.core.inputs import MiB, read_small_file
 
 CAMERA_JSON_VERSION = 1
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z (OpenGL <-> OpenCV)
@@ -131,7 +133,6 @@ def _read_json(path: Path) -> Any:
             if (path / name).is_file():
                 return _read_json(path / name)
         raise CameraError(f"{path}: folder holds no camera.json, cameras.json or transforms.json; pass the camera file itself")
-    from pd_tool.core.inputs import MiB, read_small_file
 
     # a transforms.json of thousands of frames is a few MiB
     data = read_small_file(path, limit=256 * MiB, error=CameraError,
@@ -360,7 +361,6 @@ def save_camera_json(path: str | os.PathLike, camera: Camera, *, own_only: bool 
     marked as pdtool's ("written_by"). By default it replaces only a camera file that
     pdtool wrote: `render --write-camera DIR` names a folder, not this file, and a
     camera.json already there may be the user's own. Raises OutputError."""
-    from pd_tool.core.atomic import WRITTEN_BY, atomic_output
 
     with atomic_output(Path(path), own_only=own_only, what="pdtool's camera") as tmp:
         tmp.write_text(json.dumps({"written_by": WRITTEN_BY, **camera.to_dict()}, indent=2) + "\n", encoding="utf-8")

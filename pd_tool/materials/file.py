@@ -20,15 +20,17 @@ import math
 import struct
 import time
 import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zlib
 
-from pd_tool.core.atomic import WRITTEN_BY, atomic_output
-from pd_tool.core.errors import MaterialFileError
+from pd_tool.core.atomic import WRITTEN_BY, atomic_output, check_destination, check_own_file, path_kind
+from pd_tool.core.errors import MaterialFileError, OutputError
+from pd_tool.core.inputs import MiB, read_small_file
+from pd_tool.drivers import nearest_drivers
 
 FORMAT = "pdtool-material"
 VERSION = 1
@@ -195,8 +197,6 @@ class MaterialFile:
         nearest fitted driver, so a bake may use another grid or driver ratio than the fit."""
         import torch
 
-        from pd_tool.drivers import nearest_drivers
-
         idx = nearest_drivers(torch.as_tensor(points_scene, dtype=torch.float64),
                               torch.as_tensor(self.driver_rest, dtype=torch.float64), k=1)
         return self.driver_E[idx[:, 0].numpy()]
@@ -210,7 +210,6 @@ class MaterialFile:
                 f"{material_path}: was fitted to {self.meta.get('scene_path', 'another scene')}, not to {scene_path} "
                 f"(fingerprints differ); pass the scene it was fitted to, or fit this one"
             )
-
 
 
 # Header values a bake reads, checked when present: (low, high, high is exclusive).
@@ -302,8 +301,6 @@ def check_record(workdir: str | Path = ".") -> None:
     `workdir`: .pdtool is a file or a link, or .pdtool/last-fit.json is not a record pdtool wrote
     (nobody named it, so it never replaces someone else's file), or the folder is not
     writable."""
-    from pd_tool.core.atomic import check_destination, check_own_file, path_kind
-    from pd_tool.core.errors import OutputError
 
     path = Path(workdir) / RECORD_PATH
     kind = path_kind(path.parent)
@@ -333,7 +330,6 @@ def read_record(workdir: str | Path = ".") -> tuple[Path, Path] | None:
     path = Path(workdir) / RECORD_PATH
     if not path.is_file():
         return None
-    from pd_tool.core.inputs import MiB, read_small_file
 
     fix = "delete it, or pass --scene and --material"
     try:

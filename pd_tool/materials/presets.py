@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from pd_tool.core.errors import PresetError
+from pd_tool.core.inputs import MiB, read_small_file
 
 KINDS = ("materials", "quality", "forces")
 _REQUIRED = {
@@ -107,7 +108,6 @@ def load_preset(kind: str, name_or_path: str | Path) -> dict[str, Any]:
         path = Path(text)
         if not path.is_file():
             raise PresetError(f"{path}: no such preset file")
-        from pd_tool.core.inputs import MiB, read_small_file
 
         raw = read_small_file(path, limit=MiB, error=PresetError, fix="a preset is a small TOML file")
         try:

@@ -17,6 +17,9 @@ import torch
 
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
+from pd_tool.drivers import build_drivers
+from pd_tool.prepare.fill import fill_interior
+from pd_tool.prepare.thickness import describe_refinement, thin_parts
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 DEFAULT_OBJECT_SIZE_M = 1.0  # longest object extent when no --meters-per-unit is given
@@ -212,7 +215,6 @@ class PreparedScene:
     def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu"):
         """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle,
         clustered on `device` (K-Means with a driver per Gaussian is slow on a CPU)."""
-        from pd_tool.drivers import build_drivers
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(a, dtype=dtype, device=device)
@@ -373,7 +375,6 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     if options.fill not in ("auto", "on", "off"):
         raise PreparationError(f"--fill {options.fill!r} must be auto, on or off")
     if options.fill != "off":
-        from pd_tool.prepare.fill import fill_interior
 
         fg_t = torch.as_tensor(fg, device=scene.device)
         res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
@@ -389,7 +390,6 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
         f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
     )
-    from pd_tool.prepare.thickness import thin_parts
 
     thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes)
     if thin is not None and thin.thin:
@@ -420,7 +420,6 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
     The new preparation's report ends with one line that says what was raised and why; a
     scene too sparse for any finer grid gets a line in `prep.report` saying so.
     """
-    from pd_tool.prepare.thickness import describe_refinement
 
     thin, grid = prep.thin, int(prep.options.grid_res)
     if thin is None or not thin.thin or max_grid_res <= grid:

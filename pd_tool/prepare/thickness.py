@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pd_tool.materials.presets import builtin
+
 WINDOW_BINS = 3  # bins along a window's edge
 WIDE_WINDOW = 3.0  # cells: the second window, which a bulk part's surface does not pass...
 WIDE_SHARE = 0.15  # ...and at most this share of the object's longest side (never under a cell)
@@ -162,7 +164,6 @@ class ThinParts:
         lower one: a finer grid may report a thinner part again."""
         head = (self.found(grid_res, "this")
                 + "; MPM bends them as if they were thicker, so they move too little")
-        from pd_tool.materials.presets import builtin
 
         shipped = sorted((int(q["grid_res"]), name) for name, q in builtin("quality").items())
         if self.grid_needed > MAX_GRID:

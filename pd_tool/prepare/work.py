@@ -26,13 +26,15 @@ PDTOOL_SKIP_WORK_CHECK=1 turns the refusal off (the estimate is still shown).
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import math
 import os
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
+import contextvars
+
 from pd_tool.core.errors import PdToolError
+from pd_tool.sim.cfl import cfl_substeps, wave_speed
 
 DEFAULT_MAX_MINUTES = 60.0
 
@@ -120,7 +122,6 @@ def cfl_substeps_estimate(frame_dt: float, dx: float, E_max: float, density: flo
     material E_max (Pa) at `speed` (m/s); `fixed` wins when given, `floor` is a least count."""
     if fixed is not None:
         return int(fixed)
-    from pd_tool.sim.cfl import cfl_substeps, wave_speed
 
     n = cfl_substeps(frame_dt, dx, wave_speed(E_max, density, nu), speed, safety)
     return max(n, int(floor or 0))

@@ -19,8 +19,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from pd_tool.core.atomic import MARK_TEXT, atomic_output, png_info
+from pd_tool.core.atomic import MARK_TEXT, as_output_error, atomic_output, output_error_in_text, png_info
 from pd_tool.core.errors import PdToolError
+from pd_tool.render import render
 
 PREVIEW_SUFFIXES = (".mp4", ".gif")
 MP4_QUALITY = 8  # 0-10 (10 = best), imageio-ffmpeg's scale: crf = (1 - q / 10) * 51; 8 keeps splat edges crisp
@@ -134,7 +135,6 @@ def _even(a: np.ndarray) -> np.ndarray:
 def _encoder_error(path: Path, e: _EncoderFailed) -> PdToolError:
     """What an ffmpeg failure means: the destination's trouble when its message or the
     destination shows one (full, read-only...), else an encoder error."""
-    from pd_tool.core.atomic import as_output_error, output_error_in_text
 
     text = str(e)
     mapped = output_error_in_text(path, text) or as_output_error(path, e)
@@ -255,8 +255,6 @@ def render_animation_preview(
     Frames are rendered and encoded one at a time, so memory stays bounded for mp4.
     """
     import torch
-
-    from pd_tool.render import render
 
     def t(x):
         return torch.as_tensor(x, dtype=torch.float32, device=dev)

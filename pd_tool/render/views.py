@@ -9,6 +9,7 @@ import torch
 from pd_tool.core.cameras import Camera, auto_camera, load_cameras, select_view
 from pd_tool.core.errors import CameraError
 from pd_tool.core.scene import GaussianScene
+from pd_tool.render import render
 
 DEFAULT_SIZE = (768, 432)  # width, height of an automatic camera, pixels (16:9)
 
@@ -49,7 +50,6 @@ def render_image(
     quats: torch.Tensor | None = None,
 ) -> np.ndarray:
     """Render to an 8-bit RGB image [H, W, 3]; positions/quats override the scene's (animation)."""
-    from pd_tool.render import render
 
     with torch.no_grad():
         out = render(

@@ -19,19 +19,20 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from pd_tool.core.atomic import atomic_output, path_kind
+from pd_tool.core.cameras import Camera, load_cameras, save_camera_json, select_view
 from pd_tool.core.errors import VideoError
 
-if TYPE_CHECKING:  # pd_tool.core.cameras is imported lazily (numpy/json only, but keep imports light)
-    from pd_tool.core.cameras import Camera
 
 FRAME_EXTS = (".png", ".jpg", ".jpeg")
 VIDEO_EXTS = (".mp4", ".mov", ".m4v", ".webm", ".mkv", ".avi")  # read with imageio-ffmpeg
@@ -157,8 +158,6 @@ def _why(e: Exception) -> str:
 
 
 def _imread(path: Path) -> np.ndarray:
-    import warnings
-
     import imageio.v3 as iio
     from PIL import Image
 
@@ -267,8 +266,6 @@ def _read_video_file(path: Path, size_fn) -> tuple[list[Tensor], tuple[int, int]
 
 
 def _load_camera(folder: Path, camera_path: str | Path | None, view: int | str | None) -> tuple["Camera", Path]:
-    from pd_tool.core.cameras import load_cameras, select_view
-
     if camera_path is not None:
         src = Path(camera_path)
     elif (folder / CAMERA_FILE).is_file():
@@ -427,11 +424,7 @@ def write_video_folder(
     Returns:
         the folder path. Raises OutputError when the folder cannot be written.
     """
-    from pd_tool.core.atomic import atomic_output
-    from pd_tool.core.cameras import save_camera_json
     import imageio.v3 as iio
-
-    from pd_tool.core.atomic import path_kind
 
     folder = Path(folder)
     if path_kind(folder) is not None and not overwrite:

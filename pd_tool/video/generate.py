@@ -31,8 +31,15 @@ from typing import Callable
 import numpy as np
 import torch
 
+from pd_tool.core.atomic import atomic_output, check_destination, check_outputs, check_replaceable_folder, path_kind
 from pd_tool.core.cameras import Camera
 from pd_tool.core.errors import PdToolError
+from pd_tool.core.inputs import MiB, read_small_file
+from pd_tool.render import render
+from pd_tool.render.preview import save_png
+from pd_tool.render.views import render_image, scene_camera
+from pd_tool.video.camera_motion import CameraMotion, estimate_camera_motion
+from pd_tool.video.folder import write_video_folder
 
 VIDEO_EXTRA = 'pip install "pdtool[video]"'
 PIPELINE_CLASSES = ("StableVideoDiffusionPipeline",)  # model_index.json _class_name values we run
@@ -104,7 +111,7 @@ class Candidate:
     index: int
     seed: int
     frames: np.ndarray
-    motion: "CameraMotion"  # noqa: F821 (pd_tool.video.camera_motion, imported lazily)
+    motion: CameraMotion
     over_bound: bool
     folder: str | None = None
 
@@ -133,8 +140,6 @@ def require_video_extra() -> None:
 
 
 def _read_json(path: Path) -> dict:
-    from pd_tool.core.inputs import MiB, read_small_file
-
     try:
         data = json.loads(read_small_file(path, limit=16 * MiB, error=GenerateError, fix=MODEL_HINT).decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
@@ -212,7 +217,6 @@ def check_output(out: str | Path, overwrite: bool, inputs: dict[str, str | Path 
     (or that holds anything it did not write); the current folder or one that holds it
     or an input (`inputs`: {option: path}, e.g. the scene and --model); a destination
     that is not writable. Raises GenerateError / OutputError (one line)."""
-    from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder, path_kind
 
     out = Path(out)
     if path_kind(out) in ("file", "other"):
@@ -246,7 +250,6 @@ def generation_camera(scene, camera_path: str | Path | None, view: str | int | N
                       up_axis: str = "+z") -> Camera:
     """The camera of I_0: a view of a camera file re-framed to width x height
     (`frame_camera`), or the automatic 3/4 view at that size."""
-    from pd_tool.render.views import scene_camera
 
     if camera_path is None:
         return scene_camera(scene, None, view, width=width, height=height, up_axis=up_axis)
@@ -256,7 +259,6 @@ def generation_camera(scene, camera_path: str | Path | None, view: str | int | N
 def static_weight(scene, camera: Camera, static: np.ndarray) -> np.ndarray | None:
     """Where the static Gaussians (static [N] bool) cover the image: alpha [H, W] in 0-1,
     the camera-motion check's weight. None when they cover (almost) nothing."""
-    from pd_tool.render import render
 
     if not static.any():
         return None
@@ -401,11 +403,6 @@ def generate_reference_videos(
         GenerateResult. Raises GenerateError when every video moved the camera more than
         the bound and settings.reject_moving_camera is set (nothing is written then).
     """
-    from pd_tool.core.atomic import atomic_output
-    from pd_tool.video.camera_motion import estimate_camera_motion
-    from pd_tool.video.folder import write_video_folder
-    from pd_tool.render.preview import save_png
-    from pd_tool.render.views import render_image
 
     out = Path(out)
     check_output(out, overwrite, {"SCENE": getattr(scene, "source", None), "--model": model.path})
