@@ -64,7 +64,8 @@ def main() -> None:
     global LOAD0
     LOAD0 = os.getloadavg()[0]
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from pd_tool.batch import LocalBackend, RayBackend, load_jobs, run_batch
+    from cli import batch_parse, batch_run
+    from pd_tool.batch import CommandLines, LocalBackend, RayBackend, load_jobs, run_batch
     from pd_tool.io import save_splats
     from pd_tool.io.synthetic import make_plant
 
@@ -80,7 +81,8 @@ def main() -> None:
         jobs = load_jobs(d / "jobs.toml")
         backend = RayBackend(a.ray) if kind == "ray" else LocalBackend(w, threads=a.threads or None)
         t0 = time.perf_counter()
-        res = run_batch(jobs, workers=w or None, backend=backend, show_progress=False, echo=lambda s: None)
+        res = run_batch(jobs, CommandLines(batch_parse, batch_run), workers=w or None, backend=backend,
+                        show_progress=False, echo=lambda s: None)
         wall = time.perf_counter() - t0
         secs = sorted(r.seconds for r in res.jobs)
         # Each worker's first job pays the imports and kernel loading; the rest is the
