@@ -28,8 +28,6 @@ and d dpos_n / dx = -I, so every position cotangent is sum_n gw_n grad w_n / dx 
 """
 from __future__ import annotations
 
-import math
-
 import warp as wp
 
 from pd_tool.sim import kernels as K
@@ -109,38 +107,34 @@ def scatter_direct(
 def g2p_adjoint_particle(
     p: int,
     binned: int,
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    v_next: wp.array(dtype=wp.vec3),
-    C_next: wp.array(dtype=wp.mat33),
-    is_static: wp.array(dtype=int),
+    ptcl: K.Particles,
+    s: K.ParticleVars,
+    s_next: K.ParticleVars,
+    step: K.StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    adj_u: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
+    adj: K.ParticleVars,
     lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """Adjoint of G2P for particle p: adj_* hold the cotangents of the substep's output state
-    and are overwritten with the partial cotangents of its input u and F (the P2G adjoint
-    adds the rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to
-    the cell lists (binned != 0, summed by scatter_cells) or straight to adj_grid_v."""
-    gu = adj_u[p]
-    gFn = adj_F[p]
-    adj_F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * C_next[p]) * gFn
-    if is_static[p] != 0:
+    """Adjoint of G2P for particle p from state s (its u, F) to s_next (its v, C, read
+    back): adj holds the cotangents of the substep's output state and its u, F are
+    overwritten with the partial cotangents of the input u and F (the P2G adjoint adds the
+    rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the
+    cell lists (binned != 0, summed by scatter_cells) or straight to adj_grid_v."""
+    dx = step.dx
+    dt = step.dt
+    nodes = step.nodes
+    gu = adj.u[p]
+    gFn = adj.F[p]
+    adj.F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
+    if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
-        adj_u[p] = gu
+        adj.u[p] = gu
     else:
         inv_dx = 1.0 / dx
-        gvel = adj_v[p] + dt * gu
-        Ag = (4.0 * inv_dx * inv_dx) * (adj_C[p] + dt * gFn * wp.transpose(F[p]))
-        x = base[p] + u[p]
+        gvel = adj.v[p] + dt * gu
+        Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(s.F[p]))
+        x = ptcl.base[p] + s.u[p]
         b = K.stencil_base(x, inv_dx, nodes)
         fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
         wx = K.bspline_w(fx[0])
@@ -157,7 +151,7 @@ def g2p_adjoint_particle(
                     gw = wp.dot(grid_v[b[0] + i, b[1] + j, b[2] + k], gvel + Ag * dpos)
                     gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
         # sum_n w_n Ag^T v_n = Ag^T v' (the particle's new velocity): the dpos term in one product
-        adj_u[p] = gu + gfx * inv_dx - wp.transpose(Ag) * v_next[p]
+        adj.u[p] = gu + gfx * inv_dx - wp.transpose(Ag) * s_next.v[p]
         if binned == 0:
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
         else:
@@ -177,40 +171,31 @@ def g2p_adjoint_particle(
 @wp.func
 def p2g_adjoint_particle(
     p: int,
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
+    ptcl: K.Particles,
+    s: K.ParticleVars,
+    step: K.StepParams,
     a_ext: wp.vec3,
     adj_mmv: wp.array3d(dtype=wp.vec4),
-    adj_u: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
+    adj: K.ParticleVars,
     adj_E: wp.array(dtype=float),
 ):
-    """Adjoint of P2G for particle p, a gather of its 27 nodes' cotangents: sets adj_v and
-    adj_C, adds to adj_u, adj_F (partials from the G2P adjoint) and adj_E (summed over
-    substeps)."""
+    """Adjoint of P2G for particle p (state s), a gather of its 27 nodes' cotangents: sets
+    adj.v and adj.C, adds to adj.u, adj.F (partials from the G2P adjoint) and adj_E (summed
+    over substeps)."""
+    dx = step.dx
+    dt = step.dt
+    nu = step.nu
     inv_dx = 1.0 / dx
-    x = base[p] + u[p]
-    Fp = F[p]
-    Ep = E[p]
-    m = mass[p]
-    kv = 4.0 * inv_dx * inv_dx * dt * volume[p]
+    x = ptcl.base[p] + s.u[p]
+    Fp = s.F[p]
+    Ep = ptcl.E[p]
+    m = ptcl.mass[p]
+    kv = 4.0 * inv_dx * inv_dx * dt * ptcl.volume[p]
     lm = K.lame(Ep, nu)
     R = K.polar_rotation(Fp)
-    A = m * C[p] - kv * K.kirchhoff_stress_polar(Fp, R, lm[0], lm[1])
-    mvp = m * (v[p] + a_ext * dt)
-    b = K.stencil_base(x, inv_dx, nodes)
+    A = m * s.C[p] - kv * K.kirchhoff_stress_polar(Fp, R, lm[0], lm[1])
+    mvp = m * (s.v[p] + a_ext * dt)
+    b = K.stencil_base(x, inv_dx, step.nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
     wx = K.bspline_w(fx[0])
     wy = K.bspline_w(fx[1])
@@ -232,121 +217,73 @@ def p2g_adjoint_particle(
                 gA += w * wp.outer(gn, dpos)
                 gw = wp.dot(gn, mvp + A * dpos) + gq[3] * m
                 gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
-    adj_v[p] = m * g_mv
-    adj_C[p] = m * gA
+    adj.v[p] = m * g_mv
+    adj.C[p] = m * gA
     gF, gE = stress_vjp(Fp, R, Ep, nu, -kv * gA)
-    adj_F[p] = adj_F[p] + gF
+    adj.F[p] = adj.F[p] + gF
     adj_E[p] = adj_E[p] + gE
-    adj_u[p] = adj_u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
+    adj.u[p] = adj.u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
 
 
 @wp.kernel(enable_backward=False)
 def g2p_adjoint(
     binned: int,
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    v_next: wp.array(dtype=wp.vec3),
-    C_next: wp.array(dtype=wp.mat33),
-    is_static: wp.array(dtype=int),
+    ptcl: K.Particles,
+    s: K.ParticleVars,
+    s_next: K.ParticleVars,
+    step: K.StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    adj_u: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
+    adj: K.ParticleVars,
     lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """g2p_adjoint_particle for every particle (the last substep of a segment)."""
-    p = order[wp.tid()]
-    g2p_adjoint_particle(p, binned, base, u, F, v_next, C_next, is_static, grid_v, dx, dt, nodes,
-                         adj_u, adj_v, adj_C, adj_F, lists, adj_grid_v)
+    p = ptcl.order[wp.tid()]
+    g2p_adjoint_particle(p, binned, ptcl, s, s_next, step, grid_v, adj, lists, adj_grid_v)
 
 
 @wp.kernel(enable_backward=False)
 def p2g_adjoint(
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    t_frame: wp.array(dtype=float),
+    ptcl: K.Particles,
+    s: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
     t_offset: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
     adj_mmv: wp.array3d(dtype=wp.vec4),
-    adj_u: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
+    adj: K.ParticleVars,
     adj_E: wp.array(dtype=float),
 ):
-    """p2g_adjoint_particle for every particle (the first substep of a segment)."""
-    p = order[wp.tid()]
-    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_mmv,
-                         adj_u, adj_v, adj_C, adj_F, adj_E)
+    """p2g_adjoint_particle for every particle (the first substep of a segment, at
+    t_frame + t_offset s)."""
+    p = ptcl.order[wp.tid()]
+    a_ext = K.external_accel(p, t_offset, forces)
+    p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
 
 
 @wp.kernel(enable_backward=False)
 def p2g_g2p_adjoint(
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    u_prev: wp.array(dtype=wp.vec3),
-    F_prev: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    is_static: wp.array(dtype=int),
-    grid_v_prev: wp.array3d(dtype=wp.vec3),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    t_frame: wp.array(dtype=float),
+    ptcl: K.Particles,
+    s: K.ParticleVars,
+    s_prev: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
     t_offset: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
+    grid_v_prev: wp.array3d(dtype=wp.vec3),
     adj_mmv: wp.array3d(dtype=wp.vec4),
-    adj_u: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
+    adj: K.ParticleVars,
     adj_E: wp.array(dtype=float),
     binned: int,
     lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """The P2G adjoint of substep s (state u, v, C, F) fused with the G2P adjoint of substep
-    s - 1 (state u_prev, F_prev, its grid velocity grid_v_prev): each thread owns its
-    particle's cotangents, so the second reads what the first wrote, and the cotangents are
-    read and written once instead of twice."""
-    p = order[wp.tid()]
-    a_ext = K.external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    p2g_adjoint_particle(p, base, u, v, C, F, E, volume, mass, nu, dx, dt, nodes, a_ext, adj_mmv,
-                         adj_u, adj_v, adj_C, adj_F, adj_E)
-    g2p_adjoint_particle(p, binned, base, u_prev, F_prev, v, C, is_static, grid_v_prev, dx, dt, nodes,
-                         adj_u, adj_v, adj_C, adj_F, lists, adj_grid_v)
+    """The P2G adjoint of substep s (state s, at t_frame + t_offset) fused with the G2P
+    adjoint of substep s - 1 (state s_prev, its grid velocity grid_v_prev): each thread owns
+    its particle's cotangents, so the second reads what the first wrote, and the cotangents
+    are read and written once instead of twice."""
+    p = ptcl.order[wp.tid()]
+    a_ext = K.external_accel(p, t_offset, forces)
+    p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
+    g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, lists, adj_grid_v)
 
 
 @wp.func
@@ -386,16 +323,8 @@ def scatter_cells(
 
 @wp.kernel(enable_backward=False)
 def grid_adjoint(
+    step: K.StepParams,
     grid_mmv: wp.array3d(dtype=wp.vec4),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
     adj_mmv: wp.array3d(dtype=wp.vec4),
     binned: int,
@@ -415,6 +344,8 @@ def grid_adjoint(
     from 20.2 to 11.3 us at 100k / 64^3 and from 163 to 36 us at 300k / 128^3 (H200,
     docs/runs/vec4_reduction_{100k,300k}_h200.json)."""
     i, j, k = wp.tid()
+    nodes = step.nodes
+    pad = step.pad
     if binned != 0:
         lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
         if i == 0 and j == 0 and k == 0:
@@ -429,8 +360,9 @@ def grid_adjoint(
     g = wp.vec3(g4[0], g4[1], g4[2])
     mv = wp.vec3(q[0], q[1], q[2])
     out = wp.vec4(0.0)
-    if m > K.MIN_NODE_MASS and fixed[i, j, k] == 0:
-        vel = (mv / m + dt * gravity) * damping_factor
+    damping_factor = step.damping_factor
+    if m > K.MIN_NODE_MASS and step.fixed[i, j, k] == 0:
+        vel = (mv / m + step.dt * step.gravity) * damping_factor
         # each boundary condition zeroes one component by the sign of that component only
         if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
             g = wp.vec3(0.0, g[1], g[2])
@@ -438,8 +370,8 @@ def grid_adjoint(
             g = wp.vec3(g[0], 0.0, g[2])
         if (k < pad and vel[2] < 0.0) or (k >= nodes[2] - pad and vel[2] > 0.0):
             g = wp.vec3(g[0], g[1], 0.0)
-        if use_ground != 0:
-            if float(k) * dx <= ground_z and vel[2] < 0.0:
+        if step.use_ground != 0:
+            if float(k) * step.dx <= step.ground_z and vel[2] < 0.0:
                 g = wp.vec3(g[0], g[1], 0.0)
         gq = g * damping_factor  # cotangent of mv / m
         gmv = gq / m
@@ -450,18 +382,6 @@ def grid_adjoint(
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
-def _grid_bc_args(ctx, dt: float) -> list:
-    geo, cfg = ctx.geo, ctx.cfg
-    return [ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity), float(math.exp(-cfg.damping * dt)),
-            int(geo.pad), geo.nodes_vec, int(cfg.ground_z is not None),
-            float(cfg.ground_z if cfg.ground_z is not None else 0.0)]
-
-
-def _force_args(ctx) -> list:
-    fa = ctx.forces
-    return [fa.n, fa.mask, fa.accel, fa.window]
-
-
 def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists: CellLists,
                       binned: bool) -> None:
     """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
@@ -470,46 +390,39 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
     binned (CUDA): as the fast path, each G2P fused with the next substep's binning
     (gather.g2p_bin with separate input and output arrays), P2G by the cell lists;
     otherwise the atomic scatter P2G. The lists are left empty."""
-    geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
-    nodes = geo.nodes_vec
+    geo, dev = ctx.geo, ctx.device
+    ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
     n = states[0].u.shape[0]
     count = len(grids)
-    bc = _grid_bc_args(ctx, dt)
     # grids arrive with zero mass and momentum: adjoint_segment's grid_adjoint leaves them so
 
     def g2p_into(i: int) -> None:
-        s_in, s_out = states[i], states[i + 1]
         wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            ctx.order, ctx.base, s_in.u, s_in.F, mat.static, grids[i].v, float(geo.dx), float(dt), nodes,
-            float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+            ptcl, states[i].struct, step, grids[i].v, states[i + 1].struct, ctx.stats])
 
     if not binned:
         for i in range(count):
-            s_in, g = states[i], grids[i]
+            g = grids[i]
             wp.launch(K.p2g, dim=n, device=dev, inputs=[
-                ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, mat.E, mat.volume, mat.mass,
-                float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
-                *_force_args(ctx), g.mmv])
-            wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[g.mmv] + bc + [g.v])
+                ptcl, states[i].struct, step, forces, float((k0 + i) * dt), g.mmv])
+            wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v])
             g2p_into(i)
         return
 
     def g2p_bin_into(do_g2p: int, i_in: int, i_out: int) -> None:
         # G2P of substep i_in (skipped if do_g2p is 0) into state i_out, binned for substep i_out
-        s_in, s_out = states[i_in], states[i_out]
         wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, ctx.base, s_in.u, s_in.F, s_out.u, s_out.v, s_out.C, s_out.F, mat.E, mat.volume, mat.mass,
-            mat.static, grids[i_in].v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
-            geo.edge_lo, geo.edge_hi, ctx.t_frame, float((k0 + i_out) * dt), *_force_args(ctx), lists,
-            grids[i_out].mmv, ctx.stats])
+            do_g2p, ptcl, states[i_in].struct, states[i_out].struct, step, forces, float((k0 + i_out) * dt),
+            grids[i_in].v, lists, grids[i_out].mmv, ctx.stats])
 
+    nodes, dx = geo.nodes_vec, float(geo.dx)
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     g2p_bin_into(0, 0, 0)
     for i in range(count):
         g = grids[i]
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, g.mmv])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[g.mmv] + bc + [g.v, 0, lists])
+                  inputs=[lists, dx, nodes, per_pass, g.mmv])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 0, lists])
         if i < count - 1:
             g2p_bin_into(1, i, i + 1)
         else:
@@ -519,39 +432,36 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
 def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj_grid, lists: CellLists,
                     binned: bool) -> None:
     """Reverse of substeps k0 .. k0 + len(grids) - 1 (forward values from recompute_segment):
-    adj (u, v, C, F cotangents of the segment's last state, plus E's running sum) becomes the
-    cotangents of states[0], in place.
+    adj (u, v, C, F cotangents of the segment's last state as a ParticleState, plus E's
+    running sum [N] float) becomes the cotangents of states[0], in place.
 
     adj_grid = (adj_grid_v, adj_mmv), vec4 arrays (adj_grid_v's w unused): adj_grid_v must
     be zero on entry and is left zero; so are the grids' momentum and mass on exit (ready
     for the next recompute). binned: the grid-velocity cotangent goes through the cell lists
     (CUDA) instead of atomics; unbinned, `lists` may be any (unused) set."""
-    geo, cfg, dev, mat = ctx.geo, ctx.cfg, ctx.device, ctx.mat
-    nodes = geo.nodes_vec
+    geo, dev = ctx.geo, ctx.device
+    ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
+    nodes, dx = geo.nodes_vec, float(geo.dx)
     n = states[0].u.shape[0]
-    adj_u, adj_v, adj_C, adj_F, adj_E = adj
+    adj_state, adj_E = adj
+    adj_s = adj_state.struct
     adj_gv, adj_mmv = adj_grid
-    bc = _grid_bc_args(ctx, dt)
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
     count = len(grids)
     last = count - 1
     wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        int(binned), ctx.order, ctx.base, states[last].u, states[last].F, states[count].v, states[count].C,
-        mat.static, grids[last].v, float(geo.dx), float(dt), nodes, adj_u, adj_v, adj_C, adj_F, lists, adj_gv])
+        int(binned), ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, lists, adj_gv])
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
         if binned:
             wp.launch(scatter_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                      inputs=[lists, float(geo.dx), nodes, per_pass, adj_gv])
-        wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
-                  inputs=[g.mmv] + bc + [adj_gv, adj_mmv, int(binned), lists])
-        common = [float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float((k0 + i) * dt),
-                  *_force_args(ctx), adj_mmv, adj_u, adj_v, adj_C, adj_F, adj_E]
+                      inputs=[lists, dx, nodes, per_pass, adj_gv])
+        wp.launch(grid_adjoint, dim=geo.nodes, device=dev, inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), lists])
+        t_offset = float((k0 + i) * dt)
         if i > 0:
-            prev = states[i - 1]
             wp.launch(p2g_g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-                ctx.order, ctx.base, s.u, s.v, s.C, s.F, prev.u, prev.F, mat.E, mat.volume, mat.mass,
-                mat.static, grids[i - 1].v] + common + [int(binned), lists, adj_gv])
+                ptcl, s.struct, states[i - 1].struct, step, forces, t_offset, grids[i - 1].v, adj_mmv, adj_s, adj_E,
+                int(binned), lists, adj_gv])
         else:
             wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-                ctx.order, ctx.base, s.u, s.v, s.C, s.F, mat.E, mat.volume, mat.mass] + common)
+                ptcl, s.struct, step, forces, t_offset, adj_mmv, adj_s, adj_E])

@@ -244,6 +244,10 @@ class DiffSim:
                 "volume": z(float), "mass": z(float), "static": z(wp.int32), "fixed": z(int, self.geo.nodes),
                 "mask": z(float, (n_force_rows, n)), "accel": z(wp.vec3, n_force_rows),
                 "window": z(wp.vec2, n_force_rows), "t_frame": z(float, 1), "stats": z(float, K.N_STATS)}
+            # the frame state and the cotangents as ParticleStates, whose kernel structs are
+            # then built once per buffer set rather than per frame
+            bufs["state"] = ParticleState(bufs["fu"], bufs["fv"], bufs["fC"], bufs["fF"])
+            bufs["adj"] = ParticleState(bufs["adj_u"], bufs["gv"], bufs["gC"], bufs["gF"])
             self._graphs = {}
         return bufs
 
@@ -437,7 +441,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
-    st = ParticleState(buf["fu"], buf["fv"], buf["fC"], buf["fF"])
+    st = buf["state"]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
@@ -502,7 +506,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
     single = seg >= substeps
     # one segment: the start state goes straight into the pool's first state
-    st0 = states[0] if single else ParticleState(buf["fu"], buf["fv"], buf["fC"], buf["fF"])
+    st0 = states[0] if single else buf["state"]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st0)
     sctx = fr.context(base, E_sorted, t0)
     binned = sim.binned
@@ -511,7 +515,8 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     if not single:
         starts, ckpts = _checkpoints(sim, sctx, st0.v, st0.C, st0.F, t0, dt, substeps, seg)
     gu_sorted = buf["gu"]
-    adj = (buf["adj_u"], buf["gv"], buf["gC"], buf["gF"], buf["adj_E"])
+    adj_st = buf["adj"]
+    adj = (adj_st.u, adj_st.v, adj_st.C, adj_st.F, buf["adj_E"])
     wp.launch(_gather_cotangents, dim=n, device=dev, inputs=[fr.order, gu, gv, gC, gF, gu_sorted, *adj])
     # A frame's launches depend only on the segment's start, length and dt (every array is a
     # kept buffer), so on CUDA each segment replays one captured graph: the host issues one
@@ -528,7 +533,8 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
 
         def segment(k0=k0, k1=k1):
             recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
-            adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], adj, adj_grid, lists, binned)
+            adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], (adj_st, buf["adj_E"]),
+                            adj_grid, lists, binned)
 
         if not use_graph:
             segment()

@@ -25,8 +25,6 @@ recompute); the taped replay keeps the scatter P2G, whose adjoint warp generates
 """
 from __future__ import annotations
 
-import math
-
 import warp as wp
 
 from pd_tool.sim import kernels as K
@@ -127,46 +125,29 @@ def bin_particle(
 @wp.kernel(enable_backward=False)
 def g2p_bin(
     do_g2p: int,
-    base: wp.array(dtype=wp.vec3),
-    u_in: wp.array(dtype=wp.vec3),
-    F_in: wp.array(dtype=wp.mat33),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    is_static: wp.array(dtype=int),
-    grid_v: wp.array3d(dtype=wp.vec3),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    min_det_f: float,
-    edge_lo: wp.vec3,
-    edge_hi: wp.vec3,
-    t_frame: wp.array(dtype=float),
+    ptcl: K.Particles,
+    s_in: K.ParticleVars,
+    state: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
     t_offset_next: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
+    grid_v: wp.array3d(dtype=wp.vec3),
     lists: CellLists,
     grid_mmv: wp.array3d(dtype=wp.vec4),
     stats: wp.array(dtype=float),
 ):
-    """G2P of this substep from (u_in, F_in) into (u, v, C, F) (unless do_g2p is 0: the run's
-    first binning), then the next substep's payload and binning of (u, v, C, F). The fast
-    path passes u_in = u and F_in = F (in place: each thread owns its particle); the
-    backward's recompute passes the previous substep's arrays, keeping every state."""
+    """G2P of this substep from s_in (its u and F) into `state` (unless do_g2p is 0: the
+    run's first binning), then the payload and binning of `state` for the next substep at
+    t_frame + t_offset_next (s). The fast path passes the same arrays as s_in and state (in
+    place: each thread owns its particle); the backward's recompute passes the previous
+    substep's, keeping every state. Thread t handles particle t (ptcl.order is not read:
+    both callers store the particles in cell order)."""
     p = wp.tid()
     if do_g2p != 0:
-        K.g2p_gather(p, base, u_in, F_in, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
-                     u, v, C, F, stats)
-    a_ext = K.external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
-    bin_particle(p, base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt,
-                 nodes, lists, grid_mmv)
+        K.g2p_gather(p, ptcl, s_in, step, grid_v, state, stats)
+    a_ext = K.external_accel(p, t_offset_next, forces)
+    bin_particle(p, ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
+                 ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, lists, grid_mmv)
 
 
 @wp.func
@@ -284,16 +265,8 @@ def p2g_cells(
 
 @wp.kernel(enable_backward=False)
 def grid_update_clear_bins(
+    step: K.StepParams,
     grid_mmv: wp.array3d(dtype=wp.vec4),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
     clear_grid: int,
     lists: CellLists,
@@ -302,10 +275,10 @@ def grid_update_clear_bins(
     clear_grid (the fast path), zeroes mass and momentum for the next P2G; the backward's
     recompute keeps them (its adjoint reads them)."""
     i, j, k = wp.tid()
-    grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
-                                      gravity, damping_factor, pad, nodes, use_ground, ground_z)
+    grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], i, j, k, step)
     if clear_grid != 0:
         grid_mmv[i, j, k] = wp.vec4(0.0)
+    nodes = step.nodes
     lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
     if i == 0 and j == 0 and k == 0:
         lists.n_occupied[0] = 0
@@ -329,8 +302,9 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
     the order of float sums. Three launches per substep. The lists are cleared here first,
     so a call (or a replay of its captured graph) never sees counters left by the one before.
     """
-    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
-    nodes = geo.nodes_vec
+    dev, geo = ctx.device, ctx.geo
+    ptcl, step, forces, sv = ctx.particles(), ctx.step(dt), ctx.forces_struct(), st.struct
+    nodes, dx = geo.nodes_vec, float(geo.dx)
     count = st.u.shape[0]
     g.mmv.zero_()
     lists.counts.zero_()
@@ -338,22 +312,16 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
     def bin_particles(do_g2p: int, t_offset: float) -> None:
         wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, ctx.base, st.u, st.F, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass, mat.static, g.v,
-            float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
-            ctx.t_frame, float(t_offset), fa.n, fa.mask, fa.accel, fa.window, lists, g.mmv, ctx.stats])
+            do_g2p, ptcl, sv, sv, step, forces, float(t_offset), g.v, lists, g.mmv, ctx.stats])
 
     bin_particles(0, 0.0)
     per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
-    grid_args = [g.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
-                 float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v, 1, lists]
     for s in range(n):
         wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, float(geo.dx), nodes, per_pass, g.mmv])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=grid_args)
+                  inputs=[lists, dx, nodes, per_pass, g.mmv])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 1, lists])
         if s < n - 1:
             bin_particles(1, (s + 1) * dt)
         else:
-            wp.launch(K.g2p, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-                ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,
-                float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, st.u, st.v, st.C, st.F, ctx.stats])
+            wp.launch(K.g2p, dim=count, device=dev, block_dim=PARTICLE_BLOCK,
+                      inputs=[ptcl, sv, step, g.v, sv, ctx.stats])

@@ -1,6 +1,9 @@
-"""Warp device code for the MLS-MPM simulator: @wp.func and @wp.kernel only.
+"""Warp device code for the MLS-MPM simulator: @wp.struct, @wp.func and @wp.kernel only.
 
 solver.py launches these; _ref.py holds float64 numpy/torch twins used by the tests.
+The substep kernels take their inputs grouped in four structs (Particles, ParticleVars,
+StepParams, Forces); the host builds each once per solver, frame or state buffer and
+passes the same instances to every launch (solver.SubstepContext).
 
 Conventions shared by every kernel:
 - Particle position = base[p] + u[p]. `base` is a fixed float32 position (rest position in
@@ -29,6 +32,72 @@ N_STATS = 5
 # (0.3 ms a frame at 100k particles on an H200); the host folds the lanes.
 STAT_LANES = 256
 N_STATS_WITH_LANES = N_STATS + 2 * STAT_LANES
+
+
+
+# --------------------------------------------------------------------------------------
+# Argument bundles
+# --------------------------------------------------------------------------------------
+@wp.struct
+class Particles:
+    """Per-particle constants: order [N] (thread -> particle), base [N] vec3 position (m),
+    E [N] Young's modulus (Pa), volume [N] (m^3), mass [N] (kg), is_static [N] (0/1)."""
+
+    order: wp.array(dtype=int)
+    base: wp.array(dtype=wp.vec3)
+    E: wp.array(dtype=float)
+    volume: wp.array(dtype=float)
+    mass: wp.array(dtype=float)
+    is_static: wp.array(dtype=int)
+
+
+@wp.struct
+class ParticleVars:
+    """One particle state (or its cotangents): u [N] vec3 displacement from base (m),
+    v [N] vec3 (m/s), C [N] mat33 affine velocity (1/s), F [N] mat33 deformation gradient."""
+
+    u: wp.array(dtype=wp.vec3)
+    v: wp.array(dtype=wp.vec3)
+    C: wp.array(dtype=wp.mat33)
+    F: wp.array(dtype=wp.mat33)
+
+
+@wp.struct
+class StepParams:
+    """Grid, material and boundary constants of a substep.
+
+    dx: cell size (m); dt: substep (s); nodes: grid nodes per axis; nu: Poisson's ratio;
+    min_det_f: guard threshold on det F; edge_lo, edge_hi: guard box (m); pad: wall layers
+    (nodes); gravity (m/s^2); damping_factor: exp(-damping dt); use_ground (0/1),
+    ground_z (m); fixed [nodes] int: Dirichlet nodes."""
+
+    dx: float
+    dt: float
+    nodes: wp.vec3i
+    nu: float
+    min_det_f: float
+    edge_lo: wp.vec3
+    edge_hi: wp.vec3
+    pad: int
+    gravity: wp.vec3
+    damping_factor: float
+    use_ground: int
+    ground_z: float
+    fixed: wp.array3d(dtype=int)
+
+
+@wp.struct
+class Forces:
+    """User accelerations: n of them (the arrays hold at least one row), mask [K, N] float,
+    accel [K] vec3 (m/s^2), window [K] vec2 [t_start, t_end) (s); t_frame [1]: the time (s)
+    a launch's t_offset counts from, kept on the device so that a captured graph replays
+    for any frame."""
+
+    n: int
+    mask: wp.array2d(dtype=float)
+    accel: wp.array(dtype=wp.vec3)
+    window: wp.array(dtype=wp.vec2)
+    t_frame: wp.array(dtype=float)
 
 
 
@@ -139,20 +208,14 @@ def bspline_w(fx: float) -> wp.vec3:
 
 
 @wp.func
-def external_accel(
-    p: int,
-    t: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
-) -> wp.vec3:
-    """Sum of the user accelerations (m/s^2) acting on particle p at time t (s)."""
+def external_accel(p: int, t_offset: float, forces: Forces) -> wp.vec3:
+    """Sum of the user accelerations (m/s^2) acting on particle p at t_frame + t_offset (s)."""
+    t = forces.t_frame[0] + t_offset
     a = wp.vec3(0.0)
-    for k in range(n_forces):
-        win = force_window[k]
+    for k in range(forces.n):
+        win = forces.window[k]
         if t >= win[0] and t < win[1]:
-            a += force_accel[k] * force_mask[k, p]
+            a += forces.accel[k] * forces.mask[k, p]
     return a
 
 
@@ -234,62 +297,37 @@ def p2g_scatter(
 
 @wp.kernel
 def p2g(
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    t_frame: wp.array(dtype=float),
+    ptcl: Particles,
+    state: ParticleVars,
+    step: StepParams,
+    forces: Forces,
     t_offset: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
     grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """Particle to grid: mass (kg) and momentum (kg m/s) with the MLS stress impulse.
+    """Particle to grid: mass (kg) and momentum (kg m/s) with the MLS stress impulse, at
+    substep time t_frame + t_offset (s).
 
     m_i v_i += N [m_p v_p + m_p a_ext dt + (m_p C_p - 4/dx^2 dt V_p tau_p)(x_i - x_p)].
     """
-    p = order[wp.tid()]
-    a_ext = external_accel(p, t_frame[0] + t_offset, n_forces, force_mask, force_accel, force_window)
-    p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
-                grid_mmv)
+    p = ptcl.order[wp.tid()]
+    a_ext = external_accel(p, t_offset, forces)
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
+                ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
 @wp.func
-def node_velocity(
-    mmv: wp.vec4,
-    is_fixed: int,
-    i: int,
-    j: int,
-    k: int,
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
-) -> wp.vec3:
+def node_velocity(mmv: wp.vec4, i: int, j: int, k: int, step: StepParams) -> wp.vec3:
     """Velocity of one node (m/s) from its (momentum, mass), with every boundary condition.
 
     Nodes lighter than MIN_NODE_MASS count as empty: a particle at the edge of a node's
     B-spline support gives it a mass of order 1e-18 kg, and the adjoint of mv / m,
     -mv / m^2, overflows float32 there (seen as NaN gradients on CUDA)."""
+    pad = step.pad
+    nodes = step.nodes
     vel = wp.vec3(0.0)
     m = mmv[3]
     if m > MIN_NODE_MASS:
-        vel = (wp.vec3(mmv[0], mmv[1], mmv[2]) / m + dt * gravity) * damping_factor
+        vel = (wp.vec3(mmv[0], mmv[1], mmv[2]) / m + step.dt * step.gravity) * step.damping_factor
         if i < pad and vel[0] < 0.0:
             vel = wp.vec3(0.0, vel[1], vel[2])
         if i >= nodes[0] - pad and vel[0] > 0.0:
@@ -302,26 +340,18 @@ def node_velocity(
             vel = wp.vec3(vel[0], vel[1], 0.0)
         if k >= nodes[2] - pad and vel[2] > 0.0:
             vel = wp.vec3(vel[0], vel[1], 0.0)
-        if use_ground != 0:
-            if float(k) * dx <= ground_z and vel[2] < 0.0:
+        if step.use_ground != 0:
+            if float(k) * step.dx <= step.ground_z and vel[2] < 0.0:
                 vel = wp.vec3(vel[0], vel[1], 0.0)
-        if is_fixed != 0:
+        if step.fixed[i, j, k] != 0:
             vel = wp.vec3(0.0)
     return vel
 
 
 @wp.kernel
 def grid_update(
+    step: StepParams,
     grid_mmv: wp.array3d(dtype=wp.vec4),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
 ):
     """Grid velocity (m/s) = momentum / mass + dt g, damped, then boundary conditions.
@@ -331,57 +361,40 @@ def grid_update(
     their downward velocity. Dirichlet: fixed nodes get zero velocity.
     """
     i, j, k = wp.tid()
-    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
-                                    gravity, damping_factor, pad, nodes, use_ground, ground_z)
+    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], i, j, k, step)
 
 
 @wp.kernel(enable_backward=False)
 def grid_update_and_clear(
+    step: StepParams,
     grid_mmv: wp.array3d(dtype=wp.vec4),
-    fixed: wp.array3d(dtype=int),
-    dx: float,
-    dt: float,
-    gravity: wp.vec3,
-    damping_factor: float,
-    pad: int,
-    nodes: wp.vec3i,
-    use_ground: int,
-    ground_z: float,
     grid_v: wp.array3d(dtype=wp.vec3),
 ):
     """grid_update that also zeroes mass and momentum for the next P2G (fast path only)."""
     i, j, k = wp.tid()
-    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], fixed[i, j, k], i, j, k, dx, dt,
-                                    gravity, damping_factor, pad, nodes, use_ground, ground_z)
+    grid_v[i, j, k] = node_velocity(grid_mmv[i, j, k], i, j, k, step)
     grid_mmv[i, j, k] = wp.vec4(0.0)
 
 
 @wp.func
 def g2p_gather(
     p: int,
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    is_static: wp.array(dtype=int),
+    ptcl: Particles,
+    s_in: ParticleVars,
+    step: StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    min_det_f: float,
-    edge_lo: wp.vec3,
-    edge_hi: wp.vec3,
-    u_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
+    s_out: ParticleVars,
     stats: wp.array(dtype=float),
 ):
-    """Grid to particle p: v, C from the grid; F <- (I + dt C) F; u <- u + dt v; guard."""
+    """Grid to particle p: v, C from the grid; F <- (I + dt C) F; u <- u + dt v; guard.
+    Reads u, F of s_in and writes u, v, C, F of s_out."""
+    dx = step.dx
+    dt = step.dt
     inv_dx = 1.0 / dx
-    up = u[p]
-    x = base[p] + up
-    Fp = F[p]
-    b = stencil_base(x, inv_dx, nodes)
+    up = s_in.u[p]
+    x = ptcl.base[p] + up
+    Fp = s_in.F[p]
+    b = stencil_base(x, inv_dx, step.nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
     vel = wp.vec3(0.0)
     Cn = wp.mat33(0.0)
@@ -397,46 +410,35 @@ def g2p_gather(
                 gv = grid_v[b[0] + i, b[1] + j, b[2] + k]
                 vel += w * gv
                 Cn += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
-    if is_static[p] != 0:
+    if ptcl.is_static[p] != 0:
         # Static particles stay where they are, undeformed (they still lend mass to P2G).
         vel = wp.vec3(0.0)
         Cn = wp.mat33(0.0)
     Fn = (wp.identity(n=3, dtype=float) + dt * Cn) * Fp
     un = up + dt * vel
-    u_out[p] = un
-    v_out[p] = vel
-    C_out[p] = Cn
-    F_out[p] = Fn
+    s_out.u[p] = un
+    s_out.v[p] = vel
+    s_out.C[p] = Cn
+    s_out.F[p] = Fn
 
-    xn = base[p] + un
+    xn = ptcl.base[p] + un
     J = wp.determinant(Fn)
     if not (wp.isfinite(xn) and wp.isfinite(vel) and wp.isfinite(J)):
         wp.atomic_add(stats, STAT_NONFINITE, 1.0)
     else:
-        if not (J > min_det_f):
+        if not (J > step.min_det_f):
             wp.atomic_add(stats, STAT_COLLAPSED, 1.0)
-        if wp.min(xn - edge_lo) < 0.0 or wp.max(xn - edge_hi) > 0.0:
+        if wp.min(xn - step.edge_lo) < 0.0 or wp.max(xn - step.edge_hi) > 0.0:
             wp.atomic_add(stats, STAT_EDGE, 1.0)
 
 
 @wp.kernel
 def g2p(
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    is_static: wp.array(dtype=int),
+    ptcl: Particles,
+    s_in: ParticleVars,
+    step: StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    min_det_f: float,
-    edge_lo: wp.vec3,
-    edge_hi: wp.vec3,
-    u_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
+    s_out: ParticleVars,
     stats: wp.array(dtype=float),
 ):
     """Grid to particle (see g2p_gather).
@@ -445,50 +447,30 @@ def g2p(
     alias the inputs. Under a tape they must be separate arrays. Guard counters go to
     `stats` only on failure (no atomics in the normal case).
     """
-    p = order[wp.tid()]
-    g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
-               u_out, v_out, C_out, F_out, stats)
+    g2p_gather(ptcl.order[wp.tid()], ptcl, s_in, step, grid_v, s_out, stats)
 
 
 @wp.kernel(enable_backward=False)
 def g2p_p2g(
-    order: wp.array(dtype=int),
-    base: wp.array(dtype=wp.vec3),
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    E: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    mass: wp.array(dtype=float),
-    is_static: wp.array(dtype=int),
-    grid_v: wp.array3d(dtype=wp.vec3),
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
-    min_det_f: float,
-    edge_lo: wp.vec3,
-    edge_hi: wp.vec3,
-    t_frame: wp.array(dtype=float),
+    ptcl: Particles,
+    state: ParticleVars,
+    step: StepParams,
+    forces: Forces,
     t_offset_next: float,
-    n_forces: int,
-    force_mask: wp.array2d(dtype=float),
-    force_accel: wp.array(dtype=wp.vec3),
-    force_window: wp.array(dtype=wp.vec2),
+    grid_v: wp.array3d(dtype=wp.vec3),
     grid_mmv: wp.array3d(dtype=wp.vec4),
     stats: wp.array(dtype=float),
 ):
-    """Fast path only: G2P of this substep, in place, fused with the P2G of the next one.
+    """Fast path only: G2P of this substep, in place, fused with the P2G of the next one
+    (at t_frame + t_offset_next, s).
 
     The particle's state is read once per substep instead of twice, and one launch is saved.
     """
-    p = order[wp.tid()]
-    g2p_gather(p, base, u, F, is_static, grid_v, dx, dt, nodes, min_det_f, edge_lo, edge_hi,
-               u, v, C, F, stats)
-    a_ext = external_accel(p, t_frame[0] + t_offset_next, n_forces, force_mask, force_accel, force_window)
-    p2g_scatter(base[p] + u[p], v[p], C[p], F[p], E[p], volume[p], mass[p], a_ext, nu, dx, dt, nodes,
-                grid_mmv)
+    p = ptcl.order[wp.tid()]
+    g2p_gather(p, ptcl, state, step, grid_v, state, stats)
+    a_ext = external_accel(p, t_offset_next, forces)
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
+                ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
 @wp.kernel(enable_backward=False)

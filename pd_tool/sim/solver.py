@@ -198,6 +198,7 @@ class ParticleState:
     v: wp.array
     C: wp.array
     F: wp.array
+    _struct: K.ParticleVars | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def zeros(cls, n: int, device, requires_grad: bool = False) -> "ParticleState":
@@ -212,6 +213,21 @@ class ParticleState:
             out.append(c)
         return ParticleState(*out)
 
+    @property
+    def struct(self) -> K.ParticleVars:
+        """The four arrays as the kernels' ParticleVars, built on first use: states live in
+        buffers reused for every substep, so launches never rebuild it."""
+        if self._struct is None:
+            self._struct = particle_vars(self.u, self.v, self.C, self.F)
+        return self._struct
+
+
+def particle_vars(u: wp.array, v: wp.array, C: wp.array, F: wp.array) -> K.ParticleVars:
+    """K.ParticleVars over u, v [N] vec3 and C, F [N] mat33 (a state or its cotangents)."""
+    s = K.ParticleVars()
+    s.u, s.v, s.C, s.F = u, v, C, F
+    return s
+
 
 @dataclass
 class Materials:
@@ -225,7 +241,10 @@ class Materials:
 
 @dataclass
 class SubstepContext:
-    """Everything a substep launch needs apart from the particle state and the grid."""
+    """Everything a substep launch needs apart from the particle state and the grid.
+
+    The kernels' argument structs (particles(), step(dt), forces_struct()) are built on
+    first use and kept, so a context reused across frames builds them once."""
 
     geo: GridGeometry
     cfg: SimConfig
@@ -237,64 +256,84 @@ class SubstepContext:
     t_frame: wp.array
     stats: wp.array
     device: object = field(default=None)
+    _structs: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def particles(self) -> K.Particles:
+        """order, base and materials [N] as K.Particles."""
+        p = self._structs.get("particles")
+        if p is None:
+            p = self._structs["particles"] = K.Particles()
+            p.order, p.base, p.E = self.order, self.base, self.mat.E
+            p.volume, p.mass, p.is_static = self.mat.volume, self.mat.mass, self.mat.static
+        return p
+
+    def forces_struct(self) -> K.Forces:
+        """The forces and the frame clock t_frame [1] (s) as K.Forces."""
+        f = self._structs.get("forces")
+        if f is None:
+            f = self._structs["forces"] = K.Forces()
+            fa = self.forces
+            f.n, f.mask, f.accel, f.window, f.t_frame = fa.n, fa.mask, fa.accel, fa.window, self.t_frame
+        return f
+
+    def step(self, dt: float) -> K.StepParams:
+        """K.StepParams for substeps of dt seconds (kept per dt: the CFL count may change)."""
+        key = ("step", float(dt))
+        sp = self._structs.get(key)
+        if sp is None:
+            geo, cfg = self.geo, self.cfg
+            sp = K.StepParams()
+            sp.dx, sp.dt, sp.nodes = float(geo.dx), float(dt), geo.nodes_vec
+            sp.nu, sp.min_det_f = float(cfg.nu), float(cfg.min_det_f)
+            sp.edge_lo, sp.edge_hi = geo.edge_lo, geo.edge_hi
+            sp.pad, sp.gravity = int(geo.pad), wp.vec3(*cfg.gravity)
+            sp.damping_factor = float(math.exp(-cfg.damping * dt))
+            sp.use_ground = int(cfg.ground_z is not None)
+            sp.ground_z = float(cfg.ground_z if cfg.ground_z is not None else 0.0)
+            sp.fixed = self.fixed
+            if len(self._structs) > 16:  # a long fit may try many dt: keep the dict small
+                self._structs = {k: v for k, v in self._structs.items() if not isinstance(k, tuple)}
+            self._structs[key] = sp
+        return sp
 
 
 def launch_substep(ctx: SubstepContext, dt: float, t_offset: float,
                    s_in: ParticleState, s_out: ParticleState, grid: GridArrays) -> None:
-    """One MPM substep: zero grid, P2G, grid update, G2P (state s_in -> s_out).
+    """One MPM substep of dt seconds at t_frame + t_offset: zero grid, P2G, grid update, G2P
+    (state s_in -> s_out).
 
     s_out may alias s_in only without a tape; under a tape give separate arrays (and a
     separate `grid`) per substep so that the adjoints read the values of that substep.
     """
-    geo, cfg, dev = ctx.geo, ctx.cfg, ctx.device
+    dev = ctx.device
     n = s_in.u.shape[0]
-    nodes = geo.nodes_vec
+    ptcl, step = ctx.particles(), ctx.step(dt)
     grid.mmv.zero_()
-    wp.launch(K.p2g, dim=n, device=dev, inputs=[
-        ctx.order, ctx.base, s_in.u, s_in.v, s_in.C, s_in.F, ctx.mat.E, ctx.mat.volume, ctx.mat.mass,
-        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, float(t_offset),
-        ctx.forces.n, ctx.forces.mask, ctx.forces.accel, ctx.forces.window, grid.mmv])
-    damping_factor = math.exp(-cfg.damping * dt)
-    wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[
-        grid.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
-        float(damping_factor), int(geo.pad), nodes, int(cfg.ground_z is not None),
-        float(cfg.ground_z if cfg.ground_z is not None else 0.0), grid.v])
-    wp.launch(K.g2p, dim=n, device=dev, inputs=[
-        ctx.order, ctx.base, s_in.u, s_in.F, ctx.mat.static, grid.v, float(geo.dx), float(dt),
-        nodes, float(cfg.min_det_f), geo.edge_lo, geo.edge_hi,
-        s_out.u, s_out.v, s_out.C, s_out.F, ctx.stats])
+    wp.launch(K.p2g, dim=n, device=dev,
+              inputs=[ptcl, s_in.struct, step, ctx.forces_struct(), float(t_offset), grid.mmv])
+    wp.launch(K.grid_update, dim=ctx.geo.nodes, device=dev, inputs=[step, grid.mmv, grid.v])
+    wp.launch(K.g2p, dim=n, device=dev, inputs=[ptcl, s_in.struct, step, grid.v, s_out.struct, ctx.stats])
 
 
 def run_substeps_fused(ctx: SubstepContext, n: int, dt: float, st: ParticleState, g: GridArrays) -> None:
-    """n substeps in place without a tape, two launches per substep.
+    """n substeps of dt seconds in place without a tape, two launches per substep.
 
     The grid update also clears mass and momentum, and each G2P is fused with the next
     substep's P2G; the run starts with a plain P2G and ends with a plain G2P. Same result
     as n calls of launch_substep up to the order of float atomics.
     """
-    geo, cfg, dev, fa, mat = ctx.geo, ctx.cfg, ctx.device, ctx.forces, ctx.mat
-    nodes = geo.nodes_vec
+    dev = ctx.device
+    ptcl, step, forces, sv = ctx.particles(), ctx.step(dt), ctx.forces_struct(), st.struct
     count = st.u.shape[0]
     g.mmv.zero_()
-    wp.launch(K.p2g, dim=count, device=dev, inputs=[
-        ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
-        float(cfg.nu), float(geo.dx), float(dt), nodes, ctx.t_frame, 0.0, fa.n, fa.mask, fa.accel,
-        fa.window, g.mmv])
-    grid_args = [g.mmv, ctx.fixed, float(geo.dx), float(dt), wp.vec3(*cfg.gravity),
-                 float(math.exp(-cfg.damping * dt)), int(geo.pad), nodes, int(cfg.ground_z is not None),
-                 float(cfg.ground_z if cfg.ground_z is not None else 0.0), g.v]
+    wp.launch(K.p2g, dim=count, device=dev, inputs=[ptcl, sv, step, forces, 0.0, g.mmv])
     for s in range(n):
-        wp.launch(K.grid_update_and_clear, dim=geo.nodes, device=dev, inputs=grid_args)
+        wp.launch(K.grid_update_and_clear, dim=ctx.geo.nodes, device=dev, inputs=[step, g.mmv, g.v])
         if s < n - 1:
-            wp.launch(K.g2p_p2g, dim=count, device=dev, inputs=[
-                ctx.order, ctx.base, st.u, st.v, st.C, st.F, mat.E, mat.volume, mat.mass,
-                mat.static, g.v, float(cfg.nu), float(geo.dx), float(dt), nodes, float(cfg.min_det_f),
-                geo.edge_lo, geo.edge_hi, ctx.t_frame, float((s + 1) * dt), fa.n, fa.mask, fa.accel,
-                fa.window, g.mmv, ctx.stats])
+            wp.launch(K.g2p_p2g, dim=count, device=dev,
+                      inputs=[ptcl, sv, step, forces, float((s + 1) * dt), g.v, g.mmv, ctx.stats])
         else:
-            wp.launch(K.g2p, dim=count, device=dev, inputs=[
-                ctx.order, ctx.base, st.u, st.F, mat.static, g.v, float(geo.dx), float(dt), nodes,
-                float(cfg.min_det_f), geo.edge_lo, geo.edge_hi, st.u, st.v, st.C, st.F, ctx.stats])
+            wp.launch(K.g2p, dim=count, device=dev, inputs=[ptcl, sv, step, g.v, sv, ctx.stats])
 
 
 def sort_by_cell(geo: GridGeometry, base: wp.array, u: wp.array, keys: wp.array,
@@ -426,6 +465,7 @@ class MPMSolver:
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
         self._bins = alloc_cell_lists(self.geo.nodes, self.n, d) if self._gather else None
+        self._ctx: SubstepContext | None = None
 
     # ---------------------------------------------------------------- inputs
     def set_velocity(self, v) -> None:
@@ -446,6 +486,7 @@ class MPMSolver:
             raise SimConfigError(f"add_force: mask has shape {mask.shape}, expected ({self.n},) bool")
         self._forces.append(Force(mask[self._perm], tuple(accel), float(t_start), float(t_end)))
         self._force_arrays = ForceArrays.build(self._forces, self.n, self.device)
+        self._ctx = None
         self._graphs.clear()  # graphs hold the old force arrays
 
     # ---------------------------------------------------------------- stepping
@@ -464,9 +505,12 @@ class MPMSolver:
         return self._substeps
 
     def _context(self) -> SubstepContext:
-        return SubstepContext(geo=self.geo, cfg=self.config, order=self._order, base=self._base,
-                              mat=self.mat, fixed=self._fixed, forces=self._force_arrays,
-                              t_frame=self._t_frame, stats=self._stats, device=self.device)
+        # Kept (with its kernel structs) until add_force replaces the force arrays.
+        if self._ctx is None:
+            self._ctx = SubstepContext(geo=self.geo, cfg=self.config, order=self._order, base=self._base,
+                                       mat=self.mat, fixed=self._fixed, forces=self._force_arrays,
+                                       t_frame=self._t_frame, stats=self._stats, device=self.device)
+        return self._ctx
 
     def _run_substeps(self, n: int, dt: float) -> None:
         ctx = self._context()
