@@ -52,10 +52,20 @@ def test_demo_folder_is_the_demos_own(demo_dir: Path, tmp_path: Path) -> None:
     assert (mine / "plant.ply").read_text() == "my own scan"
 
 
-def test_demo_usd_validates(demo_dir: Path) -> None:
+def test_demo_usd_validates_and_moves(demo_dir: Path) -> None:
+    import numpy as np
+    from pxr import Usd, UsdGeom
+
     from usd_export import validate_usd
 
-    validate_usd(demo_dir / "poke.usd")
+    validate_usd(demo_dir / "poke.usd")  # raises on any error
+    stage = Usd.Stage.Open(str(demo_dir / "poke.usd"))
+    assert stage.GetEndTimeCode() - stage.GetStartTimeCode() == 60  # 2 s at 30 fps
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    rest = np.asarray(inst.GetPositionsAttr().Get(stage.GetStartTimeCode()))
+    moved = max(float(np.abs(np.asarray(inst.GetPositionsAttr().Get(f)) - rest).max()) for f in range(1, 61, 5))
+    size = float((rest.max(0) - rest.min(0)).max())
+    assert 0.002 * size < moved < size, (moved, size)  # the poke shows, and nothing flies off
 
 
 def test_demo_fit_separates_stiff_and_soft(demo_dir: Path) -> None:
