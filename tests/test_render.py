@@ -37,8 +37,7 @@ CAM = Camera(40, 36, 48.0, 50.0, 19.0, 18.5, look_at([0.3, -3.5, 0.8], [0, 0, 0]
 
 
 def settings(cam: Camera, bg=(0.0, 0.0, 0.0), degree=3, near=0.01) -> RasterSettings:
-    return RasterSettings(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
-                          cam.world_to_camera, tuple(bg), degree, near)
+    return RasterSettings(cam, tuple(bg), degree, near)
 
 
 @pytest.mark.parametrize("degree,seed", [(0, 0), (1, 1), (2, 2), (3, 3)])

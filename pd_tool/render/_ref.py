@@ -64,23 +64,23 @@ def project_gaussians_ref(means, quats, scales, sh, settings):
     """
     s = settings
     dt = means.dtype
-    w2c = torch.as_tensor(np.asarray(s.world_to_camera), dtype=dt, device=means.device)
+    w2c = torch.as_tensor(np.asarray(s.camera.world_to_camera), dtype=dt, device=means.device)
     rot, trans = w2c[:3, :3], w2c[:3, 3]
     cam_pos = -rot.T @ trans
     t = means @ rot.T + trans
     tz = t[:, 2]
     tz_safe = torch.where(tz > s.near, tz, torch.ones_like(tz))
-    tan_fovx = 0.5 * s.width / s.fx
-    tan_fovy = 0.5 * s.height / s.fy
-    lim_xp = (s.width - s.cx) / s.fx + K.FOV_CLAMP * tan_fovx
-    lim_xn = s.cx / s.fx + K.FOV_CLAMP * tan_fovx
-    lim_yp = (s.height - s.cy) / s.fy + K.FOV_CLAMP * tan_fovy
-    lim_yn = s.cy / s.fy + K.FOV_CLAMP * tan_fovy
+    tan_fovx = 0.5 * s.camera.width / s.camera.fx
+    tan_fovy = 0.5 * s.camera.height / s.camera.fy
+    lim_xp = (s.camera.width - s.camera.cx) / s.camera.fx + K.FOV_CLAMP * tan_fovx
+    lim_xn = s.camera.cx / s.camera.fx + K.FOV_CLAMP * tan_fovx
+    lim_yp = (s.camera.height - s.camera.cy) / s.camera.fy + K.FOV_CLAMP * tan_fovy
+    lim_yn = s.camera.cy / s.camera.fy + K.FOV_CLAMP * tan_fovy
     txc = torch.clamp(t[:, 0] / tz_safe, -lim_xn, lim_xp) * tz_safe
     tyc = torch.clamp(t[:, 1] / tz_safe, -lim_yn, lim_yp) * tz_safe
     zero = torch.zeros_like(tz)
     J = torch.stack(
-        [s.fx / tz_safe, zero, -s.fx * txc / tz_safe**2, zero, s.fy / tz_safe, -s.fy * tyc / tz_safe**2],
+        [s.camera.fx / tz_safe, zero, -s.camera.fx * txc / tz_safe**2, zero, s.camera.fy / tz_safe, -s.camera.fy * tyc / tz_safe**2],
         -1,
     ).reshape(-1, 2, 3)
     M = quat_to_matrix(quats, normalize=True) * scales[:, None, :]
@@ -95,11 +95,11 @@ def project_gaussians_ref(means, quats, scales, sh, settings):
     mid = 0.5 * (a + c)
     lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))
     radius = torch.ceil(3.0 * torch.sqrt(lam)).detach()
-    mx = s.fx * t[:, 0] / tz_safe + s.cx
-    my = s.fy * t[:, 1] / tz_safe + s.cy
+    mx = s.camera.fx * t[:, 0] / tz_safe + s.camera.cx
+    my = s.camera.fy * t[:, 1] / tz_safe + s.camera.cy
     ts = float(K.TILE_SIZE)
-    tiles_x = (s.width + K.TILE_SIZE - 1) // K.TILE_SIZE
-    tiles_y = (s.height + K.TILE_SIZE - 1) // K.TILE_SIZE
+    tiles_x = (s.camera.width + K.TILE_SIZE - 1) // K.TILE_SIZE
+    tiles_y = (s.camera.height + K.TILE_SIZE - 1) // K.TILE_SIZE
     mxd, myd = mx.detach(), my.detach()
     # torch.trunc = C's (int) cast, as in the kernel.
     x0 = torch.trunc((mxd - radius) / ts).clamp(0, tiles_x)
@@ -128,8 +128,8 @@ def render_ref(means, quats, scales, opacities, sh, settings):
     opac = opacities[order]
     dt = means.dtype
     ys, xs = torch.meshgrid(
-        torch.arange(s.height, dtype=dt, device=means.device),
-        torch.arange(s.width, dtype=dt, device=means.device),
+        torch.arange(s.camera.height, dtype=dt, device=means.device),
+        torch.arange(s.camera.width, dtype=dt, device=means.device),
         indexing="ij",
     )
     px = (xs + 0.5).reshape(-1, 1)  # [P, 1]
@@ -155,5 +155,5 @@ def render_ref(means, quats, scales, opacities, sh, settings):
     bg = torch.as_tensor(s.background, dtype=dt, device=means.device)
     rgb = w @ colors + T_final * bg
     depth = w @ depths[:, None]
-    H, W = s.height, s.width
+    H, W = s.camera.height, s.camera.width
     return rgb.reshape(H, W, 3), (1.0 - T_final).reshape(H, W, 1), depth.reshape(H, W, 1)

@@ -89,11 +89,7 @@ def render(
 
     from pd_tool.render.rasterize import RasterSettings, rasterize  # warp import is heavy
 
-    settings = RasterSettings(
-        width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=camera.cx,
-        cy=camera.cy, world_to_camera=camera.world_to_camera, background=bg,
-        sh_degree=int(sh_degree), near=float(near),
-    )
+    settings = RasterSettings(camera, bg, int(sh_degree), float(near))
     f32 = [t.to(torch.float32).contiguous() for t in (means, quats, scales, opacities, sh)]
     rgb, alpha, depth_sum = rasterize(*f32, settings)
     depth = None

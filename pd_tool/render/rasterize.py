@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from pd_tool.core.cameras import Camera
 from pd_tool.render import kernels as K
 
 wp.init()
@@ -25,27 +26,22 @@ wp.init()
 class RasterSettings:
     """Camera and options of one rasterisation; plain Python values (not differentiated).
 
-    world_to_camera: [4, 4] float64 OpenCV; fx, fy, cx, cy in pixels (pixel centres at +0.5).
+    camera: pinhole intrinsics in pixels (pixel centres at +0.5) and world_to_camera [4, 4]
+    float64, OpenCV axes. background: RGB in 0-1. near: clip distance, scene units.
     """
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    world_to_camera: np.ndarray
+    camera: Camera
     background: tuple[float, float, float]
     sh_degree: int
     near: float
 
     @property
     def tiles_x(self) -> int:
-        return (self.width + K.TILE_SIZE - 1) // K.TILE_SIZE
+        return (self.camera.width + K.TILE_SIZE - 1) // K.TILE_SIZE
 
     @property
     def tiles_y(self) -> int:
-        return (self.height + K.TILE_SIZE - 1) // K.TILE_SIZE
+        return (self.camera.height + K.TILE_SIZE - 1) // K.TILE_SIZE
 
 
 def _wp_device(t: torch.Tensor) -> "wp.Device":
@@ -75,7 +71,7 @@ def log_cutoffs(opacities: torch.Tensor) -> torch.Tensor:
 
 
 def _camera_args(s: RasterSettings):
-    w2c = np.asarray(s.world_to_camera, dtype=np.float64)
+    w2c = np.asarray(s.camera.world_to_camera, dtype=np.float64)
     rot = w2c[:3, :3]
     trans = w2c[:3, 3]
     cam_pos = -rot.T @ trans
@@ -98,12 +94,12 @@ def _project_inputs(means, quats, scales, sh, s: RasterSettings, device):
         rot,
         trans,
         cam_pos,
-        float(s.fx),
-        float(s.fy),
-        float(s.cx),
-        float(s.cy),
-        int(s.width),
-        int(s.height),
+        float(s.camera.fx),
+        float(s.camera.fy),
+        float(s.camera.cx),
+        float(s.camera.cy),
+        int(s.camera.width),
+        int(s.camera.height),
         float(s.near),
         s.tiles_x,
         s.tiles_y,
@@ -166,8 +162,8 @@ def _raster_inputs(tile_ranges, sorted_ids, means2d, conics, colors, opacities, 
         _wp(log_cutoffs(opacities), wp.float32),
         _wp(depths, wp.float32),
         wp.vec3(*[float(c) for c in s.background]),
-        s.width,
-        s.height,
+        s.camera.width,
+        s.camera.height,
         s.tiles_x,
     ]
 
@@ -193,7 +189,7 @@ class RasterizeGaussians(torch.autograd.Function):
         colors = torch.zeros((n, 3), **f32)
         rects = torch.zeros((n, 4), dtype=torch.int32, device=tdev)
         tiles_touched = torch.zeros(n, dtype=torch.int32, device=tdev)
-        n_pix = s.width * s.height
+        n_pix = s.camera.width * s.camera.height
         out_rgb = torch.empty((n_pix, 3), **f32)
         out_T = torch.empty(n_pix, **f32)
         out_depth = torch.empty(n_pix, **f32)
@@ -234,9 +230,9 @@ class RasterizeGaussians(torch.autograd.Function):
             means, quats, scales, opacities, sh, means2d, conics, depths, colors, rects,
             tiles_touched, tile_ranges, sorted_ids, out_T, n_contrib,
         )
-        rgb = out_rgb.view(s.height, s.width, 3)
-        alpha = (1.0 - out_T).view(s.height, s.width, 1)
-        depth = out_depth.view(s.height, s.width, 1)
+        rgb = out_rgb.view(s.camera.height, s.camera.width, 3)
+        alpha = (1.0 - out_T).view(s.camera.height, s.camera.width, 1)
+        depth = out_depth.view(s.camera.height, s.camera.width, 1)
         return rgb, alpha, depth
 
     @staticmethod
@@ -247,7 +243,7 @@ class RasterizeGaussians(torch.autograd.Function):
         n = means.shape[0]
         tdev = means.device
         device = _wp_device(means)
-        n_pix = s.width * s.height
+        n_pix = s.camera.width * s.camera.height
         f32 = dict(dtype=torch.float32, device=tdev)
 
         def cot(g, shape):  # autograd passes None for unused outputs
