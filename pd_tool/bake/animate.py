@@ -11,9 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pd_tool.prepare.preparation import PreparedScene
 from pd_tool.core.quaternion import matrix_to_quat, quat_multiply
 from pd_tool.core.scene import GaussianScene
+from pd_tool.drivers import DriverInterpolator, DriverSet
+from pd_tool.prepare.preparation import PreparedScene
 
 
 class GaussianAnimator:
@@ -26,8 +27,8 @@ class GaussianAnimator:
         device: torch device of the outputs.
     """
 
-    def __init__(self, scene: GaussianScene, prep: PreparedScene, drivers, device: str | torch.device = "cpu",
-                 mode: str = "rigid") -> None:
+    def __init__(self, scene: GaussianScene, prep: PreparedScene, drivers: DriverSet,
+                 device: str | torch.device = "cpu", mode: str = "rigid") -> None:
         self.device = torch.device(device)
         self.mode = mode
         dev = self.device
@@ -46,8 +47,6 @@ class GaussianAnimator:
         self.neighbors = drivers.neighbors[:f].to(dev)
         self.scene_positions = scene.positions.to(dev)
         self.scene_quats = scene.quats.to(dev)
-        from pd_tool.drivers import DriverInterpolator
-
         self._interp = DriverInterpolator(self.rest_points, self.rest_quats, self.drivers_rest, self.neighbors,
                                           mode=mode)
         # A static Gaussian near the edge of its region can have free drivers among its 8

@@ -16,12 +16,27 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import torch
 
-from pd_tool.core.errors import PdToolError, PreparationError
-from pd_tool.prepare.memory import InsufficientMemory
-from pd_tool.prepare.preparation import PreparedScene, PrepareOptions, prepare_scene, refine_for_thin, up_rotation
-from pd_tool.materials.presets import Material, load_preset
+from pd_tool.bake.animate import GaussianAnimator
+from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder
+from pd_tool.core.cameras import Camera
+from pd_tool.core.errors import PdToolError, PreparationError, UsdExportError
+from pd_tool.core.quaternion import matrix_to_quat, quat_multiply
 from pd_tool.core.scene import GaussianScene
+from pd_tool.materials.file import MaterialFile
+from pd_tool.materials.presets import Material, load_preset
+from pd_tool.prepare import work
+from pd_tool.prepare.memory import PREVIEW_PIXELS, InsufficientMemory, check_memory, estimate_bake_memory
+from pd_tool.prepare.preparation import (WALL_CELLS, Box, PreparedScene, PrepareOptions, prepare_scene,
+                                         refine_for_thin, up_rotation)
 from pd_tool.prepare.work import WorkTooLarge
+from pd_tool.render.preview import PREVIEW_SUFFIXES, PreviewError, write_preview
+from pd_tool.render.views import render_image, scene_camera
+from pd_tool.sim import MPMSolver, SimConfig
+from pd_tool.sim.guard import check_force
+from pd_tool.video.folder import write_video_folder
+
+# usd_export is imported where it is used: pxr takes seconds to load, and pd_tool.app imports
+# this module for fits too, which never write USD.
 
 # The object is at rest again when its kinetic energy has stayed below REST_FRACTION of
 # the peak (after the force ended) for REST_FRAMES frames in a row.
@@ -118,8 +133,6 @@ def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np
     free = ~drivers_static
     tr = prep.transform
     if spec.box is not None:
-        from pd_tool.prepare.preparation import Box
-
         box = Box.parse(spec.box, "--box")
         mask = box.contains(tr.to_scene(drivers_rest)) & free
         where = f"box {spec.box}"
@@ -149,8 +162,6 @@ def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np
 def _free_space(prep: PreparedScene) -> float:
     """Least distance, m, between the simulated particles' bounding box and the grid cells
     the solver keeps for its walls, over the three axes."""
-    from pd_tool.prepare.preparation import WALL_CELLS
-
     lo = prep.positions_sim.min(axis=0) - WALL_CELLS * prep.dx
     hi = np.asarray(prep.domain) - WALL_CELLS * prep.dx - prep.positions_sim.max(axis=0)
     return float(max(min(lo.min(), hi.min()), prep.dx))
@@ -180,9 +191,6 @@ def check_bake_outputs(
     another output, an input nor the current folder; no output that is an input.
     inputs: {option: path} of the files the bake reads (--scene, --material, --camera).
     Raises OutputError / PreviewError / UsdExportError (one line each)."""
-    from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder
-    from pd_tool.core.errors import UsdExportError
-    from pd_tool.render.preview import PREVIEW_SUFFIXES, PreviewError
     from usd_export.writer import SUFFIXES
 
     out = Path(out)
@@ -201,19 +209,318 @@ def check_bake_outputs(
         check_replaceable_folder(frames_dir, "--frames-out")
 
 
+class Baker:
+    """One bake, in warp's example shape: the constructor prepares everything and opens the
+    USD writer, `step()` writes one frame until `done`, `finish()` publishes the outputs.
+
+    Use it as a context manager: an error or Ctrl-C before `finish()` returns deletes the
+    temporary USD, so no half-written file ever appears at `out`. Arguments as for `bake`.
+
+    After setup: n_frames, frame_dt (s), substeps (per frame), prep (the PreparedScene that
+    is simulated), solver, writer. While stepping: frame (the next one step() writes),
+    simulated (frames simulated so far), disp (max |x - x0| per written frame, scene
+    units), preview_images ([H, W, 3] each) and timings (seconds per stage).
+    """
+
+    def __init__(
+        self,
+        scene: GaussianScene,
+        out: str | Path,
+        *,
+        force: ForceSpec,
+        material: Material | None = None,
+        material_file: MaterialFile | None = None,
+        prepare_options: PrepareOptions | None = None,
+        settings: BakeSettings | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        preview: str | Path | None = None,
+        frames_dir: str | Path | None = None,
+        camera: Camera | None = None,
+        inputs: Mapping[str, str | Path | None] | None = None,
+    ) -> None:
+        self.t_start = time.perf_counter()
+        self.scene, self.out, self.force = scene, Path(out), force
+        self.settings = settings or BakeSettings()
+        self.progress, self.preview, self.frames_dir = progress, preview, frames_dir
+        self.rendering = preview is not None or frames_dir is not None
+        self.frame = 0  # the next frame step() writes
+        self.simulated = 0
+        self.disp: list[float] = []  # max |x - x0| per frame, scene units
+        self.preview_images: list[np.ndarray] = []
+        self._peak_ke = 0.0
+        self._calm = 0
+        self._closed = False
+        self.setup(material, material_file, prepare_options, camera, inputs)
+
+    # ---- setup
+
+    def setup(self, material: Material | None, material_file: MaterialFile | None,
+              prepare_options: PrepareOptions | None, camera: Camera | None,
+              inputs: Mapping[str, str | Path | None] | None) -> None:
+        """Check the outputs, prepare the scene, pick its grid (finer for thin parts when
+        time and memory allow), build drivers, solver and force, then open the writer."""
+        read = {"--scene": getattr(self.scene, "source", None), **(inputs or {})}
+        check_bake_outputs(self.out, preview=self.preview, frames_dir=self.frames_dir, inputs=read)
+        self._prepare(material, material_file, prepare_options, camera)
+        self._choose_grid()
+        self._build_simulation(material, material_file)
+        self._open_outputs(camera)
+        self.timings = {"setup": time.perf_counter() - self.t_start, "simulate": 0.0, "interpolate": 0.0,
+                        "write": 0.0}
+
+    def _prepare(self, material: Material | None, material_file: MaterialFile | None,
+                 prepare_options: PrepareOptions | None, camera: Camera | None) -> None:
+        """Material constants, discretisation and the prepared scene (simulation box, m)."""
+        s, scene = self.settings, self.scene
+        if material is None and material_file is None:
+            raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
+        opts = prepare_options or PrepareOptions()
+        (grid, self.thin_grid, self.cfl_safety, quality_ratio, self.seed, self.follows_fit,
+         self.sim_note) = _discretisation(s, material_file)
+        opts.grid_res = grid
+        mat = material if material is not None else material_file
+        self.nu, self.damping = mat.nu, mat.damping
+        opts.density_kg_m3 = mat.density
+        flat = ~(scene.scales > 0).all(dim=1).cpu().numpy()
+        if flat.any():  # USD needs a positive size; found here, the message can name the user's file
+            raise PreparationError(
+                f"{scene.source or 'the scene'}: {int(flat.sum())} Gaussians have a size of 0 (a scale_* log-scale "
+                f"below about -100), first at index {int(np.flatnonzero(flat)[0])}; remove them in your splat "
+                f"editor or export the scene again")
+        self.opts = opts
+        self.prep = prepare_scene(scene, opts)
+        self.dev = s.device
+        self.frame_dt = 1.0 / s.fps
+        self.n_frames = s.frames
+        self.ratio = s.driver_ratio if s.driver_ratio is not None else quality_ratio
+        self.preview_pixels = 0 if not self.rendering else (
+            camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
+        self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
+        self.push_s = min(self.force.duration, max(s.seconds - self.force.start, 0.0))
+
+    def _choose_grid(self) -> None:
+        """Raise the grid for thin parts unless the finer run would not fit in memory or
+        time; then the quality's own grid is baked, and the report says why."""
+        prep, ratio = self.prep, self.ratio
+        finer = refine_for_thin(prep, self.thin_grid) if self.settings.refine_thin and self.thin_grid else None
+        if finer is not None:
+            # the finer grid's cells need their drivers (an explicit --driver-ratio stands)
+            finer_ratio = finer.connected_ratio(ratio) if self.settings.driver_ratio is None else ratio
+            why = None
+            try:
+                self._check_cost(finer, finer_ratio)
+            except InsufficientMemory:
+                why = "need more memory than is available"
+            except WorkTooLarge:
+                why = "take longer than --max-minutes allows"
+            if why is None:
+                prep, ratio = finer, finer_ratio
+            else:
+                prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} "
+                                   f"cells would {why} (raise --max-minutes, or use --device cuda)")
+        if prep is not finer:
+            self._check_cost(prep, ratio)
+        self.prep, self.ratio = prep, ratio
+
+    def _check_cost(self, p: PreparedScene, ratio: float) -> None:
+        """Refuse before drivers and simulator a run that cannot fit in memory or would take
+        longer than allowed (substeps from the CFL rule at the stiffest material and the
+        speed the force can give). Raises InsufficientMemory / WorkTooLarge."""
+        s, scene, dev = self.settings, self.scene, self.dev
+        check_memory(estimate_bake_memory(
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
+            frames=self.n_frames, preview_pixels=self.preview_pixels, sh_coeffs=int(scene.sh.shape[1]), device=dev),
+            what="bake", quality=str(s.quality or "the fit's"), driver_ratio=ratio, device=dev,
+            resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
+                       f"{'the fit (a coarser --quality overrides it)' if self.follows_fit else '--quality'}")
+        speed = float(np.linalg.norm(p.transform.vector_to_sim(np.asarray(self.force.accel, np.float64)))) * self.push_s
+        # through the module, so that a test can stand in for the estimate
+        work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
+                             frames=self.n_frames, frame_dt=self.frame_dt, E_max=self.E_top,
+                             density=self.opts.density_kg_m3, nu=self.nu, speed=speed, cfl_safety=self.cfl_safety,
+                             substeps=s.substeps, preview_pixels=self.preview_pixels, device=dev)
+
+    def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
+        """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
+        prep, s, force = self.prep, self.settings, self.force
+        self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed)
+        d_rest = self.drivers.positions.double().cpu().numpy()
+        d_static = self.drivers.static.cpu().numpy().astype(bool)
+        if material_file is not None:
+            E = material_file.E_at(prep.transform.to_scene(d_rest))
+        else:
+            E = np.full(len(d_rest), material.E, np.float64)
+        cfg = SimConfig(
+            grid_res=max(prep.grid_dims), domain=prep.domain, nu=self.nu,
+            gravity=(0.0, 0.0, -9.81) if s.gravity else (0.0, 0.0, 0.0), damping=self.damping,
+            substeps=s.substeps, cfl_safety=self.cfl_safety,
+        )
+        self.solver = MPMSolver(d_rest, self.drivers.volume.cpu().numpy(), self.drivers.mass.cpu().numpy(), E,
+                                d_static, cfg, device=self.dev)
+        accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+        mask = force_mask(prep, d_rest, d_static, force)
+        free_E = E[~d_static] if (~d_static).any() else E
+        check_force(float(np.linalg.norm(accel_sim)), self.push_s,
+                    float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx,
+                    self.opts.density_kg_m3, float(free_E.max()), float(max(prep.domain)),
+                    float(prep.transform.scale), nu=self.nu, gap_m=_free_space(prep), magnitude=force.magnitude)
+        self.force_end = force.start + force.duration
+        self.solver.add_force(mask, accel_sim, force.start, self.force_end)
+        self.n_drivers = len(d_rest)
+        self.substeps = self.solver.substeps_per_frame(self.frame_dt)
+
+    def _open_outputs(self, camera: Camera | None) -> None:
+        """Every Gaussian follows its drivers, in the USD file's axes (which may be rotated
+        from the scene's); the writer is opened last, so that no later step can leave its
+        temporary file behind."""
+        from usd_export import UsdBakeWriter
+
+        scene, prep, dev = self.scene, self.prep, self.dev
+        self.animator = GaussianAnimator(scene, prep, self.drivers, device=dev)
+        R_usd, up_axis = usd_frame(prep.options.up_axis)
+        self._R_usd = R_usd
+        self._R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
+        self._q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
+        self.all_scales = scene.scales.detach().cpu().numpy()
+        if self.rendering:
+            self.preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
+            self._q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
+        self.writer = UsdBakeWriter(
+            self.out, n_points=scene.count, fps=self.settings.fps, start_frame=0, up_axis=up_axis,
+            meters_per_unit=float(prep.transform.scale), fmt=self.settings.fmt, colors=scene.colors.cpu().numpy(),
+            opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
+        )
+
+    # ---- frames
+
+    @property
+    def done(self) -> bool:
+        """Whether every frame is written (simulated or held)."""
+        return self.frame >= self.n_frames
+
+    def step(self) -> None:
+        """Write the next frame: frame 0 is the rest pose, each later one simulates
+        1 / fps s first. Once the object has been at rest after the force for REST_FRAMES
+        frames, the remaining frames are held (no simulation, no new samples) and `done`."""
+        f = self.frame
+        if f == 0:
+            pos, q = self._frame_arrays(None)
+            self.writer.write_frame(0, pos, q, self.all_scales)
+            self._pos0 = pos
+            self.disp.append(0.0)
+        else:
+            pos, q = self._simulate_frame(f)
+            self.disp.append(float(np.linalg.norm(pos - self._pos0, axis=1).max()))
+        if self.rendering:
+            self._snap(pos, q)
+        self.frame = f + 1
+        if self.progress:
+            self.progress(self.frame, self.n_frames)
+        if f > 0 and self._came_to_rest() and not self.done:
+            self._hold_rest()
+
+    def _simulate_frame(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        t = time.perf_counter()
+        self.substeps = self.solver.step_frame(self.frame_dt)
+        self.simulated += 1
+        d_now = self.solver.positions()  # the host copy synchronises, so the timing is honest
+        self.timings["simulate"] += time.perf_counter() - t
+        t = time.perf_counter()
+        pos, q = self._frame_arrays(d_now)
+        self.timings["interpolate"] += time.perf_counter() - t
+        t = time.perf_counter()
+        self.writer.write_frame(f, pos, q, self.all_scales)
+        self.timings["write"] += time.perf_counter() - t
+        return pos, q
+
+    def _frame_arrays(self, d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Positions [N, 3] (scene units) and quaternions [N, 4] (w, x, y, z) in the USD
+        file's axes for drivers at d_now [Q, 3] (m, simulation box); None: the rest pose."""
+        with torch.no_grad():
+            if d_now is None:
+                pos, q = self.animator.scene_positions, self.animator.scene_quats
+            else:
+                pos, q = self.animator(d_now)
+            pos = pos @ self._R_usd_t.T
+            q = quat_multiply(self._q_usd.expand_as(q), q)
+        return pos.cpu().numpy(), q.cpu().numpy()
+
+    def _snap(self, pos: np.ndarray, q: np.ndarray) -> None:
+        # back from the USD axes to the scene's, where the automatic camera looks
+        scene = self.scene
+        self.preview_images.append(render_image(
+            scene, self.preview_cam, positions=torch.as_tensor(pos @ self._R_usd, device=scene.device),
+            quats=quat_multiply(self._q_back.expand(len(q), 4), torch.as_tensor(q, device=scene.device))))
+
+    def _came_to_rest(self) -> bool:
+        """Whether kinetic energy has stayed below REST_FRACTION of its peak for REST_FRAMES
+        frames since the force ended (never with stop_at_rest off)."""
+        ke = self.solver.kinetic_energy()
+        self._peak_ke = max(self._peak_ke, ke)
+        if self.settings.stop_at_rest and self.solver.time >= self.force_end:
+            self._calm = self._calm + 1 if ke <= REST_FRACTION * self._peak_ke else 0
+        return self._calm >= REST_FRAMES
+
+    def _hold_rest(self) -> None:
+        held = self.n_frames - self.frame
+        self.writer.hold_frames(self.n_frames - 1)
+        self.disp.extend([self.disp[-1]] * held)
+        self.preview_images.extend(self.preview_images[-1:] * held)
+        self.frame = self.n_frames
+        if self.progress:
+            self.progress(self.n_frames, self.n_frames)
+
+    # ---- outputs
+
+    def finish(self) -> BakeResult:
+        """Validate the USD and move it into place, then write the preview and frames
+        folder (each atomic). Call once `done`."""
+        self._closed = True  # close() deletes its temporaries itself when it fails
+        self.writer.close()
+        self.timings["total"] = time.perf_counter() - self.t_start
+        result = BakeResult(
+            out=self.out, frames=self.n_frames, simulated_frames=self.simulated, substeps_per_frame=self.substeps,
+            gaussians=self.scene.count, drivers=self.n_drivers, seconds_elapsed=time.perf_counter() - self.t_start,
+            bytes_written=self.out.stat().st_size, peak_displacement=max(self.disp),
+            displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
+        )
+        if self.preview is not None:
+            write_preview(self.preview_images, self.preview, self.settings.fps)
+            result.report.append(f"preview {self.preview}")
+        if self.frames_dir is not None:
+            write_video_folder(self.frames_dir, np.stack(self.preview_images), self.preview_cam, self.settings.fps,
+                               overwrite=True, what="--frames-out")
+            result.report.append(f"frames {self.frames_dir}/ ({len(self.preview_images)} PNG + camera.json)")
+        return result
+
+    def _report(self) -> list[str]:
+        lines = list(self.prep.report) + ([self.sim_note] if self.sim_note else [])
+        held = self.n_frames - 1 - self.simulated
+        if held > 0:
+            lines.append(f"at rest after frame {self.simulated}: {held} frames held, not simulated")
+        return lines
+
+    def __enter__(self) -> "Baker":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if not self._closed:  # left before finish(): publish nothing
+            self.writer.abort()
+
+
 def bake(
     scene: GaussianScene,
     out: str | Path,
     *,
     force: ForceSpec,
     material: Material | None = None,
-    material_file: Any = None,
+    material_file: MaterialFile | None = None,
     prepare_options: PrepareOptions | None = None,
     settings: BakeSettings | None = None,
     progress: Callable[[int, int], None] | None = None,
     preview: str | Path | None = None,
     frames_dir: str | Path | None = None,
-    camera=None,
+    camera: Camera | None = None,
     inputs: Mapping[str, str | Path | None] | None = None,
 ) -> BakeResult:
     """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
@@ -227,208 +534,12 @@ def bake(
     added); outputs are checked against them and against each other before any work
     (`check_bake_outputs`).
     """
-    from pd_tool.bake.animate import GaussianAnimator
-    from pd_tool.core.quaternion import matrix_to_quat, quat_multiply
-    from pd_tool.sim import MPMSolver, SimConfig
-    from pd_tool.sim.guard import check_force
-    from usd_export import UsdBakeWriter
-
-    t_start = time.perf_counter()
-    read = {"--scene": getattr(scene, "source", None), **(inputs or {})}
-    check_bake_outputs(out, preview=preview, frames_dir=frames_dir, inputs=read)
-    settings = settings or BakeSettings()
-    if material is None and material_file is None:
-        raise PreparationError("bake needs a material: pass --preset NAME or --material FILE")
-    opts = prepare_options or PrepareOptions()
-    grid, thin_grid, cfl_safety, quality_ratio, seed, follows_fit, sim_note = _discretisation(settings, material_file)
-    opts.grid_res = grid
-    if material is None:
-        nu, damping = material_file.nu, material_file.damping
-        opts.density_kg_m3 = material_file.density
-    else:
-        nu, damping = material.nu, material.damping
-        opts.density_kg_m3 = material.density
-    flat = ~(scene.scales > 0).all(dim=1).cpu().numpy()
-    if flat.any():  # USD needs a positive size; found here, the message can name the user's file
-        raise PreparationError(
-            f"{scene.source or 'the scene'}: {int(flat.sum())} Gaussians have a size of 0 (a scale_* log-scale "
-            f"below about -100), first at index {int(np.flatnonzero(flat)[0])}; remove them in your splat editor "
-            f"or export the scene again")
-    prep = prepare_scene(scene, opts)
-    dev = settings.device
-    frame_dt = 1.0 / settings.fps
-    n_frames = settings.frames
-    ratio = settings.driver_ratio if settings.driver_ratio is not None else quality_ratio
-    from pd_tool.prepare.memory import PREVIEW_PIXELS
-
-    px = 0 if preview is None and frames_dir is None else (
-        camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
-    E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
-    push_s = min(force.duration, max(settings.seconds - force.start, 0.0))
-
-    def check_cost(p: PreparedScene, ratio: float) -> None:
-        # refuse before drivers and simulator when the run cannot fit in memory or would
-        # take longer than allowed (substeps from the CFL rule at the stiffest material and
-        # the speed the force can give)
-        from pd_tool.prepare.memory import check_memory, estimate_bake_memory
-        from pd_tool.prepare.work import check_bake_work
-
-        check_memory(estimate_bake_memory(
-            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
-            frames=n_frames, preview_pixels=px, sh_coeffs=int(scene.sh.shape[1]), device=dev),
-            what="bake", quality=str(settings.quality or "the fit's"), driver_ratio=ratio, device=dev,
-            resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
-                       f"{'the fit (a coarser --quality overrides it)' if follows_fit else '--quality'}")
-        speed = float(np.linalg.norm(p.transform.vector_to_sim(np.asarray(force.accel, np.float64)))) * push_s
-        check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
-                        frames=n_frames, frame_dt=frame_dt, E_max=E_top, density=opts.density_kg_m3, nu=nu,
-                        speed=speed, cfl_safety=cfl_safety, substeps=settings.substeps, preview_pixels=px, device=dev)
-
-    finer = refine_for_thin(prep, thin_grid) if settings.refine_thin and thin_grid else None
-    if finer is not None:
-        # the finer grid's cells need their drivers (an explicit --driver-ratio stands)
-        finer_ratio = finer.connected_ratio(ratio) if settings.driver_ratio is None else ratio
-        why = None
-        try:
-            check_cost(finer, finer_ratio)
-        except InsufficientMemory:
-            why = "need more memory than is available"
-        except WorkTooLarge:
-            why = "take longer than --max-minutes allows"
-        if why is None:
-            prep, ratio = finer, finer_ratio
-        else:  # the quality's own grid may still run: bake there, and say so
-            prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} cells "
-                               f"would {why} (raise --max-minutes, or use --device cuda)")
-    if prep is not finer:
-        check_cost(prep, ratio)
-    accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
-
-    # ---- driving particles
-    drivers = prep.build_drivers(ratio=ratio, seed=seed)
-    d_rest = drivers.positions.double().cpu().numpy()
-    d_static = drivers.static.cpu().numpy().astype(bool)
-    if material_file is not None:
-        E = material_file.E_at(prep.transform.to_scene(d_rest))
-    else:
-        E = np.full(len(d_rest), material.E, np.float64)
-
-    # ---- simulator
-    cfg = SimConfig(
-        grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu,
-        gravity=(0.0, 0.0, -9.81) if settings.gravity else (0.0, 0.0, 0.0), damping=damping,
-        substeps=settings.substeps, cfl_safety=cfl_safety,
-    )
-    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg, device=dev)
-    mask = force_mask(prep, d_rest, d_static, force)
-    free_E = E[~d_static] if (~d_static).any() else E
-    check_force(float(np.linalg.norm(accel_sim)), push_s,
-                float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx, opts.density_kg_m3,
-                float(free_E.max()), float(max(prep.domain)), float(prep.transform.scale), nu=nu,
-                gap_m=_free_space(prep), magnitude=force.magnitude)
-    solver.add_force(mask, accel_sim, force.start, force.start + force.duration)
-    force_end = force.start + force.duration
-
-    # ---- every Gaussian follows its drivers; the USD file may use rotated axes
-    animator = GaussianAnimator(scene, prep, drivers, device=dev)
-    R_usd, up_axis = usd_frame(prep.options.up_axis)
-    R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
-    q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
-    all_scales = scene.scales.detach().cpu().numpy()
-
-    def frame_arrays(d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        with torch.no_grad():
-            if d_now is None:
-                pos, q = animator.scene_positions, animator.scene_quats
-            else:
-                pos, q = animator(d_now)
-            pos = pos @ R_usd_t.T
-            q = quat_multiply(q_usd.expand_as(q), q)
-        return pos.cpu().numpy(), q.cpu().numpy()
-
-    colors = scene.colors.cpu().numpy()
-    writer = UsdBakeWriter(
-        out, n_points=scene.count, fps=settings.fps, start_frame=0, up_axis=up_axis,
-        meters_per_unit=float(prep.transform.scale), fmt=settings.fmt, colors=colors,
-        opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
-    )
-    preview_images: list[np.ndarray] = []
-    rendering = preview is not None or frames_dir is not None
-    if rendering:
-        from pd_tool.render.views import render_image, scene_camera
-
-        preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
-        q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
-
-    def snap(pos: np.ndarray, q: np.ndarray) -> None:
-        # back from the USD axes to the scene's, where the automatic camera looks
-        preview_images.append(render_image(
-            scene, preview_cam, positions=torch.as_tensor(pos @ R_usd, device=scene.device),
-            quats=quat_multiply(q_back.expand(len(q), 4), torch.as_tensor(q, device=scene.device))))
-    disp: list[float] = []
-    peak_ke = 0.0
-    calm = 0
-    simulated = 0
-    substeps = solver.substeps_per_frame(frame_dt)
-    timings = {"setup": time.perf_counter() - t_start, "simulate": 0.0, "interpolate": 0.0, "write": 0.0}
-    with writer:
-        pos0, q0 = frame_arrays(None)
-        writer.write_frame(0, pos0, q0, all_scales)
-        disp.append(0.0)
-        if rendering:
-            snap(pos0, q0)
-        if progress:
-            progress(1, n_frames)
-        for f in range(1, n_frames):
-            t = time.perf_counter()
-            substeps = solver.step_frame(frame_dt)
-            simulated += 1
-            d_now = solver.positions()  # the host copy synchronises, so the timing is honest
-            timings["simulate"] += time.perf_counter() - t
-            t = time.perf_counter()
-            pos, q = frame_arrays(d_now)
-            timings["interpolate"] += time.perf_counter() - t
-            t = time.perf_counter()
-            writer.write_frame(f, pos, q, all_scales)
-            timings["write"] += time.perf_counter() - t
-            disp.append(float(np.linalg.norm(pos - pos0, axis=1).max()))
-            if rendering:
-                snap(pos, q)
-            if progress:
-                progress(f + 1, n_frames)
-            ke = solver.kinetic_energy()
-            peak_ke = max(peak_ke, ke)
-            if settings.stop_at_rest and solver.time >= force_end:
-                calm = calm + 1 if ke <= REST_FRACTION * peak_ke else 0
-                if calm >= REST_FRAMES and f + 1 < n_frames:
-                    writer.hold_frames(n_frames - 1)
-                    disp.extend([disp[-1]] * (n_frames - 1 - f))
-                    preview_images.extend(preview_images[-1:] * (n_frames - 1 - f))
-                    if progress:
-                        progress(n_frames, n_frames)
-                    break
-    timings["total"] = time.perf_counter() - t_start
-    out = Path(out)
-    result = BakeResult(
-        out=out, frames=n_frames, simulated_frames=simulated, substeps_per_frame=substeps,
-        gaussians=scene.count, drivers=len(d_rest), seconds_elapsed=time.perf_counter() - t_start,
-        bytes_written=out.stat().st_size, peak_displacement=max(disp), displacement_per_frame=disp,
-        report=list(prep.report) + ([sim_note] if sim_note else []), timings=timings,
-    )
-    if simulated < n_frames - 1:
-        result.report.append(f"at rest after frame {simulated}: {n_frames - 1 - simulated} frames held, not simulated")
-    if preview is not None:
-        from pd_tool.render.preview import write_preview
-
-        write_preview(preview_images, preview, settings.fps)
-        result.report.append(f"preview {preview}")
-    if frames_dir is not None:
-        from pd_tool.video.folder import write_video_folder
-
-        write_video_folder(frames_dir, np.stack(preview_images), preview_cam, settings.fps, overwrite=True,
-                           what="--frames-out")
-        result.report.append(f"frames {frames_dir}/ ({len(preview_images)} PNG + camera.json)")
-    return result
+    with Baker(scene, out, force=force, material=material, material_file=material_file,
+               prepare_options=prepare_options, settings=settings, progress=progress, preview=preview,
+               frames_dir=frames_dir, camera=camera, inputs=inputs) as baker:
+        while not baker.done:
+            baker.step()
+        return baker.finish()
 
 
 def _discretisation(settings: BakeSettings, material_file) -> tuple[int, int | None, float, float, int, bool,
