@@ -40,11 +40,11 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--quality", default="default", choices=["draft", "default"])
     ap.add_argument("--out", help="working folder (default: a temporary one)")
-    ap.add_argument("--quick", action="store_true", help="CPU scale: 800 Gaussians, 64 px, 6 frames, draft")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 500 Gaussians, 48 px, 4 frames, draft")
     ap.add_argument("--json")
     a = ap.parse_args()
     if a.quick:
-        a.gaussians, a.size, a.frames, a.quality = 800, 64, 6, "draft"
+        a.gaussians, a.size, a.frames, a.quality = 500, 48, 4, "draft"
 
     from pxr import Usd
 

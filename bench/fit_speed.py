@@ -25,17 +25,19 @@ def main() -> None:
     ap.add_argument("--quality", default="default")
     ap.add_argument("--velocity-iters", type=int, default=None)
     ap.add_argument("--material-iters", type=int, default=None)
-    ap.add_argument("--quick", action="store_true", help="CPU scale: 2000 Gaussians, 128x72 px, 6 frames, draft")
+    ap.add_argument("--quick", action="store_true", help="CPU scale: 1000 Gaussians, 96x54 px, 4 frames, draft, 3 iterations a stage")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
-        args.gaussians, args.width, args.height, args.frames, args.quality = 2000, 128, 72, 6, "draft"
+        args.gaussians, args.width, args.height, args.frames, args.quality = 1000, 96, 54, 4, "draft"
+        args.velocity_iters, args.material_iters = 3, 3
 
     import numpy as np
     import torch
 
     from pd_tool.core.device import init_warp_quietly
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.io import save_splats
     from pd_tool.prepare.preparation import PrepareOptions
