@@ -750,7 +750,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
     with user_errors():
         from pd_tool import app
         from pd_tool.core.device import resolve_device
-        from pd_tool.fit.pipeline import FitSettings
+        from pd_tool.fit.settings import FitSettings
         from pd_tool.prepare import PrepareOptions
 
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,

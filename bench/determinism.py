@@ -58,7 +58,8 @@ def main() -> None:
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from memory_estimate import make_video  # the same plant + video as the memory bench
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
     from pd_tool.prepare.preparation import PrepareOptions

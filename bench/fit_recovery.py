@@ -75,7 +75,7 @@ def use_true_v0(views: int) -> None:
     drivers are the reference's (same preparation and seed), so the formula is exact."""
     import torch
 
-    from pd_tool.fit.pipeline import FitProblem
+    from pd_tool.fit.problem import FitProblem
 
     def true_v0(pb, i: int) -> torch.Tensor:
         if not hasattr(pb, "_true_v0"):
@@ -95,7 +95,7 @@ def record_residual_gradients() -> dict:
     step's whole gradient and keeps it less the penalty's."""
     import torch
 
-    from pd_tool.fit.pipeline import FitProblem
+    from pd_tool.fit.problem import FitProblem
 
     rec = {"data": []}
     penalty = FitProblem.residual_penalty
@@ -193,7 +193,7 @@ def objective_at(scene, refs, settings, res, views: int) -> dict:
     short of the objective's minimum; one below it found a different minimum."""
     import torch
 
-    from pd_tool.fit.pipeline import FitProblem, sequence_loss
+    from pd_tool.fit.problem import FitProblem, sequence_loss
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP, driver_truth_E
 
@@ -260,7 +260,8 @@ def main() -> None:
     import torch
 
     from pd_tool.core.device import init_warp_quietly
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.materials.presets import fit_simulation, load_preset

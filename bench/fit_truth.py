@@ -238,7 +238,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     from fit_recovery import simulate_positions
     from pd_tool.io import save_splats
     from pd_tool.materials.file import MaterialFile
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import up_rotation
     from pd_tool.materials.presets import fit_simulation, load_preset
 

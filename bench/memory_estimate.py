@@ -64,7 +64,8 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
     wp.config.quiet = True
     import usd_export  # noqa: F401  (the bake imports it; part of the baseline)
     from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
     from pd_tool.prepare.memory import PREVIEW_PIXELS, estimate_bake_memory, estimate_fit_memory

@@ -172,7 +172,8 @@ def fit_sweep(args) -> list[dict]:
     """Fit the plant's reference video at several iteration counts; recovery error per run."""
     import torch
 
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats, save_splats
     from pd_tool.prepare.preparation import PrepareOptions

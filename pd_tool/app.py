@@ -16,7 +16,8 @@ from pd_tool.bake import bake as run_bake
 from pd_tool.core.atomic import check_destination, check_outputs
 from pd_tool.core.errors import MissingInput, OutputError
 from pd_tool.fit.outputs import check_fit_outputs, write_fit_outputs
-from pd_tool.fit.pipeline import FitResult, FitSettings, run_fit
+from pd_tool.fit.run import FitResult, run_fit
+from pd_tool.fit.settings import FitSettings
 from pd_tool.io import load_splats
 from pd_tool.materials.file import MaterialFile, check_record, is_material_file, read_record, write_record
 from pd_tool.materials.presets import Material, load_preset

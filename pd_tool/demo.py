@@ -16,7 +16,7 @@ import numpy as np
 from pd_tool import app
 from pd_tool.bake import BakeSettings, ForceSpec
 from pd_tool.core.atomic import check_replaceable_folder, folder_mark, mark_folder
-from pd_tool.fit.pipeline import FitSettings
+from pd_tool.fit.settings import FitSettings
 from pd_tool.fit.reference import plant_reference_for_fit
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant

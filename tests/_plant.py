@@ -29,7 +29,8 @@ def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_fra
     Returns (scene, problem, v0)."""
     import torch
 
-    from pd_tool.fit.pipeline import FitProblem, FitSettings
+    from pd_tool.fit.problem import FitProblem
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.fit.reference import push_velocity

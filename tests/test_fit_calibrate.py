@@ -9,7 +9,7 @@ import torch
 
 
 def test_stiffness_clusters_find_distinct_levels() -> None:
-    from pd_tool.fit.pipeline import stiffness_clusters
+    from pd_tool.fit.stages import stiffness_clusters
 
     g = torch.Generator().manual_seed(0)
     levels = torch.cat([10.0 + 0.1 * torch.randn(100, generator=g), 13.0 + 0.1 * torch.randn(50, generator=g),
@@ -25,7 +25,8 @@ def test_stiffness_clusters_find_distinct_levels() -> None:
 
 def test_calibration_lowers_the_whole_clip_loss_and_folds_exactly(tmp_path) -> None:
     from _plant import tiny_plant_problem
-    from pd_tool.fit.pipeline import calibrate, sequence_loss
+    from pd_tool.fit.problem import sequence_loss
+    from pd_tool.fit.stages import calibrate
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -63,7 +64,7 @@ def test_calibration_lowers_the_whole_clip_loss_and_folds_exactly(tmp_path) -> N
 
 
 def test_calibration_needs_the_residuals() -> None:
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
 
     with pytest.raises(ValueError, match="calibration folds its offsets into the per-driver residuals"):
         FitSettings(quality="draft", calibrate_iters=3, driver_residual=False, stage1_level=False).resolved()
@@ -73,7 +74,7 @@ def test_calibration_needs_the_residuals() -> None:
 
 def _stage1_loss(pb, level: float) -> float:
     """velocity_iteration's loss with the level set to `level` (nats); leaves no gradients."""
-    from pd_tool.fit.pipeline import velocity_iteration
+    from pd_tool.fit.stages import velocity_iteration
 
     with torch.no_grad():
         pb.log_e_level.fill_(level)
@@ -87,7 +88,7 @@ def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
     """FitSettings.stage1_level: stage 1 fits one shared log-E offset with v0; its gradient
     through the three frames against central differences of the same loss."""
     from _plant import tiny_plant_problem
-    from pd_tool.fit.pipeline import velocity_iteration
+    from pd_tool.fit.stages import velocity_iteration
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -113,7 +114,8 @@ def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
 
 def test_stage1_level_folds_into_the_residuals_exactly(tmp_path) -> None:
     from _plant import tiny_plant_problem
-    from pd_tool.fit.pipeline import FitSettings, fold_level
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.fit.stages import fold_level
 
     _, pb, _ = tiny_plant_problem(tmp_path, 300, seed=1, size=16)
     pb.s.stage1_level = True
@@ -132,7 +134,7 @@ def test_stage1_level_folds_into_the_residuals_exactly(tmp_path) -> None:
 
 def test_cli_level_default_is_the_settings_default() -> None:
     from cli import main
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
 
     level = next(p for p in main.commands["fit"].params if p.name == "level")
     assert level.default is FitSettings().stage1_level is True

@@ -201,7 +201,8 @@ def plant(tmp_path_factory):
 
 
 def _fit(inputs, out: Path, stop_at=None, resume: bool = False, seed: int = 0):
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP
 

@@ -11,7 +11,8 @@ from tests._plant import tiny_plant_video
 
 
 def _problem(folder: Path, gain: tuple[float, float, float], match: bool):
-    from pd_tool.fit.pipeline import FitProblem, FitSettings
+    from pd_tool.fit.problem import FitProblem
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP
@@ -40,7 +41,8 @@ def test_match_exposure_off_keeps_the_render_as_it_is(tmp_path: Path) -> None:
 
 
 def test_a_fit_of_a_darker_video_says_it_matched_the_exposure(tmp_path: Path) -> None:
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP

@@ -8,7 +8,7 @@ import torch
 
 def _material_grads(tmp_path, horizons):
     from _plant import tiny_plant_problem
-    from pd_tool.fit.pipeline import material_iteration
+    from pd_tool.fit.stages import material_iteration
 
     _, pb, v0 = tiny_plant_problem(tmp_path, 500, seed=3, size=24)
     grads = {}
@@ -37,7 +37,8 @@ def test_substeps_setting_is_a_floor_under_the_cfl_choice() -> None:
 
     import numpy as np
 
-    from pd_tool.fit.pipeline import FitProblem, FitSettings
+    from pd_tool.fit.problem import FitProblem
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.sim import SimConfig
 
     n = 4
@@ -68,7 +69,8 @@ def test_polish_iterations_back_propagate_through_every_frame(tmp_path) -> None:
     import numpy as np
 
     from _plant import tiny_plant_video
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP

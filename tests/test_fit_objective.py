@@ -23,7 +23,7 @@ def plant_problem(tmp_path_factory):
 
 
 def test_loss_is_lowest_at_the_true_stem_E(plant_problem) -> None:
-    from pd_tool.fit.pipeline import sequence_loss
+    from pd_tool.fit.problem import sequence_loss
     from pd_tool.io.synthetic import REGIONS
 
     pb, v0, region, truth = plant_problem
@@ -37,7 +37,7 @@ def test_loss_is_lowest_at_the_true_stem_E(plant_problem) -> None:
 
 
 def test_gradient_from_the_uniform_start_points_towards_the_truth(plant_problem) -> None:
-    from pd_tool.fit.pipeline import sequence_loss
+    from pd_tool.fit.problem import sequence_loss
     from pd_tool.io.synthetic import REGION_TRUTH_E, REGIONS
 
     pb, v0, region, truth = plant_problem

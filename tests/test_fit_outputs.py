@@ -107,7 +107,8 @@ def plant_fit(tmp_path_factory):
     """A 400-Gaussian plant prepared as the demo's fit prepares it, with an E per simulated
     Gaussian near its region's true E, in a FitResult ready for write_fit_outputs."""
     from pd_tool.core.cameras import auto_camera
-    from pd_tool.fit.pipeline import FitResult, FitSettings
+    from pd_tool.fit.run import FitResult
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
     from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 
@@ -128,7 +129,7 @@ def test_e_picture_is_the_render_over_a_colour_bar(plant_fit, tmp_path: Path) ->
     from PIL import Image
 
     from pd_tool.fit.outputs import e_field_scene, write_fit_outputs
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.render.plots import STRIP_MIN_WIDTH
     from pd_tool.render.views import render_image
 
@@ -195,7 +196,8 @@ def test_report_records_what_the_fit_ran_at(fit_dir: Path, tmp_path: Path) -> No
     import torch
 
     from pd_tool.fit.outputs import write_fit_outputs
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.io import load_splats
     from pd_tool.materials.file import MaterialFile

@@ -8,7 +8,8 @@ import torch
 
 def test_refine_velocity_moves_v0_with_horizon_one(tmp_path) -> None:
     from _plant import tiny_plant_video
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP

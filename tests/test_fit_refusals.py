@@ -139,14 +139,14 @@ def test_a_fit_that_cannot_learn_is_refused_before_fitting(plant: Path, tmp_path
                                                            args, message) -> None:
     import re
 
-    import pd_tool.fit.pipeline as pipeline
+    from pd_tool.fit import run as fit_run
 
     def no_fit(*a, **k):
         raise AssertionError("the fit started")
 
-    monkeypatch.setattr(pipeline, "_fit_round", no_fit)  # refused before any simulation
+    monkeypatch.setattr(fit_run, "fit_round", no_fit)  # refused before any simulation
     if name == "masks leave out the rendered object":
-        monkeypatch.setattr(pipeline, "check_videos_can_teach", lambda videos: None)
+        monkeypatch.setattr(fit_run, "check_videos_can_teach", lambda videos: None)
     res, written = _run(plant, tmp_path, monkeypatch, edit, args)
     assert res.exit_code == 2, res.output
     lines = res.stderr.splitlines()
@@ -157,9 +157,9 @@ def test_a_fit_that_cannot_learn_is_refused_before_fitting(plant: Path, tmp_path
 def test_a_loss_that_does_not_move_is_refused_after_the_fit(plant: Path, tmp_path: Path, monkeypatch) -> None:
     """The checks before the fit off, a camera that sees nothing: the fit runs, its loss stays
     put, and the run refuses before the material file is written (its checkpoint goes too)."""
-    import pd_tool.fit.pipeline as pipeline
+    from pd_tool.fit import run as fit_run
 
-    monkeypatch.setattr(pipeline, "check_fit_can_learn", lambda pb: None)
+    monkeypatch.setattr(fit_run, "check_fit_can_learn", lambda pb: None)
     res, written = _run(plant, tmp_path, monkeypatch, _turn_away)
     assert res.exit_code == 2, res.output
     lines = res.stderr.splitlines()
@@ -191,7 +191,7 @@ def test_a_still_mp4_is_told_from_a_moving_one(plant: Path, tmp_path: Path) -> N
     """A codec's noise on a still scene is no motion; the plant swaying in an mp4 is."""
     import imageio.v3 as iio
 
-    from pd_tool.fit.pipeline import FitLearnsNothing, check_videos_can_teach
+    from pd_tool.fit.refusals import FitLearnsNothing, check_videos_can_teach
     from pd_tool.video.folder import load_reference_video
 
     frames = [iio.imread(p) for p in sorted((plant / "video").glob("frame_*.png"))]

@@ -81,7 +81,7 @@ def test_fraction_is_capped_and_constants_and_bounds_are_kept() -> None:
 
 
 def test_settings_refuse_a_negative_or_non_finite_diffusion() -> None:
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
 
     for bad in (-0.01, math.nan, math.inf):
         with pytest.raises(ValueError, match="residual_diffusion"):
@@ -93,7 +93,9 @@ def test_stage_two_diffuses_the_residuals(tmp_path, monkeypatch) -> None:
     """A two-iteration stage 2 calls the step once per iteration with the setting's D, and
     not at all when it is 0."""
     from _plant import tiny_plant_video
-    from pd_tool.fit.pipeline import FitProblem, FitSettings, run_fit
+    from pd_tool.fit.problem import FitProblem
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.io.synthetic import POT_TOP

@@ -110,7 +110,7 @@ def test_tensor_optimizer_eps_sets_the_gradient_scale_of_a_full_step():
 
 
 def test_fit_settings_refuse_a_residual_eps_that_is_not_positive():
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
 
     for eps in (0.0, -1e-8):
         with pytest.raises(ValueError, match="residual_eps"):

@@ -102,7 +102,8 @@ def test_fit_refuses_a_grid_that_cannot_fit(tmp_path: Path, monkeypatch) -> None
     alone needs ~6 GiB, more than the 4 GiB this test says the machine has."""
     import torch
 
-    from pd_tool.fit.pipeline import FitSettings, run_fit
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
     from pd_tool.prepare.memory import InsufficientMemory
     from pd_tool.prepare.preparation import PrepareOptions

@@ -319,7 +319,7 @@ def test_bridge_on_cuda_with_graphs_matches_plain_launches_and_cpu():
 
 
 def test_fit_settings_refuse_a_cfl_quantile_outside_0_1() -> None:
-    from pd_tool.fit.pipeline import FitSettings
+    from pd_tool.fit.settings import FitSettings
 
     for q in (0.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="cfl_quantile"):

@@ -1,8 +1,11 @@
 """Fitting a material field to reference videos (PhysDreamer stages 1 and 2).
 
-Building blocks exported here: neural fields (fields.py), image losses (losses.py),
-reference-video input (video.py), AdamW + lr schedule (schedule.py). The optimisation
-loop builds on them.
+The fit: settings (settings.py), the differentiable forward (problem.py), the stages and
+calibration (stages.py), checkpoint and resume (resume.py), the refusals of a fit that
+cannot learn (refusals.py), and the run that ties them together (run.py: run_fit).
+
+Building blocks exported here too: neural fields (fields.py), image losses (losses.py),
+reference-video input (pd_tool/video/folder.py), AdamW + lr schedule (schedule.py).
 """
 from pd_tool.fit.fields import (
     FieldSettingsError,
@@ -15,11 +18,15 @@ from pd_tool.fit.fields import (
     tv_loss,
 )
 from pd_tool.fit.losses import frame_loss, ssim, ssim_map
+from pd_tool.fit.run import FitResult, run_fit
 from pd_tool.fit.schedule import make_optimizer, warmup_linear_decay
+from pd_tool.fit.settings import FitSettings
 from pd_tool.video.folder import ReferenceVideo, load_reference_video, write_video_folder
 
 __all__ = [
     "FieldSettingsError",
+    "FitResult",
+    "FitSettings",
     "MaterialField",
     "ReferenceVideo",
     "Triplane",
@@ -30,6 +37,7 @@ __all__ = [
     "load_field",
     "load_reference_video",
     "make_optimizer",
+    "run_fit",
     "ssim",
     "ssim_map",
     "tv_loss",

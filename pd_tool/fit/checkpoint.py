@@ -16,7 +16,7 @@ parameter ids survive), {"tuple": [...]}, {"tensor": i} (member arrays/<i>.npy) 
 reading). Reading is strict: only those members, those tags and a few little-endian
 dtypes; every array's .npy header must account for its member's bytes exactly; the
 checksum must match; every number must be finite. What the tree must hold for a given
-fit (keys, shapes, ranges) is checked by the fit itself (pipeline._check_checkpoint).
+fit (keys, shapes, ranges) is checked by the fit itself (pd_tool.fit.resume.check_checkpoint).
 
 The first member makes a checkpoint recognisable from its first bytes alone, even when
 it is truncated: `is_pdtool_checkpoint` decides whether a file at the checkpoint's path

@@ -16,7 +16,8 @@ from pd_tool.render.plots import STRIP_MIN_WIDTH, colorbar_strip, sci_label
 from pd_tool.core.scene import GaussianScene, rgb_to_sh
 
 if TYPE_CHECKING:
-    from pd_tool.fit.pipeline import FitResult, FitSettings
+    from pd_tool.fit.run import FitResult
+    from pd_tool.fit.settings import FitSettings
 
 # A perceptual blue -> green -> yellow ramp (viridis-like stops) for log E.
 _STOPS = np.array([[0.267, 0.005, 0.329], [0.230, 0.322, 0.546], [0.128, 0.567, 0.551],

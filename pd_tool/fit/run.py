@@ -1,0 +1,171 @@
+"""The fit, end to end (run_fit): settings resolved, refusals before any work, the
+problem set up, `rounds` rounds of stage 1 and 2 with checkpoints (and `--resume` from
+one), calibration, the checks after the fit, then the material file (.pdmat) and the
+report lines. The result (FitResult) is what `pdtool fit` writes its outputs and report
+from (pd_tool/fit/outputs.py).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pd_tool.core.scene import GaussianScene
+from pd_tool.drivers import DriverSet
+from pd_tool.fit.problem import FitProblem
+from pd_tool.fit.refusals import FitLearnsNothing, check_fit_can_learn, check_learned, check_videos_can_teach
+from pd_tool.fit.resume import (
+    check_checkpoint_destination,
+    load_checkpoint,
+    remove_own_checkpoint,
+    restore,
+    resume_key,
+    save_checkpoint,
+)
+from pd_tool.fit.settings import FitSettings
+from pd_tool.fit.stages import ProgressFn, calibrate, fit_round
+from pd_tool.materials.file import MaterialFile, scene_fingerprint
+from pd_tool.prepare.preparation import PreparedScene, PrepareOptions
+from pd_tool.video.folder import ReferenceVideo
+
+
+@dataclass
+class FitResult:
+    """What a fit found and ran at. Q drivers, F simulated Gaussians; E in Pa, v0 in m/s,
+    seconds of wall time per stage."""
+
+    material_path: Path
+    driver_E: np.ndarray  # [Q] Pa, as written to the material file
+    driver_v0: np.ndarray  # [Q, 3] m/s, the first video's fitted initial velocity
+    gaussian_E: np.ndarray  # [F] per simulated Gaussian (its driver's E)
+    losses: dict[str, list[float]]  # per stage, one per iteration; "stage1_level": the folded levels, nats
+    seconds: dict[str, float]
+    prep: PreparedScene
+    drivers: DriverSet
+    report: list[str] = field(default_factory=list)
+    skipped_steps: int = 0  # material-stage optimiser steps skipped for a non-finite gradient
+    driver_v0s: list[np.ndarray] = field(default_factory=list)  # [Q, 3] m/s per video, in video order
+    # E per driver (Pa) before calibration, when the fit calibrated (diagnostics; not saved)
+    driver_E_uncalibrated: np.ndarray | None = None
+    calibration: dict[str, Any] | None = None  # the offsets, gains and losses calibration chose
+    # what the fit ran at, for its report: the settings resolved from the quality preset,
+    # the quality's CFL safety factor, and the least and most substeps per frame its
+    # simulations took in this process (None: none ran, as when a resumed fit had finished)
+    settings: FitSettings | None = None
+    cfl_safety: float | None = None
+    substeps: tuple[int, int] | None = None
+
+
+def run_fit(
+    scene: GaussianScene,
+    scene_path: str | Path,
+    videos: list[ReferenceVideo],
+    out: str | Path,
+    *,
+    prepare_options: PrepareOptions | None = None,
+    settings: FitSettings | None = None,
+    progress: ProgressFn | None = None,
+    resume: bool = False,
+) -> FitResult:
+    """Fit and write the material file `out` (.pdmat). A checkpoint `out`.ckpt is kept
+    while fitting (every settings.checkpoint_every iterations) and removed at the end;
+    resume=True continues from it. `progress(stage, iteration, total, loss)` is called after
+    every iteration. Refuses with one line (PdToolError) a fit that cannot learn, cannot
+    fit in memory or time, or a checkpoint it cannot continue from."""
+    s = (settings or FitSettings()).resolved()
+    out = Path(out)
+    ckpt_path = out.with_name(out.name + ".ckpt")
+    if s.velocity_iters + s.material_iters + s.calibrate_iters == 0:
+        raise FitLearnsNothing("--velocity-iters 0 and --material-iters 0 leave nothing to fit (the material file "
+                               "would hold the starting E); give at least one iteration")
+    check_checkpoint_destination(out, ckpt_path)
+    pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
+    check_videos_can_teach(videos)
+    check_fit_can_learn(pb)
+    losses: dict[str, list[float]] = {"velocity": [], "material": []}
+    seconds: dict[str, float] = {}
+    pb.resume_key = resume_key(pb, scene_path)
+    ckpt = load_checkpoint(ckpt_path, pb, s) if resume else None
+    if ckpt is not None:
+        losses = ckpt["losses"]
+        restore(ckpt_path, pb, ckpt)
+
+    save = partial(save_checkpoint, ckpt_path, pb)
+    skipped = 0
+    resume_round = ckpt["round"] if ckpt is not None else 0
+    for rnd in range(s.rounds):
+        if rnd < resume_round:
+            continue
+        skipped += fit_round(pb, s, rnd, ckpt if rnd == resume_round else None, losses, seconds, progress, save)
+        ckpt = None
+
+    E_uncalibrated = None
+    calibration = None
+    if s.calibrate_iters > 0:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            E_uncalibrated = pb.driver_E().double().cpu().numpy()
+        calibration = calibrate(pb, s, progress)
+        losses["calibrate"] = calibration["losses"]
+        seconds["calibrate"] = time.perf_counter() - t0
+
+    # ---- result
+    with torch.no_grad():
+        v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
+        driver_E = pb.driver_E().double().cpu().numpy()
+        v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
+    try:
+        check_learned(losses)
+    except FitLearnsNothing:
+        remove_own_checkpoint(ckpt_path)  # nothing is left of a fit that learned nothing
+        raise
+    p = pb.prep
+    labels = pb.drivers.labels.cpu().numpy()[: p.count]  # the Gaussians' drivers (filled particles follow)
+    meta: dict[str, Any] = {
+        "scene_sha256": scene_fingerprint(scene_path),
+        "scene_path": str(Path(scene_path).resolve()),
+        "prepare": p.options.to_dict(),
+        "transform": p.transform.to_dict(),
+        "nu": s.nu, "density": s.density, "damping": s.damping,
+        "drivers": {"count": int(len(driver_E)), "ratio": s.driver_ratio, "seed": s.seed},
+        # what a bake needs to simulate as the fit did (MaterialFile.fit_simulation)
+        "simulation": {"grid_res": int(p.options.grid_res), "driver_ratio": s.driver_ratio, "driver_seed": s.seed,
+                       "cfl_safety": float(pb.cfl_safety)},
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
+        "videos": [str(v.folder) for v in videos],
+        "metrics": {
+            "loss_velocity_first": losses["velocity"][0] if losses["velocity"] else None,
+            "loss_velocity_last": losses["velocity"][-1] if losses["velocity"] else None,
+            "loss_material_first": losses["material"][0] if losses["material"] else None,
+            "loss_material_last": losses["material"][-1] if losses["material"] else None,
+            "skipped_material_steps": skipped,
+            "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
+            "calibration": None if calibration is None else {
+                k: calibration[k] for k in ("offsets", "gains", "cluster_sizes") if k in calibration},
+        },
+        "fields": {"material": pb.material.config(),
+                   **{f"velocity{i}": v.config() for i, v in enumerate(pb.velocities)}},
+    }
+    fields = {"material": {k: v.detach().cpu().numpy() for k, v in pb.material.state_dict().items()}}
+    for i, v in enumerate(pb.velocities):
+        fields[f"velocity{i}"] = {k: t.detach().cpu().numpy() for k, t in v.state_dict().items()}
+    mf = MaterialFile(driver_E=driver_E, driver_v0=v0_mean,
+                      driver_rest=p.transform.to_scene(pb.x_rest.double().cpu().numpy()), meta=meta, fields=fields)
+    mf.save(out)
+    remove_own_checkpoint(ckpt_path)
+    report = list(p.report)
+    for i, g in enumerate(pb.gains):
+        if float((g - 1.0).abs().max()) > 0.02:  # a camera that differs visibly from the splat's colours
+            report.append(f"video {i}: exposure matched at rest, gain {' / '.join(f'{x:.2f}' for x in g.tolist())} "
+                          f"(r / g / b; --no-match-exposure turns it off)")
+    return FitResult(material_path=out, driver_E=driver_E, driver_v0=v0s[0].double().cpu().numpy(),
+                     gaussian_E=driver_E[labels], losses=losses,
+                     seconds=seconds, prep=p, drivers=pb.drivers, report=report, skipped_steps=skipped,
+                     driver_v0s=[v.double().cpu().numpy() for v in v0s],
+                     driver_E_uncalibrated=E_uncalibrated, calibration=calibration, settings=s,
+                     cfl_safety=float(pb.cfl_safety), substeps=pb.substeps_range)

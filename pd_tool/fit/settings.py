@@ -1,0 +1,147 @@
+"""The fit's settings (FitSettings): what `pdtool fit` and its presets can change.
+
+Units throughout: E in Pa, velocities in m/s, learning rates per optimiser step, log-E
+quantities in nats.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from pd_tool.materials.presets import fit_simulation, load_preset
+
+
+@dataclass
+class FitSettings:
+    """Settings of a fit. Iteration counts and the driver ratio default to the quality
+    preset's (`resolved` fills them in).
+
+    Units: E in Pa, velocities in m/s, lr per optimiser step.
+    """
+
+    quality: str = "default"
+    velocity_iters: int | None = None
+    material_iters: int | None = None
+    stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
+    material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
+    # The last this many stage-2 iterations back-propagate through every frame. A truncated
+    # gradient stops where it vanishes, not where the loss is least: E that acts through
+    # the whole motion (a stiff stem sets its frequency, hence the phase of later frames)
+    # is under-counted by it. Counted within material_iters. A lower loss does not always
+    # mean a better fit (docs/fitting.md), so 0 by default.
+    polish_iters: int = 0
+    # Least substeps per frame; None: as the CFL condition for the current E chooses each
+    # iteration. MPM's numerical damping grows with the substep count, so a floor above the
+    # CFL choice keeps the count, and the damping, fixed while E moves. The CFL count still
+    # wins where E rises above what the floor allows (a fixed count would blow up there).
+    substeps: int | None = None
+    refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
+    # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
+    # the fastest, as a bake does). MPM loses energy in every transfer, so the count sets the
+    # model's damping; with the maximum, a few outlying stiff drivers set it for the whole
+    # object (at 100k: 180 substeps per frame under the fitted E against 75 under the truth).
+    cfl_quantile: float = 1.0
+    # Rounds of (stage 1, stage 2). Stage 1 fits v0 under the starting E, so a wrong E biases
+    # v0, and stage 2 then fits E to the biased v0; each later round refits v0 under the
+    # fitted E. 1, the paper's: with two videos at 100k a second round brings every region
+    # within 10% on five seeds but makes the new-force motion worse on every seed compared
+    # (docs/benchmarks.md, fit recovery).
+    rounds: int = 1
+    # Stage 1 also fits one log-E offset shared by every driver (a level, not a field; the
+    # paper freezes E there: False). Stage 1 fits v0 under the starting E; when that E is too
+    # soft, a slower push matches the first frames (v0 7-11% slow at 100k, docs/fitting.md)
+    # and stage 2 then softens the stem to match it. One number cannot take on the field's
+    # shape, unlike the whole field (1.33x against 3.49x at the quick scale). Folded into the
+    # per-driver residuals when stage 1 ends. It lowers the recovery benchmark's new-force
+    # error on eight of nine seeds at 100k (5.11x against 4.46x on average; docs/benchmarks.md).
+    stage1_level: bool = True
+    lr_level: float = 0.05  # Adam step of the level, nats of E
+    # Stage 3, calibration: iterations of the exact whole-clip gradient over a few numbers
+    # only, one log-E offset per stiffness cluster and one log speed gain per video (see
+    # `pd_tool.fit.stages.calibrate`). 0: off.
+    calibrate_iters: int = 0
+    calibrate_clusters: int = 4  # stiffness clusters of the fitted field (1-D k-means on log E)
+    lr_calibrate: float = 0.02  # Adam step, in log units (nats) of E and of v0's speed (0.05 overshoots)
+    # Per-driver log-E residual on top of the field. The field's parameters are shared by
+    # every point, so the region with the largest gradient (the stem) moves them all; a
+    # residual per driver lets each region follow its own gradient sign (see docs/fitting.md).
+    driver_residual: bool = True
+    lr_residual: float = 0.15
+    # Adam's eps for the residuals. A driver whose gradient is below it takes proportionally
+    # shorter steps; at 100k the leaves' and the flower's gradients are 1e-9 to 1e-7
+    # (bench/fit_recovery.py --residual-gradients), so torch's 1e-8 would hold the leaves near
+    # the start. With the diffusion below, 1e-16 brings every region within 10%
+    # (docs/benchmarks.md, fit).
+    residual_eps: float = 1e-16
+    # Weight of the mean squared residual difference between neighbouring drivers (a
+    # diagnostic setting, 0 by default). Adam normalises its gradient per driver against the
+    # video's, which is 100x weaker on a leaf than on the stem, so the penalty holds the
+    # leaves back and hardly the stem; residual_diffusion smooths the residuals instead.
+    residual_smoothness: float = 0.0
+    # Diffusion of the residuals after every stage-2 step, in fit-grid cells squared per
+    # iteration (0: off): each driver moves D dx^2 / h^2 of the way (at most 0.9) toward its
+    # nearest drivers' mean, h being its mean distance to them, so the smoothing covers the
+    # same length of object whatever the driver density (pd_tool/fit/diffusion.py). It acts
+    # in the residual's own units, so it holds a driver with a strong video gradient (the
+    # stem's stiff outliers, which set the substep count and so MPM's damping) as firmly as
+    # one with a weak gradient (a leaf), and carries the leaves' softening out to their tips.
+    # 0.02 moves the median driver about half way at the 100k benchmark's driver density.
+    residual_diffusion: float = 0.02
+    refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
+    lr_velocity: float = 2e-2
+    lr_material: float = 5e-2
+    warmup: int = 3  # iterations of linear warm-up per stage
+    grad_clip: float = 1.0
+    tv_weight: float = 1e-4
+    loss_lambda: float = 0.1
+    init_E: float = 1e6  # Pa, the uniform starting value (and the baseline it is compared with)
+    E_min: float = 1e3  # Pa, bounds of the material field
+    E_max: float = 1e8
+    velocity_scale: float = 1.0  # m/s per unit of the velocity field's output
+    velocity_resolution: int = 24  # triplane texels per side of the v0 field (paper: 24)
+    material_resolution: int = 8  # ... of the E field (paper: 8)
+    nu: float = 0.3
+    density: float = 1000.0  # kg/m^3
+    damping: float = 0.0  # 1/s
+    driver_ratio: float | None = None  # None: the quality preset's
+    working_long_side: int = 256  # px, reference frames are resized to this
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    # Scale each video's render by a gain per colour channel, fitted once at rest (frame 0),
+    # so that a camera's exposure and white balance do not count as motion error. Without
+    # it, a video 10% darker than the splat leaves the loss at 0.067 on a 3,000-Gaussian
+    # plant and the fit drives E up until nothing moves (bench/fit_truth.py).
+    match_exposure: bool = True
+    seed: int = 0
+    device: str = "cpu"
+    checkpoint_every: int = 5  # iterations between checkpoints (bounded loss of work on a kill)
+
+    def resolved(self) -> FitSettings:
+        """These settings with every default filled in from the quality preset; ValueError
+        (one line) for a value out of range or a combination the fit cannot run."""
+        q = load_preset("quality", self.quality)
+        out = FitSettings(**asdict(self))
+        if out.rounds < 1:
+            raise ValueError(f"rounds must be at least 1, got {out.rounds}")
+        if out.polish_iters < 0:
+            raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
+        if not 0.0 < out.cfl_quantile <= 1.0:
+            raise ValueError(f"cfl_quantile must be in (0, 1], got {out.cfl_quantile}")
+        if not (math.isfinite(out.residual_diffusion) and out.residual_diffusion >= 0.0):
+            raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
+        if not out.residual_eps > 0:
+            raise ValueError(f"residual_eps must be > 0, got {out.residual_eps}")
+        if out.calibrate_iters < 0:
+            raise ValueError(f"calibrate_iters must be at least 0, got {out.calibrate_iters}")
+        if out.calibrate_clusters < 1:
+            raise ValueError(f"calibrate_clusters must be at least 1, got {out.calibrate_clusters}")
+        if out.stage1_level and not out.driver_residual:
+            raise ValueError("stage1_level folds its offset into the per-driver residuals; keep driver_residual on")
+        if out.calibrate_iters and not out.driver_residual:
+            raise ValueError("calibration folds its offsets into the per-driver residuals; keep driver_residual on")
+        if out.velocity_iters is None:
+            out.velocity_iters = int(q["fit_velocity_iters"])
+        if out.material_iters is None:
+            out.material_iters = int(q["fit_material_iters"])
+        if out.driver_ratio is None:
+            out.driver_ratio = fit_simulation(q)[2]
+        return out

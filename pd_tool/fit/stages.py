@@ -1,0 +1,271 @@
+"""The fit's stages, each an optimisation over FitProblem's forward:
+
+1. velocity: E's field frozen at its current value; optimise each video's v0 field on the
+   first `stage1_frames` frames with full back-propagation through the simulation, and
+   (`stage1_level`, on by default; the paper has it off) one log-E offset shared by every
+   driver, folded into E when the stage ends;
+2. material: v0 frozen (or refined, `refine_velocity`); optimise the shared E field and the
+   per-driver residuals over all frames, each frame simulated from the detached state of
+   the previous one (a `material_horizon`-frame gradient horizon), the last `polish_iters`
+   iterations through every frame;
+3. calibration (`calibrate_iters`): a few whole-clip numbers, one log-E offset per
+   stiffness cluster of the fitted field and one speed gain per video, fitted with the
+   exact gradient through every frame.
+
+A round is stage 1 then stage 2 (`fit_round`); the run repeats it `rounds` times.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable
+
+import torch
+
+from pd_tool.fit.problem import FitProblem, sequence_loss
+from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer
+from pd_tool.fit.settings import FitSettings
+
+ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, loss
+# A stage's optimisers and learning-rate schedules by checkpoint suffix (see stage_optimizers)
+Optimizers = dict[str, tuple[Any, Any]]
+# Called when a checkpoint is due: (stage, iterations done, the stage's optimisers, the loss
+# histories, round)
+CheckpointFn = Callable[[str, int, Optimizers, dict[str, list[float]], int], None]
+
+
+def _clip_and_step(params: list[torch.Tensor], opt: Any, sched: Any, clip: float) -> bool:
+    """Clip, step, advance the schedule. A non-finite gradient (a simulation that blew up
+    under a trial E) skips the step instead of writing NaN into the field; returns
+    whether the step was taken."""
+    norm = torch.nn.utils.clip_grad_norm_(params, clip)
+    ok = bool(torch.isfinite(norm))
+    if ok:
+        opt.step()
+    sched.step()
+    opt.zero_grad(set_to_none=True)
+    return ok
+
+
+def velocity_iteration(pb: FitProblem) -> float:
+    """One stage-1 iteration over every video; returns the mean frame loss. E is frozen,
+    up to a shared factor exp(log_e_level) when settings.stage1_level is on."""
+    E_frozen = pb.driver_E().detach()
+    total = 0.0
+    n = 0
+    for i, video in enumerate(pb.videos):
+        # scaled per video: each video's backward frees the graph it was built in
+        E = E_frozen * torch.exp(pb.log_e_level) if pb.s.stage1_level else E_frozen
+        v0 = pb.driver_v0(i)
+        sub = pb.substeps(E, v0)
+        state = pb.initial_state(v0)
+        loss = torch.zeros((), device=pb.device)
+        frames = min(pb.s.stage1_frames, video.num_frames - 1)
+        for k in range(1, frames + 1):
+            state = pb.step(state, E, sub, k)
+            loss = loss + pb.frame_loss(i, k, pb.render(i, state[0]))
+        (loss / frames + pb.s.tv_weight * pb.velocities[i].tv()).backward()
+        total += float(loss.detach()) / frames
+        n += 1
+    return total / max(n, 1)
+
+
+@torch.no_grad()
+def fold_level(pb: FitProblem) -> float:
+    """Move stage 1's shared log-E offset into the per-driver residuals (driver_E() is
+    unchanged by the move) and zero it: stage 2 starts from the rescaled field. Returns the
+    offset, nats."""
+    level = float(pb.log_e_level)
+    pb.set_driver_log_E(torch.log(pb.driver_E()) + pb.log_e_level)
+    pb.log_e_level.zero_()
+    return level
+
+
+def material_iteration(pb: FitProblem, v0s: list[torch.Tensor] | None, horizon: int | None) -> float:
+    """One stage-2 iteration over every frame of every video; returns the mean frame loss.
+    v0s: the frozen initial velocities, [Q, 3] m/s per video, or None to take them (with
+    gradients) from the velocity fields; horizon: frames the gradient reaches back (None: all)."""
+    E = pb.driver_E()
+    if v0s is None:
+        v0s = [pb.driver_v0(i) for i in range(len(pb.videos))]
+    loss = sequence_loss(pb, E, v0s, horizon)
+    reg = pb.s.tv_weight * pb.material.tv()
+    if pb.s.driver_residual:
+        reg = reg + pb.residual_penalty()
+    (loss + reg).backward()
+    return float(loss.detach())  # float() of a tensor that requires grad warns on stderr
+
+
+def stiffness_clusters(log_e: torch.Tensor, k: int, iters: int = 50) -> torch.Tensor:
+    """Labels [Q] in [0, k) of a 1-D k-means on log E (nats). The centres start evenly
+    spaced between the 1st and 99th percentiles: deterministic, and (unlike quantiles, which
+    put most centres in the most populous stiffness) one per level of a field with a few
+    distinct levels."""
+    k = max(1, min(k, len(log_e)))
+    x = log_e.detach().double()
+    lo, hi = torch.quantile(x, torch.tensor([0.01, 0.99], dtype=torch.float64, device=x.device)).tolist()
+    centres = lo + (hi - lo) * (torch.arange(k, dtype=torch.float64, device=x.device) + 0.5) / k
+    labels = torch.zeros(len(x), dtype=torch.long, device=x.device)
+    for _ in range(iters):
+        labels = (x[:, None] - centres[None, :]).abs().argmin(1)
+        new = centres.clone()
+        for c in range(k):
+            sel = labels == c
+            if sel.any():  # an empty cluster keeps its centre
+                new[c] = x[sel].mean()
+        if torch.equal(new, centres):
+            break
+        centres = new
+    return labels
+
+
+def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None) -> dict[str, Any]:
+    """Stage 3: fit a few whole-clip numbers with the exact gradient through every frame.
+
+    The one-frame horizon of stage 2 under-counts what acts through the whole motion (a
+    stem's stiffness sets the phase of every later frame), and stage 1 fits v0 under the
+    starting E, which leaves it about 10% too slow when that E is too soft
+    (docs/fitting.md). Full back-propagation over the per-driver field finds other
+    minima (docs/benchmarks.md); over a handful of numbers it cannot bend the field's shape
+    to v0's error. The numbers: a log-E offset per stiffness cluster of the fitted field
+    (`calibrate_clusters`, 1-D k-means on log E over the moving drivers) and a log speed
+    gain per video. Adam, `calibrate_iters` steps of `lr_calibrate` nats; the parameters
+    with the least loss seen are kept (the start among them, so the whole-clip loss never
+    rises), folded into the per-driver residuals and the velocity fields' scales.
+    Returns {"offsets": [calibrate_clusters] nats, "gains": [videos] speed factors,
+    "losses": [calibrate_iters] whole-clip losses, "cluster_sizes": [calibrate_clusters]
+    drivers} ("cluster_sizes" only when a finite loss was seen).
+    """
+    with torch.no_grad():
+        E0 = pb.driver_E().detach()
+        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
+    moving = ~pb.static
+    labels = torch.full((len(E0),), s.calibrate_clusters, dtype=torch.long, device=pb.device)  # static: no offset
+    if moving.any():
+        labels[moving] = stiffness_clusters(torch.log(E0[moving]), s.calibrate_clusters)
+    offsets = torch.zeros(s.calibrate_clusters, device=pb.device, requires_grad=True)
+    gains = torch.zeros(len(pb.videos), device=pb.device, requires_grad=True)
+    opt = torch.optim.Adam([offsets, gains], lr=s.lr_calibrate)
+    lo, hi = pb.material.log_e_min, pb.material.log_e_max
+    history: list[float] = []
+    best = (math.inf, None, None)
+    for it in range(s.calibrate_iters):
+        delta = torch.cat([offsets, offsets.new_zeros(1)])[labels]
+        # offsets move lr_calibrate nats a step, so the field's bounds are far; the clamp only
+        # keeps a driver already at a bound there, as the fold below does
+        log_e = (torch.log(E0) + delta).clamp(lo, hi)
+        loss = sequence_loss(pb, torch.exp(log_e), [v * torch.exp(g) for v, g in zip(v0s, gains)], None)
+        value = float(loss.detach())
+        history.append(value)
+        if math.isfinite(value) and value < best[0]:
+            best = (value, offsets.detach().clone(), gains.detach().clone())
+        if progress:
+            progress("calibrate", it + 1, s.calibrate_iters, value)
+        if it + 1 == s.calibrate_iters:
+            break  # the last loss is only measured: a step after it would go unchecked
+        loss.backward()
+        if torch.isfinite(offsets.grad).all() and torch.isfinite(gains.grad).all():
+            opt.step()
+        opt.zero_grad(set_to_none=True)
+    if best[1] is None:
+        return {"offsets": [0.0] * s.calibrate_clusters, "gains": [1.0] * len(pb.videos), "losses": history}
+    _, off, gain = best
+    pb.set_driver_log_E(torch.log(E0) + torch.cat([off, off.new_zeros(1)])[labels])
+    for i, g in enumerate(gain.tolist()):
+        pb.velocities[i].scale *= math.exp(g)
+    return {"offsets": off.tolist(), "gains": [math.exp(g) for g in gain.tolist()], "losses": history,
+            "cluster_sizes": torch.bincount(labels, minlength=s.calibrate_clusters + 1)[:-1].tolist()}
+
+
+def stage_optimizers(pb: FitProblem, s: FitSettings, stage: str) -> Optimizers:
+    """The optimisers and schedules of a stage, by checkpoint suffix: "" the stage's own
+    (v0 fields in stage 1, the E field in stage 2), "_l" stage 1's level, "_r" the
+    per-driver residuals, "_v" v0's refinement in stage 2 (each only when its setting is on)."""
+    if stage == "velocity":
+        n = max(s.velocity_iters, 1)
+        out = {"": make_optimizer(list(pb.velocities), s.lr_velocity, n, warmup_steps=min(s.warmup, n))}
+        if s.stage1_level:
+            out["_l"] = make_tensor_optimizer(pb.log_e_level, s.lr_level, n, warmup_steps=min(s.warmup, n))
+        return out
+    n = max(s.material_iters, 1)
+    out = {"": make_optimizer(pb.material, s.lr_material, n, warmup_steps=min(s.warmup, n))}
+    if s.driver_residual:
+        out["_r"] = make_tensor_optimizer(pb.log_e_residual, s.lr_residual, n, warmup_steps=min(s.warmup, n),
+                                          eps=s.residual_eps)
+    if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
+        out["_v"] = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor, n,
+                                   warmup_steps=min(s.warmup, n))
+    return out
+
+
+def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losses: dict[str, list[float]],
+              seconds: dict[str, float], progress: ProgressFn | None, save: CheckpointFn) -> int:
+    """One round: stage 1 (v0 per video, E frozen at its current value up to the level of
+    stage1_level), then stage 2 (E, v0 frozen or refined). `ckpt`: a checkpoint of this
+    round to continue from (checked by pd_tool.fit.resume.check_checkpoint). Adds the stages'
+    losses and seconds, calls `save` every settings.checkpoint_every iterations and when stage
+    2 starts; returns the stage-2 steps skipped for a non-finite gradient."""
+    tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
+    # ---- stage 1: initial velocity per video, E's field frozen (its level fitted with stage1_level)
+    t0 = time.perf_counter()
+    start = 0
+    optimizers = stage_optimizers(pb, s, "velocity")
+    opt, sched = optimizers[""]
+    opt_l, sched_l = optimizers.get("_l", (None, None))
+    if ckpt is not None:
+        if ckpt["stage"] == "velocity":
+            for suffix, (o, sc) in optimizers.items():
+                o.load_state_dict(ckpt["optimizer" + suffix])
+                sc.load_state_dict(ckpt["scheduler" + suffix])
+            start = ckpt["iteration"]
+        else:
+            start = s.velocity_iters
+    for it in range(start, s.velocity_iters):
+        loss = velocity_iteration(pb)
+        _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
+        if opt_l is not None:
+            _clip_and_step([pb.log_e_level], opt_l, sched_l, math.inf)
+        losses["velocity"].append(loss)
+        if progress:
+            progress("velocity" + tag, it + 1, s.velocity_iters, loss)
+        if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
+            save("velocity", it + 1, optimizers, losses, rnd)
+    if s.stage1_level and (ckpt is None or ckpt["stage"] == "velocity"):
+        losses.setdefault("stage1_level", []).append(fold_level(pb))
+    seconds["velocity"] = seconds.get("velocity", 0.0) + time.perf_counter() - t0
+
+    # ---- stage 2: material (v0 frozen, or refined at a lower rate)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
+    optimizers = stage_optimizers(pb, s, "material")
+    opt, sched = optimizers[""]
+    opt_r, sched_r = optimizers.get("_r", (None, None))
+    opt_v, sched_v = optimizers.get("_v", (None, None))
+    start = 0
+    if ckpt is not None and ckpt["stage"] == "material":
+        for suffix, (o, sc) in optimizers.items():
+            o.load_state_dict(ckpt["optimizer" + suffix])
+            sc.load_state_dict(ckpt["scheduler" + suffix])
+        start = ckpt["iteration"]
+    skipped = 0
+    for it in range(start, s.material_iters):
+        if it == 0 and start == 0:
+            save("material", 0, optimizers, losses, rnd)
+        horizon = None if it >= s.material_iters - s.polish_iters else s.material_horizon
+        loss = material_iteration(pb, None if s.refine_velocity else v0s, horizon)
+        if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
+            skipped += 1
+        if opt_v is not None:
+            _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
+        if opt_r is not None and not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
+            skipped += 1
+        if opt_r is not None and s.residual_diffusion > 0:
+            pb.diffuse_residuals(s.residual_diffusion)
+        losses["material"].append(loss)
+        if progress:
+            progress("material" + tag, it + 1, s.material_iters, loss)
+        if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
+            save("material", it + 1, optimizers, losses, rnd)
+    seconds["material"] = seconds.get("material", 0.0) + time.perf_counter() - t0
+    return skipped
