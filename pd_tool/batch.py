@@ -497,7 +497,7 @@ _NAME_OR_FILE = {"preset", "interaction", "quality"}
 _OUTPUTS = {"bake": ("out", "preview", "frames_out"), "fit": ("out",)}
 _FOLDER_OUTPUTS = {"frames_out"}
 # What `pdtool fit -o STEM.pdmat` writes beside the material (pd_tool/fit/outputs.py
-# write_fit_outputs, the checkpoint in pd_tool/fit/pipeline.py); the preview falls back to
+# write_fit_outputs, the checkpoint in pd_tool/fit/resume.py); the preview falls back to
 # .gif without an mp4 encoder.
 _FIT_SIDE = (".loss.png", ".E.ply", ".E.png", ".preview.mp4", ".preview.gif", ".report.json")
 

@@ -1,4 +1,4 @@
-"""The fit's objective (pipeline.sequence_loss) on the synthetic plant: with the video's true
+"""The fit's objective (pd_tool.fit.problem.sequence_loss) on the synthetic plant: with the video's true
 initial velocity, the loss is lowest at the true E, so a fit that ends elsewhere is an
 optimisation shortfall, not a biased objective; and from the fit's uniform start the
 stage-2 gradient points the stiff stem stiffer and the soft leaves softer."""

@@ -121,7 +121,7 @@ def estimate_fit_memory(
     segment: int = 16,
     device: str = "cpu",
 ) -> MemoryEstimate:
-    """Peak memory of `pd_tool.fit.pipeline.run_fit`.
+    """Peak memory of `pd_tool.fit.run.run_fit`.
 
     The peak is the stage-2 backward: every frame of every video is simulated and rendered
     before the one backward pass, so the graph holds each frame's saved simulation state,

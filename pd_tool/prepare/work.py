@@ -158,7 +158,7 @@ def estimate_bake_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, f
 def estimate_fit_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, frames: list[int], image_pixels: int,
                       substeps: int, velocity_iters: int, material_iters: int, rounds: int = 1,
                       stage1_frames: int = 3, calibrate_iters: int = 0, device: str = "cpu") -> WorkEstimate:
-    """Seconds of `pd_tool.fit.pipeline.run_fit`.
+    """Seconds of `pd_tool.fit.run.run_fit`.
 
     Each iteration of stage 1 simulates and renders the first `stage1_frames` frames of
     every video, forward and backward; each of stage 2 (and of calibration) every frame.
@@ -249,7 +249,7 @@ def check_bake_work(prep, *, n_gaussians: int, n_particles: int, frames: int, fr
 
 
 def check_fit_work(prep, settings, videos, *, n_gaussians: int, cfl_safety: float) -> WorkEstimate:
-    """Estimate a fit (pd_tool.fit.pipeline.FitProblem's preparation `prep`, its resolved
+    """Estimate a fit (pd_tool.fit.problem.FitProblem's preparation `prep`, its resolved
     FitSettings and reference videos) and check it (check_work). The substeps come from
     the starting E (settings.init_E). Returns the estimate."""
     q = max(1, int(math.ceil(float(settings.driver_ratio) * len(prep.positions_sim))))
