@@ -1,6 +1,6 @@
 """Run-to-run differences of a bake and a fit with the same inputs and seed.
 
-On CPU both are bit-identical (tests/test_reliability_kill.py checks it through the
+On CPU both are bit-identical (tests/integration/test_reliability_kill.py checks it through the
 command line). On CUDA the MPM scatter (particle-to-grid) and the rasteriser's backward
 accumulate with floating-point atomics whose order varies between runs; this script
 measures what that does to the baked positions and the fitted E.

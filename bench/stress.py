@@ -1,7 +1,7 @@
 """Numerical stability stress matrix for the bake: every case must end stable or with a
 clear PdToolError (the stability guard's SimulationUnstable, or a rejected input), quickly.
 
-    python bench/stress.py --quick                 # ~20 cases, what CI runs (tests/test_stress_quick.py)
+    python bench/stress.py --quick                 # ~20 cases, what CI runs (tests/integration/test_stress_quick.py)
     python bench/stress.py --json stress.json --markdown stress.md --timeout 120
     python bench/stress.py --device cuda --json stress_gpu.json
 

@@ -25,7 +25,7 @@ renamed / duplicated properties, huge PNG sizes, huge .npy shapes); NaN / inf / 
 value injection; JSON / TOML tree edits (deleted keys, wrong types, NaN, inf, huge ints,
 deep nesting, wrong shapes); folder edits (missing / extra / resized frames, masks, mp4).
 
-The same generators drive the CI tests (tests/test_fuzz_*.py, through hypothesis's
+The same generators drive the CI tests (tests/integration/test_fuzz_*.py, through hypothesis's
 ``st.randoms()``) and this full run:
 
     python tests/fuzz_cases.py --n 12000 --seed 0 --json fuzz.json [--cli 300] [--device cpu]

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
 # Long enough to be running whenever the signal comes (~50 ms a frame here: minutes in all);
 # the force lasts the whole clip so that the object never comes to rest.

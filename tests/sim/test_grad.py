@@ -228,7 +228,7 @@ def test_backward_memory_does_not_grow_with_frames(tmp_path):
     substeps (30 per frame, a 25^3 grid each, ~0.9 MB) would grow it ~10x."""
     script = tmp_path / "mem.py"
     script.write_text(MEMORY_SCRIPT)
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     peaks = {}
     for frames in (2, 20):
         # A fixed mmap threshold makes glibc return freed blocks to the OS, so the warm-up

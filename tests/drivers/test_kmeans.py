@@ -14,7 +14,7 @@ from pd_tool.drivers import DriverError, build_drivers, driver_count, kmeans, ne
 from pd_tool.drivers._ref import knn_ref, lloyd_ref
 from pd_tool.drivers.knn import knn
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(autouse=True)

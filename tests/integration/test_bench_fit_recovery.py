@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = ["--quality", "draft", "--device", "cpu", "--gaussians", "800", "--size", "32", "--frames", "4", "--seconds", "0.2",
         "--velocity-iters", "1", "--material-iters", "1"]
 

@@ -21,7 +21,7 @@ from pd_tool.batch import (BLOCKED, FAILED, OK, UP_TO_DATE, CommandLines, JobsFi
                            job_files, load_jobs, parse_jobs, ray_resources, run_batch, run_job)
 
 COMMANDS = CommandLines(parse=batch_parse, run=batch_run)
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = ["--quality", "draft", "--frames", "3", "--format", "instancer", "--device", "cpu"]
 
 

@@ -22,7 +22,7 @@ import pytest
 
 from pd_tool.addon import ADDON_NAME, addon_source, install_addon, zip_addon
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 HAVE_BPY = importlib.util.find_spec("bpy") is not None  # looked up, not imported
 needs_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy (Blender as a Python module) not installed: "
                                                     "pip install bpy==5.0.1")

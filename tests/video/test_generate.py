@@ -22,7 +22,7 @@ from pd_tool.video.camera_motion import estimate_camera_motion, phase_correlatio
 from pd_tool.core.cameras import Camera, auto_camera, load_cameras, save_camera_json
 from pd_tool.video.generate import frame_camera
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SIZE = ["--width", "64", "--height", "48"]  # W x H; multiples of the tiny model's 8 px
 FAST = ["--frames", "4", "--steps", "2"]
 

@@ -29,7 +29,7 @@ import pytest
 SEED = 10  # seeds the kill moments
 ENV = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONHASHSEED="0", TQDM_DISABLE="1")
 PDTOOL = [sys.executable, "-c", "import sys; from cli import main; sys.argv[0] = 'pdtool'; main()"]
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 FIT_ARGS = ["fit", "plant.ply", "video", "-o", "fit.pdmat", "--static-below", "0.2", "--quality", "draft",
             "--velocity-iters", "1", "--material-iters", "2", "--working-size", "32", "--device", "cpu"]

@@ -1,5 +1,5 @@
 """Hand-written adjoint kernels (pd_tool/sim/adjoint.py) against warp's taped adjoints,
-which tests/test_sim_grad.py checks against a float64 twin and finite differences: every
+which tests/sim/test_grad.py checks against a float64 twin and finite differences: every
 boundary condition, forces, damping, static particles, crowded cells, long frames."""
 from __future__ import annotations
 
