@@ -19,28 +19,39 @@ the caller allows otherwise, and workers stop with the driver (see docs/batch.md
 """
 from __future__ import annotations
 
+import atexit
 import concurrent.futures as cf
 import contextlib
+import ctypes
+import gc
 import hashlib
 import io
 import itertools
 import json
 import multiprocessing as mp
 import os
+import platform
 import re
 import shutil
 import signal
+import socket
 import stat
 import sys
+import tempfile
 import threading
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field
+from multiprocessing import resource_tracker
+from multiprocessing.connection import wait as wait_for
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from pd_tool.core.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, temp_stem
+from pd_tool.core.device import native_stderr_silenced
 from pd_tool.core.errors import PdToolError
+from pd_tool.core.inputs import regular_file_problem
+from pd_tool.materials.file import RECORD_PATH
 
 COMMANDS = ("bake", "fit")
 JOB_KEYS = {"name", "command", "args", "after", "sweep"}
@@ -420,7 +431,6 @@ def load_jobs(path: str | Path) -> list[Job]:
     Raises JobsFileError (one line) for a missing, unreadable, too large, too deeply
     nested or malformed file.
     """
-    from pd_tool.core.inputs import regular_file_problem
 
     path = Path(path)
     problem = regular_file_problem(path)  # a pipe or a device would block the read
@@ -563,7 +573,6 @@ def job_files(job: Job, commands: CommandLines) -> JobFiles:
                 p = absolute(v)
                 if _exists(p):
                     ins.append(p)
-    from pd_tool.materials.file import RECORD_PATH
 
     if job.command == "bake" and params.get("material") is None and params.get("preset") is None:
         ins.append(cwd / RECORD_PATH)  # a bare `bake` uses the folder's last fit
@@ -785,7 +794,6 @@ def _set_parent_death_signal() -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
         PR_SET_PDEATHSIG = 1
@@ -837,7 +845,6 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
     'error', 'seconds', 'log', 'host', 'pid'}; `error` is one line (the frontend's own
     message for a user error). Module-level so that both process pools and Ray can pickle it.
     """
-    import platform
 
     t0 = time.perf_counter()
 
@@ -880,8 +887,6 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
         # The job's with-blocks removed their temporaries on the way here; a writer left to
         # its finalizer goes with the collection. Then this worker ends: the pool may hold
         # queued jobs, and none may start.
-        import atexit
-        import gc
 
         gc.collect()
         with contextlib.suppress(BaseException):
@@ -905,7 +910,6 @@ def _capture_fds():
     """Send file descriptors 1 and 2 to a temporary file for the block (native libraries
     such as warp print there, past sys.stdout); yields a buffer that holds its last 64 kB
     afterwards."""
-    import tempfile
 
     out = io.StringIO()
     sys.stdout.flush()
@@ -945,7 +949,6 @@ def count_gpus() -> int:
 def stop_processes(procs: list[Any], grace: float = STOP_GRACE_S) -> None:
     """SIGTERM each multiprocessing Process, give them `grace` seconds to unwind their jobs,
     then SIGKILL the rest; returns once all have ended (or 5 s after the kill)."""
-    from multiprocessing.connection import wait as wait_for
 
     for p in procs:
         with contextlib.suppress(Exception):
@@ -967,9 +970,6 @@ def _start_resource_tracker_quietly() -> None:
     semaphores once their owners are gone) with stderr on /dev/null. After a SIGKILL of the
     driver it cleans up as it should, but also warns about "leaked semaphore objects" on
     the terminal the user killed the batch from. Nothing to do when it already runs."""
-    from multiprocessing import resource_tracker
-
-    from pd_tool.core.device import native_stderr_silenced
 
     with native_stderr_silenced():
         resource_tracker.ensure_running()
@@ -1061,7 +1061,6 @@ def ray_resources(job: Job, cluster_gpus: int, cpus_per_job: float = 1.0) -> dic
 def _probe(address: str | None) -> None:
     """For a HOST:PORT address, one TCP connection first: Ray itself retries an address
     that nobody listens on for minutes, logging to stderr all the while."""
-    import socket
 
     if address in (None, "auto", "local") or "://" in address or ":" not in address:
         return

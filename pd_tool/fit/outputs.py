@@ -6,18 +6,20 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from pd_tool.core.atomic import WRITTEN_BY, atomic_output
-from pd_tool.render.plots import STRIP_MIN_WIDTH, colorbar_strip, sci_label
+from pd_tool.core.atomic import WRITTEN_BY, atomic_output, check_destination, check_outputs, check_own_file
 from pd_tool.core.scene import GaussianScene, rgb_to_sh
+from pd_tool.fit.reference import simulate_reference
+from pd_tool.fit.run import FitResult
+from pd_tool.fit.settings import FitSettings
+from pd_tool.io import save_ply
+from pd_tool.render.plots import STRIP_MIN_WIDTH, colorbar_strip, line_plot, sci_label
+from pd_tool.render.preview import ffmpeg_exe, save_png, write_preview_any
+from pd_tool.render.views import render_image
 
-if TYPE_CHECKING:
-    from pd_tool.fit.run import FitResult
-    from pd_tool.fit.settings import FitSettings
 
 # A perceptual blue -> green -> yellow ramp (viridis-like stops) for log E.
 _STOPS = np.array([[0.267, 0.005, 0.329], [0.230, 0.322, 0.546], [0.128, 0.567, 0.551],
@@ -132,9 +134,7 @@ def fit_output_paths(out_dir: str | Path, stem: str, *, preview: bool = True) ->
     if preview:
         paths["preview"] = (out_dir / f"{stem}.preview.mp4", "the fit's preview video")
         try:
-            from pd_tool.render.preview import _ffmpeg_exe
-
-            _ffmpeg_exe()
+            ffmpeg_exe()
         except (ImportError, RuntimeError):
             paths["preview_gif"] = (out_dir / f"{stem}.preview.gif", "the fit's preview video")
     return paths
@@ -145,7 +145,6 @@ def check_fit_outputs(out_dir: str | Path, stem: str, *, preview: bool = True,
     """Refuse (OutputError, one line naming the file), before a fit runs, side outputs
     that would replace a file pdtool did not write or one of the fit's inputs (the scene,
     a video). Nobody named these files, so unlike -o they never replace someone else's."""
-    from pd_tool.core.atomic import check_destination, check_outputs, check_own_file
 
     paths = fit_output_paths(out_dir, stem, preview=preview)
     check_outputs({f"{what}{' (gif)' if kind.endswith('gif') else ''}": p for kind, (p, what) in paths.items()}, {},
@@ -189,11 +188,6 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
 
     Each one replaces only a file that pdtool wrote (they are checked together first, so
     a refusal writes none of them) and none of the fit's inputs. Raises OutputError."""
-    from pd_tool.io import save_ply
-    from pd_tool.render.plots import line_plot
-    from pd_tool.render.preview import save_png, write_preview_any
-    from pd_tool.fit.reference import simulate_reference
-    from pd_tool.render.views import render_image
 
     inputs: dict[str, str | Path | None] = {"SCENE": getattr(scene, "source", None)}
     for i, v in enumerate(videos):

@@ -12,9 +12,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.core.cameras import Camera
-from pd_tool.prepare.preparation import PreparedScene, PrepareOptions, prepare_scene
 from pd_tool.core.scene import GaussianScene
+from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E
+from pd_tool.materials.presets import fit_simulation, load_preset
+from pd_tool.prepare.preparation import PrepareOptions, PreparedScene, prepare_scene
+from pd_tool.render.views import render_image
+from pd_tool.sim import MPMSolver, SimConfig
+from pd_tool.video.folder import write_video_folder
 
 
 @dataclass
@@ -62,9 +68,6 @@ def simulate_reference(
     substeps: per frame, or None for the CFL choice. displacement: when given, an [N]
     array (one per Gaussian) raised in place to each Gaussian's largest displacement from
     rest in scene units."""
-    from pd_tool.bake.animate import GaussianAnimator
-    from pd_tool.sim import MPMSolver, SimConfig
-    from pd_tool.render.views import render_image
 
     cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
                     damping=damping, cfl_safety=cfl_safety, substeps=substeps)
@@ -107,14 +110,12 @@ def plant_reference_video(
     Each driver takes the E of the majority region of its Gaussians. Returns the folder,
     the truth and the preparation.
     """
-    from pd_tool.video.folder import write_video_folder
 
     if scene.labels is None:
         raise ValueError("plant_reference_video needs a scene with region labels")
     prep = prepare_scene(scene, prepare_options)
     drivers = prep.build_drivers(ratio=driver_ratio, seed=seed)
     labels = scene.labels[prep.foreground]
-    from pd_tool.io.synthetic import REGIONS
 
     names = scene.label_names or REGIONS  # a plant read back from .ply keeps labels, not names
     table = np.array([region_E[name] for name in names], np.float64)
@@ -144,8 +145,6 @@ def plant_reference_for_fit(
     with the fit's grid, CFL safety and driver ratio of a quality preset, so that a fit at
     that quality sees the same discretisation as the video. kwargs: n_frames, fps,
     push_speed, push_direction, device, ..."""
-    from pd_tool.materials.presets import fit_simulation, load_preset
-    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E
 
     grid, cfl, ratio = fit_simulation(load_preset("quality", quality))
     return plant_reference_video(out, scene, camera, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),

@@ -36,7 +36,7 @@ class PreviewEncoderMissing(PreviewError):
     """An .mp4 was asked for, but the ffmpeg binary of imageio-ffmpeg is not there."""
 
 
-def _ffmpeg_exe() -> str:
+def ffmpeg_exe() -> str:
     """The ffmpeg binary of the imageio-ffmpeg wheel (ImportError / RuntimeError when absent)."""
     import imageio_ffmpeg
 
@@ -53,7 +53,7 @@ class _Mp4Encoder:
 
     def __init__(self, path: Path, width: int, height: int, fps: float, shown: Path) -> None:
         try:
-            exe = _ffmpeg_exe()
+            exe = ffmpeg_exe()
         except (ImportError, RuntimeError) as e:
             raise PreviewEncoderMissing(
                 f"{shown}: .mp4 previews need the imageio-ffmpeg package (pip install imageio-ffmpeg); "

@@ -250,7 +250,7 @@ def test_a_failing_encoder_is_one_line_and_quiet(tmp_path: Path, monkeypatch, ca
     for message, expected in (("No space left on device", OutputError), ("Unknown encoder 'libx264'", PreviewError)):
         script.write_text(f"#!/bin/sh\ncat > /dev/null\necho \"[out] {message}\" >&2\nexit 1\n")
         script.chmod(0o755)
-        monkeypatch.setattr("pd_tool.render.preview._ffmpeg_exe", lambda: str(script))
+        monkeypatch.setattr("pd_tool.render.preview.ffmpeg_exe", lambda: str(script))
         with pytest.raises(expected) as e:
             write_preview(frames, tmp_path / "out" / "p.mp4", 10)
         assert "\n" not in str(e.value) and "out/p.mp4" in str(e.value)

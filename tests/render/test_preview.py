@@ -84,7 +84,7 @@ def test_missing_mp4_encoder_is_named_and_a_fit_preview_falls_back_to_gif(tmp_pa
     def no_ffmpeg(*args, **kwargs):
         raise ImportError("The `FFMPEG` plugin is not installed.")
 
-    monkeypatch.setattr("pd_tool.render.preview._ffmpeg_exe", no_ffmpeg)
+    monkeypatch.setattr("pd_tool.render.preview.ffmpeg_exe", no_ffmpeg)
     with pytest.raises(PreviewEncoderMissing, match="imageio-ffmpeg"):
         write_preview(frames(), tmp_path / "a.mp4")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
