@@ -137,6 +137,23 @@ def sh_dc_to_rgb(sh_dc: np.ndarray) -> np.ndarray:
     return np.clip(0.5 + SH_C0 * sh_dc, 0.0, 1.0).astype(np.float32)
 
 
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """sRGB-encoded 0-1 values -> linear 0-1 (IEC 61966-2-1 EOTF, the exact piecewise curve).
+
+    3DGS colours (0.5 + SH_C0 * dc) are display values, i.e. sRGB encoded, while USD
+    defines primvars:displayColor as linear; without this Blender, usdview and Omniverse
+    show the splats washed out (sRGB applied twice). Computed in float64.
+    """
+    c = np.asarray(rgb, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(lin: np.ndarray) -> np.ndarray:
+    """Inverse of `srgb_to_linear` (the sRGB OETF), float32."""
+    c = np.asarray(lin, dtype=np.float64)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.maximum(c, 0) ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
 def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
     """Inverse of `sh_dc_to_rgb` (without the clamp): DC coefficients [N, 3]."""
     return ((rgb.astype(np.float64) - 0.5) / SH_C0).astype(np.float32)

@@ -9,7 +9,7 @@ Layout under the root prim (default paths):
         extent          float3[2]   time-sampled, tight box of the scaled spheres
         protoIndices    int[]       once (all 0)
         ids             int64[]     once
-        primvars:displayColor   color3f[] once, interpolation vertex (per instance)
+        primvars:displayColor   color3f[] once, linear (sRGB EOTF of the 3DGS colour), interpolation vertex (per instance)
         primvars:displayOpacity float[]   once, interpolation vertex
     /Root/Instancer/Prototypes/Sphere   Sphere, radius 1 (the unit sphere)
     /Root/SplatColors               Points

@@ -12,7 +12,7 @@
                         per splat its (d+1)^2 RGB coefficients contiguously, in the
                         3DGS order (DC first, then band 1, 2, 3 with m = -l..l), raw
                         coefficients (colour = 0.5 + 0.2821 * dc for degree 0).
-        primvars:displayColor   color3f[] once, for viewers without SH
+        primvars:displayColor   color3f[] once, linear (sRGB EOTF of the 3DGS colour), for viewers without SH
 
 The SH are constant over time: pdtool rotates Gaussians but does not rotate
 their view-dependent colour (the PhysDreamer renderer does the same).

@@ -29,7 +29,7 @@ from pxr import Kind, Sdf, Usd, UsdGeom
 from pd_tool.core import atomic as _atomic
 from pd_tool.core.errors import UsdExportError
 
-from ._geom import normalize_quats, sh_dc_to_rgb, rgb_to_sh_dc
+from ._geom import normalize_quats, rgb_to_sh_dc, sh_dc_to_rgb, srgb_to_linear
 from .instancer import InstancerPart
 from .splat_field import SplatFieldPart
 
@@ -57,8 +57,10 @@ class UsdBakeWriter:
         fmt: "instancer" (UsdGeom.PointInstancer of unit spheres + a coloured
             UsdGeom.Points), "splat" (UsdVol.ParticleField3DGaussianSplat) or
             "both".
-        colors: [N, 3] float 0-1 display colour per splat; default: from the
-            DC term of `sh` (3DGS: 0.5 + 0.2821 * dc), else mid grey.
+        colors: [N, 3] float 0-1 display colour per splat, sRGB encoded as 3DGS
+            renders it; default: from the DC term of `sh` (0.5 + 0.2821 * dc), else
+            mid grey. primvars:displayColor receives them linearised (sRGB EOTF),
+            because USD defines displayColor as linear.
         opacities: [N] float 0-1 (activated); default 1.
         sh: [N, K, 3] SH coefficients, K = (d+1)^2, sh[:, 0] the DC term; used by
             the splat schema. Default: degree 0 from `colors`.
@@ -188,6 +190,8 @@ class UsdBakeWriter:
         stage.SetDefaultPrim(root.GetPrim())
         stage.GetRootLayer().documentation = "pdtool bake: animated 3D Gaussian splats"
         self._parts = []
+        # USD's displayColor is linear; 3DGS colours are sRGB encoded
+        colors = srgb_to_linear(colors)
         if self.fmt in ("instancer", "both"):
             self._parts.append(InstancerPart(
                 stage, f"{ROOT}/Instancer", colors=colors, opacities=opacities, ids=ids,

@@ -24,7 +24,7 @@ if importlib.util.find_spec("bpy") is None:  # pytest.importorskip without the i
 pytest.importorskip("pxr")
 
 from usd_export import UsdBakeWriter  # noqa: E402
-from usd_export._geom import normalize_quats  # noqa: E402
+from usd_export._geom import normalize_quats, srgb_to_linear  # noqa: E402
 
 N = 240
 START, FRAMES, HOLD_TO = 1, 8, 12
@@ -144,7 +144,8 @@ def test_per_splat_colours_reach_blender(imported):
     out, _, colors = imported
     rec = out["frames"][str(PROBE_FRAMES[0])]
     assert "displayColor" in rec["point_attributes"]
-    np.testing.assert_allclose(np.array(rec["colors"]), colors, rtol=0, atol=1e-6)
+    # displayColor is linear: Blender's FLOAT_COLOR attribute holds the linearised sRGB
+    np.testing.assert_allclose(np.array(rec["colors"]), srgb_to_linear(colors), rtol=0, atol=1e-6)
 
 
 def test_pdtool_bake_output_imports(tmp_path):
@@ -182,3 +183,134 @@ def test_pdtool_bake_output_imports(tmp_path):
                         .GetDisplayColorPrimvar().Get())
     np.testing.assert_allclose(np.array(probe["frames"][str(frames[0])]["colors"]), colors,
                                rtol=0, atol=1e-6)
+
+
+# ---------------------------------------------------------------- colour, as Blender renders it
+
+RENDER = textwrap.dedent('''
+    import json, sys
+    import bpy
+    from mathutils import Matrix
+    usd, cam_json, png = sys.argv[1:4]
+    cam = json.loads(open(cam_json).read())
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.usd_import(filepath=usd)
+    sc = bpy.context.scene
+    sc.frame_set(sc.frame_start)
+    # an emission material that shows the imported colour attribute as it is: no lights,
+    # no shading, so the pixel is the attribute's (linear) value, display encoded
+    mat = bpy.data.materials.new("displayColor")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    attr = nt.nodes.new("ShaderNodeAttribute")
+    attr.attribute_type, attr.attribute_name = "GEOMETRY", "displayColor"
+    emit = nt.nodes.new("ShaderNodeEmission")
+    emit.inputs["Strength"].default_value = 1.0
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(attr.outputs["Color"], emit.inputs["Color"])
+    nt.links.new(emit.outputs["Emission"], out.inputs["Surface"])
+    shown = []
+    for o in bpy.data.objects:
+        if o.name.endswith("SplatColors"):
+            o.data.materials.clear()
+            o.data.materials.append(mat)
+            shown.append(o.name)
+        else:  # the unit-sphere instances and their prototype carry no colour in Blender
+            o.hide_render = True
+    # pdtool's camera (OpenCV axes: x right, y down, z forward) as a Blender camera
+    # (looking down -z, y up), same pinhole intrinsics
+    cd = bpy.data.cameras.new("cam")
+    w, h = cam["width"], cam["height"]
+    cd.sensor_fit = "HORIZONTAL"
+    cd.sensor_width = 36.0
+    cd.lens = cam["fx"] * 36.0 / w
+    cd.shift_x = (w / 2 - cam["cx"]) / w
+    cd.shift_y = (cam["cy"] - h / 2) / w
+    cd.clip_start, cd.clip_end = 1e-3, 1e4
+    co = bpy.data.objects.new("cam", cd)
+    sc.collection.objects.link(co)
+    flip = Matrix(((1, 0, 0, 0), (0, -1, 0, 0), (0, 0, -1, 0), (0, 0, 0, 1)))
+    co.matrix_world = Matrix(cam["camera_to_world"]) @ flip
+    sc.camera = co
+    r = sc.render
+    r.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = 8
+    sc.cycles.use_denoising = False
+    sc.cycles.filter_width = 0.01  # no pixel filter: interior pixels are one sphere's colour
+    r.resolution_x, r.resolution_y, r.resolution_percentage = w, h, 100
+    r.film_transparent = True
+    r.dither_intensity = 0.0
+    r.image_settings.file_format = "PNG"
+    r.image_settings.color_mode = "RGBA"
+    vs = sc.view_settings
+    vs.view_transform, vs.look, vs.exposure, vs.gamma = "Standard", "None", 0.0, 1.0
+    sc.display_settings.display_device = "sRGB"
+    r.filepath = png
+    bpy.ops.render.render(write_still=True)
+    print("RENDER_JSON" + json.dumps({"shown": shown}))
+''')
+
+# Why 0.02 (5/255): both renders show the same per-splat sRGB colours, so their object
+# means differ only through coverage (pdtool blends Gaussians, Blender shows the nearest
+# 2-sigma sphere, so each pixel samples a slightly different mix of the +-0.04 colour
+# jitter: under 0.01 on the mean), 8-bit/16-bit quantisation (0.002) and Cycles'
+# sampling of the few pixels left at the alpha threshold. The bug this guards against,
+# sRGB values read as linear, brightens these channels by 0.15 to 0.29.
+COLOUR_TOL = 0.02
+BASE_SRGB = np.array([0.7, 0.45, 0.25])
+
+
+def test_blender_render_matches_pdtool_colours(tmp_path):
+    """Blender renders the imported splats (Cycles, emission of displayColor, view
+    transform Standard) with the colour pdtool's own renderer gives frame 0."""
+    import torch
+    from PIL import Image
+
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.render import render
+    from usd_export._geom import rgb_to_sh_dc
+
+    rng = np.random.default_rng(5)
+    n = 600
+    pos = (rng.normal(size=(n, 3)) * [0.5, 0.5, 0.15]).astype(np.float32)
+    q = normalize_quats(rng.normal(size=(n, 4)).astype(np.float32))
+    sig = rng.uniform(0.04, 0.07, (n, 3)).astype(np.float32)
+    srgb = np.clip(BASE_SRGB + rng.uniform(-0.04, 0.04, (n, 3)), 0, 1).astype(np.float32)
+    sh = rgb_to_sh_dc(srgb)[:, None, :]
+    opac = np.ones(n, np.float32)
+    path = tmp_path / "colour.usd"
+    with UsdBakeWriter(path, n_points=n, fps=30, fmt="instancer", sh=sh, opacities=opac) as w:
+        w.write_frame(0, pos, q, sig)
+    cam = auto_camera(pos, 96, 72, up_axis="z", elevation_deg=60.0)
+
+    t = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    with torch.no_grad():
+        ours = render(t(pos), t(q), t(sig), t(opac), t(sh), cam, background=(1.0, 1.0, 1.0))
+    ours_rgb = ours.rgb.clamp(0, 1).numpy()
+    ours_mask = ours.alpha[..., 0].numpy() > 0.98
+
+    cam_json = tmp_path / "cam.json"
+    cam_json.write_text(json.dumps({"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy,
+                                    "cx": cam.cx, "cy": cam.cy,
+                                    "camera_to_world": cam.camera_to_world.tolist()}))
+    png = tmp_path / "blender.png"
+    proc = subprocess.run([sys.executable, "-c", RENDER, str(path), str(cam_json), str(png)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    shown = json.loads(next(l for l in proc.stdout.splitlines() if l.startswith("RENDER_JSON"))[11:])["shown"]
+    assert shown, "no SplatColors point cloud arrived"
+    img = np.asarray(Image.open(png))
+    img = img.astype(np.float64) / np.iinfo(img.dtype).max
+    assert img.shape == (cam.height, cam.width, 4)
+    theirs_mask = img[..., 3] > 0.98
+    # The same camera frames the same object: pdtool's opaque core (Gaussians) lies
+    # inside Blender's silhouette (2-sigma spheres, larger), and the object pixels
+    # compared are those both call opaque.
+    both = ours_mask & theirs_mask
+    assert both.sum() > 0.9 * ours_mask.sum() > 200, (ours_mask.sum(), theirs_mask.sum(), both.sum())
+    ours_mean = ours_rgb[both].mean(0)
+    theirs_mean = img[..., :3][both].mean(0)
+    np.testing.assert_allclose(ours_mean, srgb.mean(0), atol=COLOUR_TOL)  # pdtool shows the sRGB colours
+    np.testing.assert_allclose(theirs_mean, ours_mean, atol=COLOUR_TOL)

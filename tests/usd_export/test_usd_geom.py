@@ -113,3 +113,15 @@ def test_sphere_extent_against_dense():
     box = sphere_extent(p, r)
     assert (box[0] <= ref_lo).all() and (box[1] >= ref_hi).all()
     np.testing.assert_allclose(box, np.stack([ref_lo, ref_hi]), rtol=0, atol=1e-5)
+
+
+def test_srgb_eotf_is_the_exact_piecewise_curve():
+    from usd_export._geom import linear_to_srgb, srgb_to_linear
+    # reference values of IEC 61966-2-1: linear segment below 0.04045, power 2.4 above
+    c = np.array([0.0, 0.02, 0.04045, 0.5, 0.73536, 1.0])
+    want = np.array([0.0, 0.02 / 12.92, 0.04045 / 12.92, ((0.5 + 0.055) / 1.055) ** 2.4,
+                     ((0.73536 + 0.055) / 1.055) ** 2.4, 1.0])
+    np.testing.assert_allclose(srgb_to_linear(c), want, rtol=1e-6, atol=1e-9)
+    assert abs(srgb_to_linear(np.array([0.5]))[0] - 0.21404114) < 1e-7
+    x = np.linspace(0, 1, 1001)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(x)), x, atol=1e-6)

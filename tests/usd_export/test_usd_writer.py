@@ -141,6 +141,20 @@ def test_points_companion_carries_colour(both_file, data):
     assert len(pts.GetWidthsAttr().Get()) == N
 
 
+def test_display_color_is_linear(tmp_path, data):
+    """3DGS colours are sRGB encoded; USD's displayColor is linear, so every prim that
+    carries it gets the sRGB EOTF of the colour (Blender showed them washed out)."""
+    from usd_export._geom import sh_dc_to_rgb, srgb_to_linear
+    pos, quats, sig, sh, opac = data
+    path = write(tmp_path / "c.usd", data)
+    stage = Usd.Stage.Open(str(path))
+    want = srgb_to_linear(sh_dc_to_rgb(sh[:, 0]))
+    for prim in ("/Root/Instancer", "/Root/SplatColors", "/Root/Splats"):
+        got = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(prim)).GetPrimvar("displayColor").Get()
+        np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-7)
+    assert not np.allclose(want, sh_dc_to_rgb(sh[:, 0]), atol=0.05)  # the test can tell them apart
+
+
 def test_splat_schema_layout(both_file, data):
     from pxr import UsdVol
     pos, quats, sig, sh, opac = data
