@@ -146,6 +146,10 @@ def write_preview(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: fl
                   own_only: bool = False) -> Path:
     """Write uint8 RGB frames [H, W, 3] as an .mp4 (H.264) or .gif at ``fps`` frames per second.
 
+    Either plays len(frames) / fps seconds: the mp4 at a constant frame rate, the gif with
+    per-frame delays that keep the total exact to its 10 ms unit (`gif_delays`), repeated
+    frames (a held pose) included.
+
     Frames are consumed one at a time (mp4 streams; gif keeps them, as Pillow needs all).
     Odd sizes are padded by one pixel for mp4. Returns the path. Raises PreviewError for a
     wrong extension, an empty sequence, inconsistent frames or an encoder failure, and
@@ -190,13 +194,40 @@ def write_preview(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: fl
             if n:
                 from PIL import Image
 
-                pil = [Image.fromarray(a) for a in images]
-                # GIF delays are in 1/100 s units; Pillow takes milliseconds.
+                shown, delays = gif_delays(n, fps)
+                pil = [Image.fromarray(images[i]) for i in shown]
                 pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:],
-                            duration=max(20, round(1000.0 / fps)), loop=0, comment=MARK_TEXT.encode())
+                            duration=[10 * d for d in delays], loop=0, comment=MARK_TEXT.encode())
         if n == 0:
             raise PreviewError(f"{path}: no frames to write")
     return path
+
+
+def gif_delays(n: int, fps: float) -> tuple[list[int], list[int]]:
+    """Which of n frames a GIF shows and for how long, so that it plays n / fps seconds.
+
+    GIF delays are whole hundredths of a second, and viewers stretch delays under 2 cs to
+    10 cs. Frame i starts at round(100 i / fps) cs and the GIF ends at round(100 n / fps)
+    cs, so the rounding never accumulates: the total is exact to 10 ms. Frames that would
+    show for under 2 cs (fps over 50) are skipped; the frame before covers their time.
+    Pillow sums the delays of identical consecutive frames (a held pose) when it merges
+    them, which keeps the total, as the delays are whole centiseconds (Pillow truncates
+    milliseconds to centiseconds per frame). Returns (frame indices, delays in cs).
+    """
+    end = round(100 * n / fps)
+    shown: list[int] = []
+    starts: list[int] = []
+    for i in range(n):
+        s = round(100 * i / fps)
+        if not starts or s - starts[-1] >= 2:
+            shown.append(i)
+            starts.append(s)
+    if len(starts) > 1 and end - starts[-1] < 2:  # a last sliver: the frame before holds on
+        shown.pop()
+        starts.pop()
+    delays = [b - a for a, b in zip(starts, starts[1:] + [end])]
+    delays[-1] = max(delays[-1], 2)  # a single frame shorter than 20 ms still shows for 20 ms
+    return shown, delays
 
 
 def write_preview_any(frames: list[np.ndarray], path: str | os.PathLike, fps: float = 30.0, *,

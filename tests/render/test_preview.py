@@ -92,3 +92,50 @@ def test_missing_mp4_encoder_is_named_and_a_fit_preview_falls_back_to_gif(tmp_pa
     assert got == tmp_path / "fit.preview.gif"
     assert len(iio.mimread(got)) == 6
     assert not (tmp_path / "fit.preview.mp4").exists()
+
+
+def held_frames(n=61, moving=20):
+    # an object that moves for `moving` frames, then rests: the rest are identical frames
+    out = []
+    for i in range(n):
+        a = np.full((32, 48, 3), 20, np.uint8)
+        k = min(i, moving)
+        a[8:20, k:k + 10] = (230, 200, 40)
+        out.append(a)
+    return out
+
+
+def gif_durations_ms(path):
+    from PIL import Image
+
+    with Image.open(path) as im:
+        out = []
+        for i in range(im.n_frames):
+            im.seek(i)
+            out.append(im.info["duration"])
+    return out
+
+
+@pytest.mark.parametrize("n,fps", [(61, 30), (61, 24), (31, 15), (7, 30), (151, 60), (100, 120), (13, 7)])
+def test_gif_plays_as_long_as_the_bake(tmp_path, n, fps):
+    """A bake's GIF plays n / fps seconds, exact to GIF's 10 ms unit, although 1000 / fps
+    ms is no whole number of centiseconds and Pillow merges the identical frames of a
+    held pose into one; no delay is under the 20 ms viewers honour."""
+    path = write_preview(held_frames(n, moving=min(20, n - 1)), tmp_path / "p.gif", fps=fps)
+    d = gif_durations_ms(path)
+    assert abs(sum(d) - 1000.0 * n / fps) <= 5.0, (sum(d), 1000.0 * n / fps)
+    assert min(d) >= 20
+
+
+def test_gif_of_moving_frames_keeps_every_frame(tmp_path):
+    path = write_preview(held_frames(31, moving=40), tmp_path / "p.gif", fps=30)
+    d = gif_durations_ms(path)
+    assert len(d) == 31 and sum(d) == 1030 and set(d) == {30, 40}  # 1.0333 s: 10 ms rounding spread
+
+
+def test_mp4_plays_as_long_as_the_bake(tmp_path):
+    import imageio_ffmpeg
+
+    path = write_preview(held_frames(61), tmp_path / "p.mp4", fps=30)
+    n, secs = imageio_ffmpeg.count_frames_and_secs(str(path))
+    assert n == 61 and abs(secs - 61 / 30) <= 0.01  # ffmpeg reports centiseconds
