@@ -245,7 +245,9 @@ class _PointOrTop(click.ParamType):
 
 
 SCENE_PATH = click.Path(exists=True, dir_okay=False, path_type=Path)
-UP_CHOICE = click.Choice(["+x", "-x", "+y", "-y", "+z", "-z"])
+UP_CHOICE = click.Choice(["auto", "+x", "-x", "+y", "-y", "+z", "-z"])
+UP_HELP = ("Scene up axis. auto guesses it from the splats (`pdtool info` shows the guess) and says when it "
+           "is not sure; COLMAP captures are often -y, Blender scenes +z.")
 DEVICE_OPTION = click.option(
     "--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
     help="Where kernels run; auto picks CUDA when a GPU is visible.",
@@ -307,8 +309,8 @@ def info(scene: Path, as_json: bool) -> None:
 @click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
 @click.option("--width", type=T.BoundedInt(8, 8192), help="Output width, pixels (keeps the field of view).")
 @click.option("--height", type=T.BoundedInt(8, 8192), help="Output height, pixels.")
-@click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
-              help="Scene up axis, for the automatic camera (COLMAP scenes are often -y).")
+@click.option("--up", type=UP_CHOICE, default="auto", show_default=True,
+              help=UP_HELP + " For the automatic camera, e.g. --up -y.")
 @click.option("--background", type=T.COLOUR, default="1,1,1", show_default=True, help="Background colour r,g,b in 0-1.")
 @click.option("--write-camera", type=T.OutputDir(),
               help="Also write the camera as DIR/camera.json, ready for the reference-video folder.")
@@ -350,6 +352,7 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
         view_id = parse_view(view)
+        up = _resolved_up(splats, up)
         cam = scene_camera(splats, camera, view_id, width=width, height=height, up_axis=up)
         save_png(out, render_image(splats, cam, background=background))
         click.echo(f"wrote {out} ({cam.width}x{cam.height}, camera '{cam.name}')")
@@ -389,13 +392,14 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
               help="Bound on the camera motion against the rendered view, % of the frame's long side.")
 @click.option("--reject-moving-camera", is_flag=True,
               help="Leave out videos over --max-camera-motion (default: write them and warn).")
-@click.option("--static-below", type=T.HEIGHT, metavar="H",
-              help="Gaussians below height H along --up stay still (a pot, a table): the camera motion is "
-                   "measured where they are. Default: on the whole frame.")
+@click.option("--static-below", type=T.STATIC_BELOW, metavar="H|PCT%",
+              help="Gaussians below H stay still (a pot, a table): the camera motion is measured where they "
+                   "are. H: a coordinate along --up (with --up -y, a rim at y=+0.15 is -0.15), or a share of "
+                   "the height from the bottom, e.g. 15%. Default: on the whole frame.")
 @click.option("--static-box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Gaussians in this box stay still (low corner, then high corner). Scene units.")
-@click.option("--up", type=UP_CHOICE, default="+z", show_default=True,
-              help="Scene up axis, for the automatic camera and --static-below.")
+@click.option("--up", type=UP_CHOICE, default="auto", show_default=True,
+              help=UP_HELP + " For the automatic camera and --static-below.")
 @click.option("--background", type=T.COLOUR, default="1,1,1", show_default=True,
               help="Background colour r,g,b in 0-1.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
@@ -435,6 +439,7 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
 
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
+        up = _resolved_up(splats, up)
         cam = generation_camera(splats, camera, parse_view(view), width, height, up)
         static = None
         if static_below is not None or static_box is not None:
@@ -469,9 +474,17 @@ def prepare_options_decorator(f):
         click.option("--static-box", type=T.BOX, metavar="X0,Y0,Z0,X1,Y1,Z1",
                      help="Gaussians in this box stay fixed (a pot, a table). Low corner, then high corner; "
                           "scene units."),
-        click.option("--static-below", type=T.HEIGHT, metavar="H",
-                     help="Gaussians below height H along the up axis stay fixed."),
-        click.option("--up", type=UP_CHOICE, default=None, help="Scene up axis.  [default: +z]"),
+        click.option("--static-below", type=T.STATIC_BELOW, metavar="H|PCT%",
+                     help="Gaussians below H stay fixed. H is a coordinate along the up axis, signed as that axis "
+                          "points: with --up -y, a pot rim at y=+0.15 is --static-below -0.15 (`pdtool info` "
+                          "shows the bottom and top). Or a share of the object's height from its bottom: "
+                          "--static-below 15%."),
+        click.option("--pin", type=click.Choice(["auto"]), default=None,
+                     help="--pin auto fixes the base the object stands on: the part below where its shape "
+                          "narrows (a pot under a stem), else the lowest 5% of its height; the report says what "
+                          "it pinned."),
+        click.option("--up", type=UP_CHOICE, default=None,
+                     help=UP_HELP + "  [default: auto; a bake of a fitted material: the fit's axis]"),
         click.option("--meters-per-unit", type=T.METERS_PER_UNIT, default=None,
                      help="Real size of one scene unit, metres (a micrometre to a thousand kilometres). "
                           "Default: the object's longest side is 1 m."),
@@ -483,6 +496,23 @@ def prepare_options_decorator(f):
     for o in reversed(opts):
         f = o(f)
     return f
+
+
+def _resolved_up(splats, up: str) -> str:
+    """The up axis to use; for --up auto, the guess, with a line on stderr when it is not sure."""
+    from pd_tool.prepare.orient import up_line
+    from pd_tool.render.views import auto_up
+
+    axis, guess = auto_up(splats, up)
+    if guess is not None and not guess.sure:
+        click.echo(up_line(guess), err=True)
+    return axis
+
+
+def _echo_report(lines) -> None:
+    """Report lines on stdout; `warning:` lines on stderr."""
+    for line in lines:
+        click.echo(line, err=line.startswith("warning:"))
 
 
 def prepare_changes(**kw) -> dict:
@@ -502,11 +532,15 @@ def _fmt_size(n: int) -> str:
 @click.option("-o", "--out", type=T.OutputFile([".ply"], "a splat PLY"), required=True,
               help="Coloured copy of the scene (.ply): red = left out, blue = static, others as they are.")
 @click.option("--png", type=PNG_OUT, help="Also render it to this PNG.")
-@click.option("--grid-res", type=T.BoundedInt(10, 256), default=32, show_default=True,
-              help="Grid cells along the simulation box's longest side (for the report).")
+@click.option("--quality", default="default", show_default=True,
+              help="draft | default | final or a TOML file: select prepares the scene as `pdtool fit --quality Q` "
+                   "does (its grid, fill decision and static set), which a bake of the fitted material repeats.")
+@click.option("--grid-res", type=T.BoundedInt(10, 256), default=None,
+              help="Grid cells along the simulation box's longest side, e.g. 64.  [default: the quality's fit grid]")
 @prepare_options_decorator
 @DEVICE_OPTION
-def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str, **prep_kw) -> None:
+def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int | None, device: str,
+           **prep_kw) -> None:
     """Show which Gaussians a fit or bake would move, fix or leave out.
 
     Takes the same foreground and static-region options as fit and bake, prints what
@@ -516,6 +550,7 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
     \b
     Example:
       pdtool select donut.ply --static-below 0.005 -o selection.ply --png selection.png
+      pdtool select plant.ply --pin auto --quality draft -o selection.ply --png selection.png
     """
     with user_errors():
         from pd_tool.core.device import resolve_device
@@ -528,9 +563,12 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
         for path in (out, png):
             if path is not None:
                 check_destination(path)
+        from pd_tool.materials.presets import fit_simulation, load_preset
+
+        fit_grid = fit_simulation(load_preset("quality", quality))[0]
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
-        opts = PrepareOptions(grid_res=grid_res).updated(**prepare_changes(**prep_kw))
+        opts = PrepareOptions(up_axis="auto", grid_res=grid_res or fit_grid).updated(**prepare_changes(**prep_kw))
         prep = prepare_scene(splats, opts)
         coloured = selection_scene(prep)
         save_ply(coloured, out)
@@ -538,9 +576,11 @@ def select(scene: Path, out: Path, png: Path | None, grid_res: int, device: str,
             from pd_tool.render.preview import save_png
             from pd_tool.render.views import render_image, scene_camera
 
-            save_png(png, render_image(coloured, scene_camera(coloured, up_axis=opts.up_axis)))
-    for line in prep.report:
-        click.echo(line)
+            save_png(png, render_image(coloured, scene_camera(coloured, up_axis=prep.options.up_axis)))
+    click.echo(f"quality {quality}: " + (f"the {fit_grid}-cell grid that `pdtool fit --quality {quality}` and a bake "
+                                        f"of its material simulate on" if grid_res is None else
+                                        f"--grid-res {grid_res} instead of its {fit_grid}-cell fit grid"))
+    _echo_report(prep.report)
     click.echo(f"wrote {out}" + (f" and {png}" if png else "") + " (red: left out, blue: static)")
 
 
@@ -759,7 +799,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                                match_exposure=match_exposure, nu=nu, density=density,
                                working_long_side=working_size, background=background, seed=seed,
                                device=resolve_device(device))
-        job = app.FitJob(scene, videos, out, settings, PrepareOptions().updated(**prepare_changes(**prep_kw)),
+        job = app.FitJob(scene, videos, out, settings,
+                         PrepareOptions(up_axis="auto").updated(**prepare_changes(**prep_kw)),
                          camera=camera, view=parse_view(view), fps=fps, preview=not no_preview, resume=resume,
                          out_named=out_given)
         estimates = []

@@ -163,7 +163,9 @@ def resolve_bake_inputs(job: BakeJob) -> BakeInputs:
         material_file.check_scene(scene, material_path)
     if job.settings.quality is not None:
         load_preset("quality", job.settings.quality)
-    base = PrepareOptions.from_dict(material_file.prepare) if material_file is not None else PrepareOptions()
+    # a fitted material keeps the up axis it was fitted with; a preset bake guesses it
+    base = (PrepareOptions.from_dict(material_file.prepare) if material_file is not None
+            else PrepareOptions(up_axis="auto"))
     return BakeInputs(scene, material, material_file, material_path, base.updated(**job.prepare))
 
 

@@ -207,10 +207,37 @@ class BoxType(click.ParamType):
         if not all(math.isfinite(v) and abs(v) <= COORD_MAX for v in vals):
             _fail(f"every corner coordinate must be a finite number within +-{COORD_MAX:g}", value, param, ctx)
         for axis, lo, hi in zip("xyz", vals[:3], vals[3:]):
-            if not hi > lo:
-                _fail(f"the box has no volume: {axis}1 ({hi:g}) must be greater than {axis}0 ({lo:g}); give the "
-                      "low corner first, then the high corner", value, param, ctx)
+            if hi == lo:
+                _fail(f"the box has no volume: {axis}1 ({hi:g}) equals {axis}0 ({lo:g}); give two corners that "
+                      "differ on every axis", value, param, ctx)
+            if hi < lo:
+                # corners in the wrong order are refused, not swapped: a swapped box that
+                # pins or pushes a region nobody meant is worse than a line now
+                _fail(f"the box is inverted: {axis}1 ({hi:g}) is below {axis}0 ({lo:g}); give the low corner "
+                      f"first, then the high corner (e.g. 0,0,0,1,1,0.2)", value, param, ctx)
         return tuple(vals)
+
+
+class StaticBelow(click.ParamType):
+    """--static-below: a coordinate along the up axis (a number), or a percentage of the
+    object's height above its bottom ("15%", 0-100). A percentage stays the text "15%"
+    (resolved on the object by pd_tool.prepare.preparation.static_selection)."""
+
+    name = "height|pct%"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float | str:
+        if isinstance(value, float):
+            return value
+        text = str(value).strip()
+        if text.endswith("%"):
+            try:
+                pct = float(text[:-1])
+            except ValueError:
+                _fail("not a percentage; give e.g. 15% (of the object's height above its bottom)", value, param, ctx)
+            if not (math.isfinite(pct) and 0.0 < pct <= 100.0):
+                _fail("out of range; give a percentage above 0 and at most 100 (e.g. 15%)", value, param, ctx)
+            return f"{pct:g}%"
+        return HEIGHT.convert(value, param, ctx)
 
 
 def check_name(path: Path, *, directory: bool = False) -> str | None:
@@ -284,6 +311,7 @@ RADIUS = FiniteFloat(0.0, COORD_MAX, lo_open=True, unit="scene units")
 UNIT_INTERVAL = FiniteFloat(0.0, 1.0)
 POINT = Vector(3, COORD_MAX, "numbers (scene units)")
 FORCE = Vector(3, FORCE_MAX, "numbers (scene units/s^2)")
+STATIC_BELOW = StaticBelow()
 COLOUR = Colour()
 BOX = BoxType()
 MAX_MINUTES = FiniteFloat(0.0, 1e6, lo_open=True, unit="min")

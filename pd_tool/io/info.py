@@ -43,6 +43,12 @@ def scene_summary(scene: GaussianScene) -> dict[str, Any]:
         "memory_bytes": scene.nbytes(),
         "extra_properties": list(scene.extra),
     }
+    from pd_tool.prepare.orient import guess_up, object_heights
+
+    guess = guess_up(pos, scales, opac)
+    bottom, top = object_heights(pos, guess.axis, opac)
+    out["up"] = {"axis": guess.axis, "sure": guess.sure, "axis_margin": guess.axis_gap, "end_margin": guess.sign_gap,
+                 "bottom": bottom, "top": top, "height": top - bottom}
     if scene.source is not None and Path(scene.source).exists():
         out["file_bytes"] = Path(scene.source).stat().st_size
     return out
@@ -75,6 +81,13 @@ def format_summary(s: dict[str, Any]) -> str:
         f"memory        {format_bytes(s['memory_bytes'])} in pdtool"
         + (f", {format_bytes(s['file_bytes'])} on disk" if "file_bytes" in s else ""),
     ]
+    if "up" in s:
+        u = s["up"]
+        lines.append(f"up (guess)    {u['axis']}, {'sure' if u['sure'] else 'not sure'} (margins {u['axis_margin']:.2f} "
+                     f"axis, {u['end_margin']:.2f} end; --up auto uses it{'' if u['sure'] else ' and says so'})")
+        lines.append(f"height        {u['height']:.4g} along {u['axis']}: bottom at {u['bottom']:.4g}, top at "
+                     f"{u['top']:.4g} (--static-below takes a coordinate along {u['axis']}, e.g. "
+                     f"{u['bottom'] + 0.15 * u['height']:.4g} = 15% up, or the percentage 15%)")
     if s["extra_properties"]:
         lines.append(f"extra props   {', '.join(s['extra_properties'])} (kept on write)")
     return "\n".join(lines)

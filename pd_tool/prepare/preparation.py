@@ -130,8 +130,12 @@ class PrepareOptions:
     remove_outliers: bool = True
     outlier_min_neighbors: int = 3  # points in the 3x3x3 voxel neighbourhood, self included
     static_box: tuple[float, ...] | None = None  # Gaussians in this box stay fixed
-    static_below: float | None = None  # ... or everything below this height along up
-    up_axis: str = "+z"
+    # ... or everything below this height along up: a signed coordinate along the up axis
+    # (with up -y, the coordinate is -y), or "15%": that fraction of the object's height
+    # above its bottom
+    static_below: float | str | None = None
+    pin: str | None = None  # "auto": the base the object stands on (pd_tool.prepare.orient.find_base)
+    up_axis: str = "+z"  # or "auto": guessed from the splats by prepare_scene
     meters_per_unit: float | None = None  # None: scale the object to DEFAULT_OBJECT_SIZE_M
     padding: float = 0.25  # free space around the object, as a fraction of its longest extent
     grid_res: int = 32  # cells along the longest axis of the simulation box
@@ -294,15 +298,66 @@ def select_foreground(scene: GaussianScene, options: PrepareOptions) -> tuple[np
     return np.flatnonzero(keep), report
 
 
-def select_static(positions_scene: np.ndarray, options: PrepareOptions) -> np.ndarray:
-    """Mask [F] of Gaussians that stay fixed (Dirichlet cells in the simulator)."""
+PIN_MOST = 0.9  # pinning more of the object than this leaves nothing to move: warn
+
+
+def parse_fraction(value: float | str) -> float | None:
+    """0.15 for "15%", None for a coordinate."""
+    if isinstance(value, str) and value.strip().endswith("%"):
+        return float(value.strip()[:-1]) / 100.0
+    return None
+
+
+def static_selection(positions_scene: np.ndarray, options: PrepareOptions) -> tuple[np.ndarray, list[str]]:
+    """Mask [F] of the Gaussians that stay fixed (Dirichlet cells in the simulator), and
+    report lines: what --pin auto found, and a `warning:` line when a pin option pins
+    nothing or more than PIN_MOST of the object. options.up_axis is resolved (not auto)."""
+    from pd_tool.prepare.orient import direction, find_base
+
     static = np.zeros(len(positions_scene), bool)
+    lines: list[str] = []
+    flags = []
     if options.static_box is not None:
         static |= Box.parse(options.static_box, "--static-box").contains(positions_scene)
+        flags.append("--static-box " + ",".join(f"{v:g}" for v in options.static_box))
+    h = positions_scene @ direction(options.up_axis) if len(positions_scene) else np.zeros(0)
+    bottom, top = (float(h.min()), float(h.max())) if len(h) else (0.0, 0.0)
     if options.static_below is not None:
-        height = positions_scene @ up_rotation(options.up_axis)[2]
-        static |= height < options.static_below
-    return static
+        frac = parse_fraction(options.static_below)
+        below = bottom + frac * (top - bottom) if frac is not None else float(options.static_below)
+        static |= h < below
+        flags.append(f"--static-below {options.static_below}")
+    if options.pin == "auto" and len(h):
+        horiz = positions_scene[:, [b for b in range(3) if b != "xyz".index(options.up_axis[1])]]
+        base = find_base(h, horiz)
+        pinned = h < base.top
+        static |= pinned
+        flags.append("--pin auto")
+        what = (f"the base below where the shape narrows to {100 * base.narrow_to:.0f}% of its width"
+                if base.kind == "base" else "the contact slab (no narrowing above the bottom)")
+        lines.append(f"pin auto: {int(pinned.sum()):,} Gaussians ({100 * pinned.mean():.1f}%), heights "
+                     f"{base.bottom:.4g} to {base.top:.4g} along {options.up_axis} (bottom +0 to "
+                     f"+{base.top - base.bottom:.4g}, {100 * (base.top - base.bottom) / max(top - bottom, 1e-300):.0f}% "
+                     f"of the height): {what}")
+    elif options.pin is not None and options.pin != "auto":
+        raise PreparationError(f"--pin {options.pin!r}: the only value is auto")
+    if flags and len(h):
+        n, share = int(static.sum()), float(static.mean())
+        named = " with ".join(flags)
+        span = f"the object spans heights {bottom:.4g} to {top:.4g} along {options.up_axis}"
+        if n == 0:
+            lines.append(f"warning: {named} pins nothing: {span}; a height is a coordinate along the up axis "
+                         f"(or give a percentage, --static-below 15%, or --pin auto)")
+        elif share > PIN_MOST:
+            lines.append(f"warning: {named} pins {100 * share:.1f}% of the object ({n:,} of {len(h):,} Gaussians), "
+                         f"which leaves little to move: {span}; give a lower height, a percentage "
+                         f"(--static-below 15%) or --pin auto")
+    return static, lines
+
+
+def select_static(positions_scene: np.ndarray, options: PrepareOptions) -> np.ndarray:
+    """Mask [F] of Gaussians that stay fixed (Dirichlet cells in the simulator)."""
+    return static_selection(positions_scene, options)[0]
 
 
 def cell_size(longest_m: float, padding: float, grid_res: int) -> tuple[float, float]:
@@ -366,9 +421,22 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     options = options or PrepareOptions()
     if options.density_kg_m3 <= 0 or not math.isfinite(options.density_kg_m3):
         raise PreparationError(f"density {options.density_kg_m3} must be a positive number of kg/m^3")
+    if options.up_axis == "auto":
+        from pd_tool.prepare.orient import resolve_up, up_line
+
+        up, guess = resolve_up(scene.positions.detach().cpu().double().numpy(),
+                               "auto", scene.scales.detach().cpu().double().numpy(),
+                               scene.opacities.detach().cpu().double().numpy())
+        # resolved here, so that a fit stores the axis it simulated with
+        options = replace(options, up_axis=up)
+        up_report = [up_line(guess)]
+    else:
+        up_report = []
     fg, report = select_foreground(scene, options)
+    report = up_report + report
     pos_scene = scene.positions.detach().cpu().double().numpy()[fg]
-    static = select_static(pos_scene, options)
+    static, static_report = static_selection(pos_scene, options)
+    report += static_report
     transform, dx, dims = fit_transform(pos_scene, options)
     pos_sim = transform.to_sim(pos_scene)
     fill_source = None

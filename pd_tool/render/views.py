@@ -26,9 +26,11 @@ def scene_camera(
     """The camera to render `scene` from: a view of a camera file, or an automatic one.
 
     width/height resize a file's camera keeping its field of view (give both, or one to
-    keep the aspect ratio).
+    keep the aspect ratio). up_axis "auto" takes the axis guessed from the splats
+    (pd_tool.prepare.orient.guess_up; `auto_up` says which).
     """
     if camera_path is None:
+        up_axis = auto_up(scene, up_axis)[0]
         if view is not None:
             raise CameraError("--view needs --camera FILE; without a camera file pdtool frames the object itself")
         w, h = width or DEFAULT_SIZE[0], height or DEFAULT_SIZE[1]
@@ -39,6 +41,14 @@ def scene_camera(
         h = height or round(cam.height * width / cam.width)
         cam = cam.resized(int(w), int(h))
     return cam
+
+
+def auto_up(scene: GaussianScene, up_axis: str = "auto"):
+    """(the up axis, the UpGuess behind it or None): `up_axis` itself unless "auto"."""
+    from pd_tool.prepare.orient import resolve_up
+
+    return resolve_up(scene.positions.detach().cpu().double().numpy(), up_axis,
+                      scene.scales.detach().cpu().double().numpy(), scene.opacities.detach().cpu().double().numpy())
 
 
 def render_image(
