@@ -42,7 +42,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_recovery.simulate_positions
 
 DATA = ROOT.parent / "shared" / "data"
 QUALITIES = ("draft", "default", "final")
@@ -119,7 +118,7 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it."""
-    from fit_recovery import simulate_positions
+    from pd_tool.fit.reference import simulate_positions
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin, up_rotation
 
     pos = scene.positions.detach().cpu().double().numpy()

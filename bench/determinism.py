@@ -54,10 +54,7 @@ def main() -> None:
 
     if a.device == "cpu":
         torch.set_num_threads(1)
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from memory_estimate import make_video  # the same plant + video as the memory bench
+    from pd_tool.fit.reference import write_plant_with_video  # the memory bench's plant + video
     from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
     from pd_tool.video.folder import load_reference_video
@@ -68,7 +65,7 @@ def main() -> None:
     res: dict = {"device": a.device, "n": a.n, "frames": a.frames, "runs": a.runs}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        make_video(tmp, a.n, frames=6)
+        write_plant_with_video(tmp, a.n, frames=6)
         scene = load_splats(tmp / "plant.ply", device=a.device)
         t = time.perf_counter()
         pos = [bake_positions(scene, a.device, a.frames, a.quality, tmp / f"b{i}.usd") for i in range(a.runs)]

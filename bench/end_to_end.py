@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def run_cli(args: list[str], cwd: Path) -> float:
@@ -49,11 +48,9 @@ def main() -> int:
     from pxr import Usd
 
     from pd_tool.io import load_splats, save_splats
-    from pd_tool.fit.reference import plant_reference_for_fit
+    from pd_tool.fit.reference import plant_reference_for_fit, reference_height
     from pd_tool.io.synthetic import POT_TOP, make_plant
     from pd_tool.render.views import scene_camera
-
-    from fit_recovery import reference_height
 
     out = Path(a.out or tempfile.mkdtemp(prefix="pdtool-e2e-"))
     out.mkdir(parents=True, exist_ok=True)

@@ -23,41 +23,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def simulate_positions(scene, prep, drivers, driver_E, *, nu, seconds, fps, accel, device, cfl_safety, substeps=None,
-                       stats: dict | None = None, duration: float = 0.5, at="top", radius: float | None = None):
-    """Gaussian positions [T, N, 3] (scene units) under a drag for `duration` s, within
-    `radius` scene units (default: 0.3 of the object's size) of `at` (a point in scene
-    units, or "top"). accel: scene units per s^2. stats, when given, receives the most
-    substeps per frame."""
-    import numpy as np
-    import torch
-
-    from pd_tool.bake.animate import GaussianAnimator
-    from pd_tool.bake.baker import ForceSpec, force_mask
-    from pd_tool.sim import MPMSolver, SimConfig
-
-    # substeps is a floor: a fitted E stiffer than the truth needs more (CFL)
-    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
-                    cfl_safety=cfl_safety, min_substeps=substeps)
-    d_rest = drivers.positions.double().cpu().numpy()
-    d_static = drivers.static.cpu().numpy().astype(bool)
-    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
-                       device=device)
-    spec = ForceSpec(accel=accel, at=at, radius=radius, radius_fraction=0.3, start=0.0, duration=duration)
-    solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.vector_to_sim(np.asarray(accel)), 0.0,
-                     duration)
-    anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
-    out = [scene.positions.detach().cpu().numpy()]
-    most = 0
-    for _ in range(int(round(seconds * fps))):
-        most = max(most, solver.step_frame(1.0 / fps))
-        with torch.no_grad():
-            out.append(anim(solver.positions())[0].cpu().numpy())
-    if stats is not None:
-        stats["substeps"] = most
-    return np.stack(out)
-
-
 PUSH_SPEED = 0.6  # m/s at the top of each reference video's initial push
 
 
@@ -67,22 +32,6 @@ def true_push(x_sim, static, k: int):
     from pd_tool.fit.reference import push_velocity
 
     return push_velocity(x_sim, static, direction=push_direction(k), speed=PUSH_SPEED)
-
-
-def use_true_v0(views: int) -> None:
-    """Make every fit in this process use the videos' true initial velocities (the pushes
-    plant_reference_for_fit gives view k below) instead of its velocity fields. The fit's
-    drivers are the reference's (same preparation and seed), so the formula is exact."""
-    import torch
-
-    from pd_tool.fit.problem import FitProblem
-
-    def true_v0(pb, i: int) -> torch.Tensor:
-        if not hasattr(pb, "_true_v0"):
-            pb._true_v0 = true_pushes(pb, views)
-        return pb._true_v0[i]
-
-    FitProblem.driver_v0 = true_v0
 
 
 def record_residual_gradients() -> dict:
@@ -142,12 +91,6 @@ def true_pushes(pb, views: int) -> list:
     return [torch.tensor(true_push(x, static, k), dtype=torch.float32, device=pb.device) for k in range(views)]
 
 
-def reference_height(size: int) -> int:
-    """Height (px) of the benchmark's reference frames `size` px wide: 16:9 from 512 px
-    up, square below (the small CPU runs)."""
-    return size * 9 // 16 if size >= 512 else size
-
-
 def plant_references(folder, scene, *, views: int, size: int, quality, frames: int, fps: float,
                      substeps: int | None, device: str) -> list:
     """The benchmark's reference videos, loaded: view k pushed along push_direction(k) and
@@ -155,7 +98,7 @@ def plant_references(folder, scene, *, views: int, size: int, quality, frames: i
     long side (16:9 from 512 px up), written under `folder`."""
     from pd_tool.core.cameras import auto_camera
     from pd_tool.video.folder import load_reference_video
-    from pd_tool.fit.reference import plant_reference_for_fit
+    from pd_tool.fit.reference import plant_reference_for_fit, reference_height
     from pd_tool.render.views import scene_camera
 
     h = reference_height(size)
@@ -234,9 +177,6 @@ def main() -> None:
     ap.add_argument("--material-iters", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a FitSettings field, e.g. --set refine_velocity=true (repeatable)")
-    ap.add_argument("--oracle-v0", action="store_true",
-                    help="diagnostic: skip stage 1 and give stage 2 the true initial velocity of each video, "
-                         "to tell v0 estimation from E estimation")
     ap.add_argument("--substeps", default=None, metavar="N|truth",
                     help="diagnostic: at least N substeps per frame in every simulation (reference, fit, "
                          "new-force runs), so that they share one count unless E rises above what N allows; "
@@ -260,6 +200,7 @@ def main() -> None:
     import torch
 
     from pd_tool.core.device import init_warp_quietly
+    from pd_tool.fit.reference import simulate_positions
     from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
     from pd_tool.io import load_splats, save_splats
@@ -276,9 +217,6 @@ def main() -> None:
         key, _, text = item.partition("=")
         overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
     grads = record_residual_gradients() if args.residual_gradients else None
-    if args.oracle_v0:
-        use_true_v0(views=args.views)
-        args.velocity_iters = 0
     substeps = None
     if args.substeps is not None and args.substeps != "truth":
         substeps = int(args.substeps)
@@ -355,7 +293,7 @@ def main() -> None:
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "size_px": args.size,
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
-        "overrides": overrides, "oracle_v0": args.oracle_v0, "substeps": substeps,
+        "overrides": overrides, "substeps": substeps,
         "fit_s": fit_s, "regions": regions, "stage1_levels": res.losses.get("stage1_level"),
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,

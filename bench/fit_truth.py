@@ -46,10 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 SCENES = {"plant": "+z", "udon": "-y", "donut": "-y", "tree": "-y"}
+CAPTURES = {"udon": "udon.ply", "donut": "donut_fused.ply", "tree": "tree_100k.splat"}  # under --data
 FIELDS = ("region", "smooth", "random")
 E_SOFT, E_STIFF = 6e4, 2e6  # Pa: the range of every field (a 1 m object)
 REGION_E = {"stem": 2e6, "leaf": 6e4, "flower": 3e5}  # the plant's regions; a capture's bands base -> top
@@ -233,9 +233,22 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 2 else math.nan
 
 
+def load_scene(name: str, gaussians: int, data: Path):
+    """The thin plant (make_plant(thin=True), as bench/convergence.py has it) or a capture
+    from `data`, at most `gaussians` of it kept (seed 0: the same ones as convergence.py)."""
+    from pd_tool.io import load_splats
+    from pd_tool.io.synthetic import make_plant
+
+    if name == "plant":
+        return make_plant(gaussians, seed=0, thin=True)
+    scene = load_splats(data / CAPTURES[name])
+    if scene.count <= gaussians:
+        return scene
+    return scene.subset(np.sort(np.random.default_rng(0).choice(scene.count, gaussians, replace=False)))
+
+
 def run_case(name: str, kind: str, args, tmp: Path) -> Row:
-    from convergence import load_scene
-    from fit_recovery import simulate_positions
+    from pd_tool.fit.reference import simulate_positions
     from pd_tool.io import save_splats
     from pd_tool.materials.file import MaterialFile
     from pd_tool.fit.settings import FitSettings

@@ -36,23 +36,6 @@ def _status(field: str) -> int:
     raise RuntimeError(f"no {field} in /proc/self/status")
 
 
-def make_video(folder: Path, n: int, size: int = FIT_SIZE, frames: int = FIT_FRAMES) -> Path:
-    """The plant of n Gaussians and a reference video of it, on disk."""
-    from pd_tool.io import load_splats, save_splats
-    from pd_tool.prepare.preparation import PrepareOptions
-    from pd_tool.fit.reference import plant_reference_video
-    from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, make_plant
-    from pd_tool.render.views import scene_camera
-
-    folder.mkdir(parents=True, exist_ok=True)
-    save_splats(make_plant(n, seed=0), folder / "plant.ply")
-    scene = load_splats(folder / "plant.ply")
-    plant_reference_video(folder / "video", scene, scene_camera(scene, width=size, height=size),
-                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
-                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=frames, cfl_safety=0.6)
-    return folder
-
-
 def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: bool) -> dict:
     """Runs in the fresh subprocess; returns measured and estimated bytes."""
     import gc
@@ -147,6 +130,8 @@ def main() -> None:
     if a.quick:
         a.sizes = "2000"
     sizes = [int(s) for s in a.sizes.split(",")]
+    from pd_tool.fit.reference import write_plant_with_video
+
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         dirs = {}
@@ -154,7 +139,7 @@ def main() -> None:
             dirs[n] = Path(tmp) / f"n{n}"
             dirs[n].mkdir()
             if a.kind == "fit":
-                make_video(dirs[n], n)
+                write_plant_with_video(dirs[n], n, size=FIT_SIZE, frames=FIT_FRAMES)
         pending = list(sizes)
         while pending:
             batch, pending = pending[: a.parallel], pending[a.parallel:]

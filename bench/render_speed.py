@@ -3,11 +3,10 @@
     python bench/render_speed.py --device cpu --json render_cpu.json
     python bench/render_speed.py --device cuda --json render_cuda.json
 
-Scenes: N Gaussians uniform in a ball of radius 1 (scene units), scales log-uniform in
-[0.005, 0.04] times a per-scene factor so that the mean pixel coverage stays alike,
-opacities uniform 0.1-0.9, SH degree 3 (16 coefficients); seen from 3 units away with a
-50 degree vertical field of view. Warm-up (warp compile, caches) happens outside the clock
-and the device is synchronised inside it. With --device cuda the CPU and CUDA images of
+Scenes (pd_tool.io.synthetic.make_splat_ball): N Gaussians uniform in a ball of radius 1
+(scene units), scales log-uniform in [0.005, 0.04], opacities uniform 0.1-0.9, SH degree 3
+(16 coefficients); seen from 3 units away with a 50 degree vertical field of view. Warm-up
+(warp compile, caches) happens outside the clock and the device is synchronised inside it. With --device cuda the CPU and CUDA images of
 the small case are compared too (max abs difference printed and stored).
 """
 from __future__ import annotations
@@ -23,6 +22,7 @@ import time
 import torch
 
 from pd_tool.core.cameras import Camera, look_at
+from pd_tool.io.synthetic import make_splat_ball
 from pd_tool.render import render
 
 CASES = [  # (name, width, height, n_gaussians)
@@ -31,20 +31,10 @@ CASES = [  # (name, width, height, n_gaussians)
 ]
 
 
-def make_scene(n: int, device: str, seed: int = 0, scale_factor: float = 1.0):
-    g = torch.Generator().manual_seed(seed)
-    d = torch.randn(n, 3, generator=g)
-    d = d / d.norm(dim=1, keepdim=True)
-    r = torch.rand(n, 1, generator=g) ** (1.0 / 3.0)
-    means = d * r
-    quats = torch.randn(n, 4, generator=g)
-    quats = quats / quats.norm(dim=1, keepdim=True)
-    log_s = torch.empty(n, 3).uniform_(math.log(0.005), math.log(0.04), generator=g)
-    scales = torch.exp(log_s) * scale_factor
-    opacities = torch.rand(n, generator=g) * 0.8 + 0.1
-    sh = torch.randn(n, 16, 3, generator=g) * 0.2
-    sh[:, 0] = torch.randn(n, 3, generator=g) * 0.8
-    return [t.to(device) for t in (means, quats, scales, opacities, sh)]
+def make_scene(n: int, device: str) -> list:
+    """The case's splats as render()'s first five arguments (means, quats, scales, opacities, sh)."""
+    s = make_splat_ball(n, device=device)
+    return [s.positions, s.quats, s.scales, s.opacities, s.sh]
 
 
 def make_camera(width: int, height: int) -> Camera:

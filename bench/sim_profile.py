@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import platform
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -18,10 +19,14 @@ from pathlib import Path
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from pd_tool.io.synthetic import make_block  # noqa: E402  (the scene of bench/sim_speed.py)
 from pd_tool.sim import MPMSolver, SimConfig  # noqa: E402
-from sim_speed import hardware, make_block  # noqa: E402
+
+
+def hardware(device: str) -> str:
+    """The GPU's name (a profile is a GPU's), else the CPU's as Python knows it."""
+    return wp.get_device(device).name if device.startswith("cuda") else platform.processor() or platform.machine()
 
 
 def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: bool) -> dict:

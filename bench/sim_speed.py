@@ -1,7 +1,8 @@
 """MPM speed: particle-substeps per second, forward and forward+backward.
 
 Scenes: an elastic block of N particles at random positions (8 per occupied cell on
-average) given in random order, in a unit box with a res^3 grid. Variants:
+average) given in random order, in a unit box with a res^3 grid
+(pd_tool.io.synthetic.make_block). Variants:
 
 - baseline: the obvious implementation: particles in input (random) order, one atomic add
   per node per particle, one launch per kernel per substep, no graph.
@@ -34,22 +35,11 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pd_tool.io.synthetic import make_block  # noqa: E402
 from pd_tool.sim import DiffSim, MPMSolver, SimConfig  # noqa: E402
 from pd_tool.sim.autograd import backward_frame, forward_frame  # noqa: E402
 
 DEFAULT_SIZES = "20000:32,100000:64,300000:128"
-E_PA = 1.0e5
-RHO = 1000.0
-
-
-def make_block(n: int, res: int, seed: int = 0):
-    """n particles uniformly at random in a centred cube holding ~8 particles per cell."""
-    rng = np.random.default_rng(seed)
-    side = min(0.6, (n / 8.0) ** (1.0 / 3.0) / res)
-    x = 0.5 + (rng.random((n, 3)) - 0.5) * side
-    vol = np.full(n, side**3 / n)
-    static = x[:, 2] < 0.5 - 0.45 * side  # a thin clamped layer at the bottom
-    return x.astype(np.float32), vol, vol * RHO, np.full(n, E_PA), static
 
 
 def sync(device) -> None:

@@ -3,7 +3,8 @@
 Times, per call, the pieces the work estimate adds up and fits each to a line:
 
 - the bake's forward substep (MPMSolver, fixed substeps):      t0 + a * particles + b * grid nodes
-- the fit's forward + backward substep (DiffSim, hand-written adjoint): the same form
+- the fit's forward + backward substep (a DiffSim frame through torch autograd, hand-written
+  adjoint): the same form
 - a render, forward and forward + backward:                      r0 + g * Gaussians + p * pixels
 - the bake's per-frame work per Gaussian (interpolation and the USD write)
 
@@ -23,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def _lstsq(rows: list[tuple[float, ...]], t: list[float]) -> tuple[np.ndarray, float]:
@@ -38,38 +38,81 @@ def _lstsq(rows: list[tuple[float, ...]], t: list[float]) -> tuple[np.ndarray, f
     return coef, float(np.max(np.maximum(y / pred, pred / y)))
 
 
-def sim_rates(device: str, sizes: list[tuple[int, int]], substeps: int, frames: int) -> dict:
-    from sim_speed import make_block, time_forward, time_forward_backward
+def _seconds_per_call(fn, reps: int, device: str) -> float:
+    """Wall seconds per call of fn, after one untimed call (warp compiles, captures graphs),
+    with the device drained before the clock starts and before it stops."""
+    import torch
+    import warp as wp
 
-    fwd_rows, fwd_t, fb_rows, fb_t = [], [], [], []
+    def drain():
+        wp.synchronize_device(device)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    fn()
+    drain()
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        fn()
+    drain()
+    return (time.perf_counter() - t0) / reps
+
+
+def sim_rates(device: str, sizes: list[tuple[int, int]], substeps: int, frames: int) -> dict:
+    """Seconds per substep of the bake's forward (MPMSolver, its fast path) and of the fit's
+    forward + backward (a DiffSim frame through torch autograd, as the fit runs it) on the
+    elastic block of bench/sim_speed.py, fitted to t0 + a * particles + b * grid nodes."""
+    import torch
+
+    from pd_tool.io.synthetic import make_block
+    from pd_tool.sim import DiffSim, MPMSolver, SimConfig
+    from pd_tool.sim.autograd import initial_state
+
+    gravity = (0.0, 0.0, -9.81)
+    fwd_rows, fwd_t, fb_t = [], [], []
     for n, res in sizes:
-        nodes = float((res + 1) ** 3)
-        rate = time_forward(n, res, substeps, frames, device, "fast")
-        fwd_rows.append((1.0, float(n), nodes))
-        fwd_t.append(n / rate)  # seconds per substep
-        _, rate_fb = time_forward_backward(n, res, substeps, max(1, frames // 2), device, None)
-        fb_rows.append((1.0, float(n), nodes))
-        fb_t.append(n / rate_fb)
+        x, vol, mass, E, static = make_block(n, res)
+        solver = MPMSolver(x, vol, mass, E, static, SimConfig(grid_res=res, substeps=substeps, gravity=gravity),
+                           device=device)
+        fwd_t.append(_seconds_per_call(lambda: solver.step_frame(1e-3), frames, device) / substeps)
+        dsim = DiffSim(vol, mass, static, SimConfig(grid_res=res, gravity=gravity), device=device)
+        rest = initial_state(torch.tensor(x, device=device))
+        E_t = torch.tensor(E, dtype=torch.float32, device=device, requires_grad=True)
+        forces = dsim.forces([])
+        fb_t.append(_seconds_per_call(lambda: dsim.frame(rest, E_t, 1e-3, substeps, forces)[0].sum().backward(),
+                                      max(1, frames // 2), device) / substeps)
+        fwd_rows.append((1.0, float(n), float((res + 1) ** 3)))
         print(f"  sim {n:>7} particles, {res}^3: fwd {fwd_t[-1] * 1e6:9.1f} us/substep, "
               f"fwd+bwd {fb_t[-1] * 1e6:9.1f} us/substep", flush=True)
     (a0, a1, a2), worst_f = _lstsq(fwd_rows, fwd_t)
-    (b0, b1, b2), worst_b = _lstsq(fb_rows, fb_t)
+    (b0, b1, b2), worst_b = _lstsq(fwd_rows, fb_t)
     return {"forward": {"substep_s": a0, "particle_s": a1, "node_s": a2, "worst_ratio": worst_f},
             "forward_backward": {"substep_s": b0, "particle_s": b1, "node_s": b2, "worst_ratio": worst_b},
             "samples": {"sizes": sizes, "forward_s": fwd_t, "forward_backward_s": fb_t}}
 
 
 def render_rates(device: str, cases: list[tuple[int, int]], reps: int) -> dict:
-    from render_speed import time_case
+    """Seconds per render, forward and forward + backward, of bench/render_speed.py's splat
+    ball seen by its camera (50 degrees vertical), square images, fitted to
+    r0 + g * Gaussians + p * pixels."""
+    import math
+
+    from pd_tool.core.cameras import Camera, look_at
+    from pd_tool.io.synthetic import make_splat_ball
+    from pd_tool.render import render
 
     rows, tf, tb = [], [], []
     for n, side in cases:
-        f, _ = time_case(side, side, n, device, reps, backward=False)
-        b, _ = time_case(side, side, n, device, reps, backward=True)
+        ball = make_splat_ball(n, device=device)
+        splats = [ball.positions, ball.quats, ball.scales, ball.opacities, ball.sh]
+        leaves = [t.detach().clone().requires_grad_() for t in splats]
+        f = 0.5 * side / math.tan(math.radians(25.0))
+        cam = Camera(side, side, f, f, side / 2, side / 2, look_at([2.1, -2.1, 0.6], [0, 0, 0], [0, 0, 1]))
+        tf.append(_seconds_per_call(lambda: render(*splats, cam, background=(1.0, 1.0, 1.0)), reps, device))
+        tb.append(_seconds_per_call(lambda: render(*leaves, cam, background=(1.0, 1.0, 1.0)).rgb.sum().backward(),
+                                    reps, device))
         rows.append((1.0, float(n), float(side * side)))
-        tf.append(f)
-        tb.append(b)
-        print(f"  render {n:>7} Gaussians at {side}x{side}: fwd {f * 1e3:8.1f} ms, fwd+bwd {b * 1e3:8.1f} ms",
+        print(f"  render {n:>7} Gaussians at {side}x{side}: fwd {tf[-1] * 1e3:8.1f} ms, fwd+bwd {tb[-1] * 1e3:8.1f} ms",
               flush=True)
     (f0, f1, f2), worst_f = _lstsq(rows, tf)
     (b0, b1, b2), worst_b = _lstsq(rows, tb)

@@ -13,12 +13,14 @@ import numpy as np
 import torch
 
 from pd_tool.bake.animate import GaussianAnimator
+from pd_tool.bake.baker import ForceSpec, force_mask
 from pd_tool.core.cameras import Camera
 from pd_tool.core.scene import GaussianScene
-from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E
+from pd_tool.io import load_splats, save_splats
+from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E, make_plant
 from pd_tool.materials.presets import fit_simulation, load_preset
 from pd_tool.prepare.preparation import PrepareOptions, PreparedScene, prepare_scene
-from pd_tool.render.views import render_image
+from pd_tool.render.views import render_image, scene_camera
 from pd_tool.sim import MPMSolver, SimConfig
 from pd_tool.video.folder import write_video_folder
 
@@ -149,3 +151,62 @@ def plant_reference_for_fit(
     grid, cfl, ratio = fit_simulation(load_preset("quality", quality))
     return plant_reference_video(out, scene, camera, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),
                                  region_E=REGION_TRUTH_E, driver_ratio=ratio, cfl_safety=cfl, **kwargs)
+
+
+def reference_height(width: int) -> int:
+    """Height (px) of a synthetic reference video `width` px wide, as the demo-scale
+    benchmarks and tests render the plant: 16:9 from 512 px up, square below (small CPU
+    runs, where a 9/16 crop would leave the plant a few pixels tall)."""
+    return width * 9 // 16 if width >= 512 else width
+
+
+def write_plant_with_video(folder: str | Path, n: int, *, size: int = 64, frames: int = 4) -> Path:
+    """The synthetic plant of n Gaussians (make_plant(n, seed=0)) as `folder`/plant.ply and
+    a reference video of it as the video folder `folder`/video: REGION_TRUTH_E pushed
+    sideways, `frames` frames at 30 fps of `size` x `size` px from the scene camera, on a
+    coarse discretisation (24 cells, driver ratio 0.1, CFL safety 0.6) that keeps it quick
+    at any n. Deterministic; the CPU is used. Returns `folder`."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_splats(make_plant(n, seed=0), folder / "plant.ply")
+    scene = load_splats(folder / "plant.ply")  # as a fit reads it back
+    plant_reference_video(folder / "video", scene, scene_camera(scene, width=size, height=size),
+                          prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),
+                          region_E=REGION_TRUTH_E, driver_ratio=0.1, n_frames=frames, cfl_safety=0.6)
+    return folder
+
+
+def simulate_positions(scene: GaussianScene, prep: PreparedScene, drivers, driver_E: np.ndarray, *, nu: float,
+                       seconds: float, fps: float, accel, device: str, cfl_safety: float,
+                       substeps: int | None = None, stats: dict | None = None, duration: float = 0.5,
+                       at: tuple[float, float, float] | str = "top", radius: float | None = None) -> np.ndarray:
+    """Every Gaussian's position [T, N, 3] (scene units, T = round(seconds * fps) + 1, frame 0
+    = rest) of `scene` moved by its drivers with per-driver E `driver_E` [Q] (Pa), no
+    gravity, under a drag: `accel` (3,) scene units / s^2 for the first `duration` s on the
+    free drivers within `radius` scene units (default: 0.3 of the object's longest side) of
+    `at` (a point in scene units, or "top"). The truth that a fitted material's motion
+    under a new force is compared with, through the bake's own force, simulator and
+    interpolation.
+
+    substeps: a floor on the substeps per frame (a stiffer E still gets its CFL count);
+    None: the CFL count. stats, when given, receives "substeps": the most substeps a
+    frame took."""
+    cfg = SimConfig(grid_res=max(prep.grid_dims), domain=prep.domain, nu=nu, gravity=(0.0, 0.0, 0.0),
+                    cfl_safety=cfl_safety, min_substeps=substeps)
+    d_rest = drivers.positions.double().cpu().numpy()
+    d_static = drivers.static.cpu().numpy().astype(bool)
+    solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
+                       device=device)
+    spec = ForceSpec(accel=accel, at=at, radius=radius, radius_fraction=0.3, start=0.0, duration=duration)
+    solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.vector_to_sim(np.asarray(accel)), 0.0,
+                     duration)
+    anim = GaussianAnimator(scene, prep, drivers, device=scene.device)
+    out = [scene.positions.detach().cpu().numpy()]
+    most = 0
+    for _ in range(int(round(seconds * fps))):
+        most = max(most, solver.step_frame(1.0 / fps))
+        with torch.no_grad():
+            out.append(anim(solver.positions())[0].cpu().numpy())
+    if stats is not None:
+        stats["substeps"] = most
+    return np.stack(out)

@@ -181,3 +181,43 @@ def clamped_strip_frequency(E: float, nu: float, density: float, length: float, 
     f1 = 1.8751^2 / (2 pi L^2) sqrt(D / (rho t)), D = E t^3 / (12 (1 - nu^2)). SI units."""
     D = E * thickness ** 3 / (12.0 * (1.0 - nu ** 2))
     return 1.8751 ** 2 / (2.0 * np.pi * length ** 2) * float(np.sqrt(D / (density * thickness)))
+
+
+def make_block(n: int, res: int, seed: int = 0, E: float = 1.0e5,
+               density: float = 1000.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An elastic block of n simulation particles for a res^3 grid over the unit box: the
+    MPM speed benchmarks' scene, given straight to MPMSolver or DiffSim.
+
+    The particles lie uniformly at random (seeded) in a cube centred at (0.5, 0.5, 0.5) m,
+    sized so that an occupied cell holds about 8 (at most 0.6 m a side), in random order;
+    a thin layer at the bottom is static (a clamp). Returns (x [n, 3] float32 m,
+    volume [n] m^3, mass [n] kg, E [n] Pa, static [n] bool).
+    """
+    rng = np.random.default_rng(seed)
+    side = min(0.6, (n / 8.0) ** (1.0 / 3.0) / res)
+    x = 0.5 + (rng.random((n, 3)) - 0.5) * side
+    vol = np.full(n, side ** 3 / n)
+    static = x[:, 2] < 0.5 - 0.45 * side
+    return x.astype(np.float32), vol, vol * density, np.full(n, float(E)), static
+
+
+def make_splat_ball(n: int, seed: int = 0, scale_factor: float = 1.0,
+                    device: str | torch.device = "cpu") -> GaussianScene:
+    """n random Gaussians in a ball of radius 1 (scene units), the rasteriser benchmarks'
+    scene: centres uniform in the ball, random rotations, scales log-uniform in
+    [0.005, 0.04] times `scale_factor` (to keep the pixel coverage alike across counts),
+    opacities uniform in [0.1, 0.9], SH degree 3 (sh [n, 16, 3]). Seeded (torch's
+    generator), float32 tensors on `device`; no labels."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    d = d / d.norm(dim=1, keepdim=True)
+    means = d * torch.rand(n, 1, generator=g) ** (1.0 / 3.0)
+    quats = torch.randn(n, 4, generator=g)
+    quats = quats / quats.norm(dim=1, keepdim=True)
+    log_s = torch.empty(n, 3).uniform_(float(np.log(0.005)), float(np.log(0.04)), generator=g)
+    opacities = torch.rand(n, generator=g) * 0.8 + 0.1
+    sh = torch.randn(n, 16, 3, generator=g) * 0.2
+    sh[:, 0] = torch.randn(n, 3, generator=g) * 0.8
+    return GaussianScene(positions=means.to(device), quats=quats.to(device),
+                         scales=(torch.exp(log_s) * scale_factor).to(device), opacities=opacities.to(device),
+                         sh=sh.to(device), source_format="synthetic")
