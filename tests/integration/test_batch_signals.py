@@ -172,8 +172,8 @@ def test_a_worker_has_the_parent_death_signal() -> None:
 def test_the_watchdog_ends_a_worker_whose_driver_died() -> None:
     # A process in the role of the driver starts one running only the watchdog (no
     # parent-death signal), then is killed: the watchdog notices the new parent.
-    worker = ("import sys; from pd_tool.batch import _watchdog; print('watching', flush=True); "
-              "_watchdog(int(sys.argv[1]))")
+    worker = ("import sys; from pd_tool.batch.workers import watchdog; print('watching', flush=True); "
+              "watchdog(int(sys.argv[1]))")
     driver = ("import os, subprocess, sys, time\n"
               f"w = subprocess.Popen([sys.executable, '-c', {worker!r}, str(os.getpid())])\n"
               "print(w.pid, flush=True)\n"
