@@ -2,7 +2,9 @@
 
     /Root/Splats                    ParticleField3DGaussianSplat
         positions       point3f[]   time-sampled, scene units
-        orientations    quatf[]     time-sampled, unit
+        orientationsh   quath[]     time-sampled, unit (the schema's half-precision
+                                    orientations: the same array as the instancer's
+                                    quath, which the crate stores once for both)
         scales          float3[]    time-sampled, linear sigma (not log, not scaled)
         extent          float3[2]   time-sampled: box of the 3-sigma ellipsoids
                                     (the schema's kernel holds 99.7% there)
@@ -40,7 +42,9 @@ class SplatFieldPart:
             "displayColor", Sdf.ValueTypeNames.Color3fArray,
             UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(colors))
         self.positions = field.CreatePositionsAttr().GetPath()
-        self.orientations = field.CreateOrientationsAttr().GetPath()
+        # Half precision (~5e-4, a rotation error no splat shows) halves this attribute,
+        # and in fmt="both" the crate stores it once with the instancer's equal quath array.
+        self.orientations = field.CreateOrientationshAttr().GetPath()
         self.scales = field.CreateScalesAttr().GetPath()
         self.extent = field.CreateExtentAttr().GetPath()
 
@@ -54,7 +58,7 @@ class SplatFieldPart:
         box = ellipsoid_extent(positions, quats, sigmas * np.float32(SPLAT_SUPPORT_SIGMAS))
         return [
             (self.positions, Vt.Vec3fArray.FromNumpy(positions)),
-            (self.orientations, Vt.QuatfArray.FromNumpy(wxyz_to_xyzw(quats))),
+            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats).astype(np.float16))),
             (self.scales, Vt.Vec3fArray.FromNumpy(sigmas)),
             (self.extent, Vt.Vec3fArray.FromNumpy(box)),
         ]

@@ -8,7 +8,14 @@ ParticleField3DGaussianSplat prim:
   for quath); opacities and colours lie in 0-1;
 - the authored extent at that time contains every point;
 - the stage has upAxis, metersPerUnit, timeCodesPerSecond, framesPerSecond,
-  start/end time codes and a default prim.
+  start/end time codes and a default prim;
+- instance ids are distinct across all PointInstancers (a bake splits its
+  instances between /Root/Instancer, time-sampled, and /Root/StaticInstancer,
+  written once; together they hold each instance once), and at every time sample
+  of any of them every instancer yields one position per instance.
+
+`instance_positions(stage, time)` reads the positions of all instances, by id,
+across that split.
 """
 from __future__ import annotations
 
@@ -52,6 +59,7 @@ def validate_usd(path: str | os.PathLike, *, usd_validators: bool = True,
     errors: list[str] = []
     warnings: list[str] = []
     errors += check_stage_metadata(stage)
+    errors += check_instance_split(stage, every_sample)
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.PointInstancer):
             errors += check_instancer(prim, every_sample)
@@ -146,6 +154,49 @@ def _check_range(name: str, key: str, a: np.ndarray | None) -> list[str]:
     return []
 
 
+def _instancers(stage: Usd.Stage) -> list[UsdGeom.PointInstancer]:
+    return [UsdGeom.PointInstancer(p) for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+
+
+def instance_positions(stage: Usd.Stage, time=Usd.TimeCode.Default()) -> tuple[np.ndarray, np.ndarray]:
+    """(ids [N] int64 sorted, positions [N, 3] float32) of every instance of every
+    PointInstancer on the stage at `time`: the moving and the static prims together,
+    which is what a DCC shows at that frame."""
+    ids, pos = [], []
+    for inst in _instancers(stage):
+        p = inst.GetPositionsAttr().Get(time)
+        i = inst.GetIdsAttr().Get()
+        p = np.zeros((0, 3), np.float32) if p is None else np.asarray(p, dtype=np.float32)
+        ids.append(np.arange(len(p), dtype=np.int64) if i is None else np.asarray(i, dtype=np.int64))
+        pos.append(p)
+    if not ids:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+    ids_all, pos_all = np.concatenate(ids), np.concatenate(pos)
+    order = np.argsort(ids_all, kind="stable")
+    return ids_all[order], pos_all[order]
+
+
+def check_instance_split(stage: Usd.Stage, every_sample: bool = True) -> list[str]:
+    """Instances split over several PointInstancers: each id once, and at every time any
+    of them is sampled (a static prim has none) each yields one position per instance."""
+    insts = _instancers(stage)
+    if len(insts) < 2:
+        return []
+    errs = []
+    all_ids = [np.asarray(i.GetIdsAttr().Get() or [], np.int64) for i in insts]
+    ids = np.concatenate(all_ids)
+    if np.unique(ids).size != ids.size:
+        errs.append("instance ids repeat across " + ", ".join(str(i.GetPath()) for i in insts))
+    times = _times(every_sample, *(i.GetPositionsAttr() for i in insts))
+    for t in times:
+        for inst, i in zip(insts, all_ids):
+            p = inst.GetPositionsAttr().Get(t)
+            if p is None or len(p) != len(i):
+                errs.append(f"{inst.GetPath()}.positions has {0 if p is None else len(p)} elements at time "
+                            f"{t}, expected {len(i)}")
+    return errs
+
+
 def check_instancer(prim: Usd.Prim, every_sample: bool = True) -> list[str]:
     inst = UsdGeom.PointInstancer(prim)
     name = str(prim.GetPath())
@@ -208,8 +259,12 @@ def check_points(prim: Usd.Prim, every_sample: bool = True) -> list[str]:
 def check_splat_field(prim: Usd.Prim, every_sample: bool = True) -> list[str]:
     name = str(prim.GetPath())
     errs = []
-    pos_a, ori_a, sc_a = (prim.GetAttribute("positions"), prim.GetAttribute("orientations"),
-                          prim.GetAttribute("scales"))
+    # the schema's orientations (quatf) win over orientationsh (quath) when both are authored
+    ori_a = prim.GetAttribute("orientations")
+    quat_kind = "quatf"
+    if not ori_a.HasAuthoredValue() and prim.GetAttribute("orientationsh").HasAuthoredValue():
+        ori_a, quat_kind = prim.GetAttribute("orientationsh"), "quath"
+    pos_a, sc_a = prim.GetAttribute("positions"), prim.GetAttribute("scales")
     ext_a = prim.GetAttribute("extent")
     deg = prim.GetAttribute("radiance:sphericalHarmonicsDegree").Get()
     sh = prim.GetAttribute("radiance:sphericalHarmonicsCoefficients").Get()
@@ -225,7 +280,7 @@ def check_splat_field(prim: Usd.Prim, every_sample: bool = True) -> list[str]:
         errs += _check_common(name, t, {"orientations": ori, "scales": sc,
                                         "opacities": None if opac is None else np.asarray(opac)},
                               n, _arr(ext_a, t), pos)
-        errs += _check_quats(name, t, ori, "quatf")
+        errs += _check_quats(name, t, ori, quat_kind)
         if sc is not None and len(sc) and not (sc > 0).all():
             errs.append(f"{name}.scales not positive at time {t}")
         if sh is not None and deg is not None and len(sh) != n * (deg + 1) ** 2:

@@ -39,6 +39,13 @@ DEFAULT_SCALE_FACTOR = 2.0  # instancer sphere radius / sigma: the ~2-sigma elli
 DEFAULT_FLUSH_BYTES = 64 << 20  # bytes of unsaved samples before an incremental save
 QUEUE_FRAMES = 2  # threaded mode: frames waiting for the writer thread (bounds memory)
 ROOT = "/Root"
+# How far an instance marked static may stray from its first frame: float rounding of the
+# caller's transforms (a pinned Gaussian goes scene -> simulation -> scene axes each frame,
+# a few float32 ulps), not motion. Positions relative to the frame's coordinate magnitude
+# plus its size; orientations as |q - q0| (sign-blind); scales relative.
+STATIC_POS_TOL = 1e-5
+STATIC_QUAT_TOL = 1e-4
+STATIC_SCALE_TOL = 1e-5
 
 
 class UsdBakeWriter:
@@ -67,6 +74,12 @@ class UsdBakeWriter:
         scale_factor: instancer scale = Gaussian sigma * scale_factor; the
             default 2 makes the unit-sphere prototype show the 2-sigma ellipsoid.
         ids: [N] int instance ids (PointInstancer.ids); default 0..N-1.
+        static: [N] bool, instances that keep their first frame's pose for the whole
+            bake (a pinned pot; the bake passes its static and unsimulated Gaussians).
+            They go to /Root/StaticInstancer, /Root/StaticSplatColors and
+            /Root/StaticSplats, written once as default values; the others to the
+            time-sampled prims. Every frame is checked: a static instance that moves
+            further than float rounding (STATIC_*_TOL) raises UsdExportError.
         color_points: also write /Root/SplatColors (UsdGeom.Points with
             displayColor), the only place Blender reads per-splat colour from.
         flush_bytes: save (append to the file) after this many bytes of new
@@ -92,11 +105,16 @@ class UsdBakeWriter:
                  opacities: np.ndarray | None = None, sh: np.ndarray | None = None,
                  scale_factor: float = DEFAULT_SCALE_FACTOR, ids: np.ndarray | None = None,
                  color_points: bool = True, flush_bytes: int = DEFAULT_FLUSH_BYTES,
-                 threaded: bool = False) -> None:
+                 threaded: bool = False, static: np.ndarray | None = None) -> None:
         self.path = Path(path)
         n = int(n_points)
         self._check_args(n, fps, up_axis, meters_per_unit, fmt, scale_factor)
         colors, opacities, sh, ids = _per_splat_inputs(n, colors, opacities, sh, ids)
+        static = _static_mask(n, static)
+        self._static_idx = np.flatnonzero(static)
+        # None: every instance moves, and frames are written without a subset copy
+        self._moving_idx = np.flatnonzero(~static) if len(self._static_idx) else None
+        self._static_pose: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
         self.n_points, self.fps, self.fmt = n, float(fps), fmt
         self.start_frame = float(start_frame)
         self.flush_bytes = int(flush_bytes)
@@ -109,8 +127,10 @@ class UsdBakeWriter:
         # writer side (the writer thread in threaded mode): what is in the layer
         self.bytes_written = 0  # array bytes of all time samples handed to USD
         self._w_frames = 0
-        self._w_last_samples: list[tuple[Sdf.Path, object]] = []
-        self._w_held_until: float | None = None
+        # per time-sampled attribute: (last authored value, its time); a value equal to the
+        # last one is not authored again (a held pose, constant scales)
+        self._w_last: dict[Sdf.Path, tuple[object, np.ndarray, float]] = {}
+        self._w_covered: float | None = None  # last frame written or held, in the layer
         self._unsaved = 0
         self._thread: threading.Thread | None = None
         self._thread_error: BaseException | None = None
@@ -143,7 +163,7 @@ class UsdBakeWriter:
             raise _write_error(self.path, e, (self._tmp, self._tmp_text), creating=True) from None
         try:
             self._setup_stage(stage, up_axis, meters_per_unit, colors, opacities, sh, ids,
-                              scale_factor, color_points)
+                              scale_factor, color_points, static)
             self._save()
         except BaseException:
             del stage
@@ -176,7 +196,7 @@ class UsdBakeWriter:
             raise UsdExportError(f"scale_factor={scale_factor}: must be > 0")
 
     def _setup_stage(self, stage: Usd.Stage, up_axis: str, mpu: float, colors, opacities,
-                     sh, ids, scale_factor: float, color_points: bool) -> None:
+                     sh, ids, scale_factor: float, color_points: bool, static: np.ndarray) -> None:
         if self.path.suffix.lower() not in SUFFIXES:
             raise UsdExportError(f"{self.path}: output must end in {', '.join(SUFFIXES)}")
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis == "Z" else UsdGeom.Tokens.y)
@@ -189,17 +209,23 @@ class UsdBakeWriter:
         Usd.ModelAPI(root).SetKind(Kind.Tokens.component)
         stage.SetDefaultPrim(root.GetPrim())
         stage.GetRootLayer().documentation = "pdtool bake: animated 3D Gaussian splats"
-        self._parts = []
         # USD's displayColor is linear; 3DGS colours are sRGB encoded
         colors = srgb_to_linear(colors)
-        if self.fmt in ("instancer", "both"):
-            self._parts.append(InstancerPart(
-                stage, f"{ROOT}/Instancer", colors=colors, opacities=opacities, ids=ids,
-                scale_factor=scale_factor,
-                color_points_path=f"{ROOT}/SplatColors" if color_points else None))
-        if self.fmt in ("splat", "both"):
-            self._parts.append(SplatFieldPart(stage, f"{ROOT}/Splats", colors=colors,
-                                              opacities=opacities, sh=sh))
+        # Moving and static instances live in separate prims: a PointInstancer's arrays
+        # hold every instance at every time, so one prim would repeat the static ones in
+        # each frame's sample (docs/usd.md, "Static instances").
+        self._parts, self._static_parts = [], []
+        for prefix, sel, parts in (("", ~static, self._parts), ("Static", static, self._static_parts)):
+            if not sel.any():
+                continue
+            if self.fmt in ("instancer", "both"):
+                parts.append(InstancerPart(
+                    stage, f"{ROOT}/{prefix}Instancer", colors=colors[sel], opacities=opacities[sel],
+                    ids=ids[sel], scale_factor=scale_factor,
+                    color_points_path=f"{ROOT}/{prefix}SplatColors" if color_points else None))
+            if self.fmt in ("splat", "both"):
+                parts.append(SplatFieldPart(stage, f"{ROOT}/{prefix}Splats", colors=colors[sel],
+                                            opacities=opacities[sel], sh=sh[sel]))
 
     # ---------------------------------------------------------------- frames
     def write_frame(self, time_code: float, positions: np.ndarray, orientations: np.ndarray,
@@ -215,6 +241,7 @@ class UsdBakeWriter:
         self._check_open()
         t = float(time_code)
         pos, q, sig = self._check_frame(t, positions, orientations, scales, copy=self._thread is not None)
+        self._check_static(t, pos, q, sig)
         self._last_t, self._held_until = t, None
         self.frames_written += 1
         self._submit(("frame", t, pos, q, sig))
@@ -240,28 +267,65 @@ class UsdBakeWriter:
         else:
             self._queue.put(item)  # blocks while QUEUE_FRAMES frames wait: bounded memory
 
+    def _check_static(self, t: float, pos: np.ndarray, q: np.ndarray, sig: np.ndarray) -> None:
+        """Static instances must keep their first frame's pose (to float rounding)."""
+        si = self._static_idx
+        if not len(si):
+            return
+        if self._static_pose is None:
+            p0 = pos[si]
+            size = float(np.abs(p0).max(initial=0.0) + np.ptp(pos, axis=0).max(initial=0.0))
+            self._static_pose = (p0.copy(), normalize_quats(q[si]), sig[si].copy(),
+                                 STATIC_POS_TOL * max(size, 1e-30))
+            return
+        p0, q0, s0, tol = self._static_pose
+        moved = float(np.abs(pos[si] - p0).max())
+        qn = normalize_quats(q[si])
+        turned = float(np.minimum(np.abs(qn - q0).max(axis=1), np.abs(qn + q0).max(axis=1)).max())
+        grown = float((np.abs(sig[si] - s0) / s0).max())
+        if moved > tol or turned > STATIC_QUAT_TOL or grown > STATIC_SCALE_TOL:
+            raise UsdExportError(
+                f"frame {t:g}: instances passed as static changed since the first frame (moved "
+                f"{moved:.3g} scene units, rotated {turned:.3g}, scaled {grown:.3g}; float rounding "
+                f"allows {tol:.3g}, {STATIC_QUAT_TOL:g}, {STATIC_SCALE_TOL:g}); leave moving "
+                f"instances out of `static`")
+
     def _apply(self, item: tuple) -> None:
         if item[0] == "hold":
-            self._w_held_until = item[1]
+            self._w_covered = item[1]
             return
         _, t, positions, quats, sigmas = item
         quats = normalize_quats(quats)
         layer = self._layer
-        if self._w_held_until is not None and t > self._w_held_until:
-            # Re-author the held values at the end of the hold so that USD's linear
-            # interpolation does not blend the rest pose into the hold.
-            for p, v in self._w_last_samples:
-                layer.SetTimeSample(p, self._w_held_until, v)
+        if self._w_frames == 0:
+            si = self._static_idx
+            static = (positions[si], quats[si], sigmas[si]) if len(si) else None
+            for part in self._static_parts:  # their only values: defaults, no time samples
+                for p, v in part.first_frame_defaults(*static) + part.samples(*static):
+                    layer.GetAttributeAtPath(p).default = v
+        mi = self._moving_idx
+        moving = (positions, quats, sigmas) if mi is None else (positions[mi], quats[mi], sigmas[mi])
         if self._w_frames == 0:
             for part in self._parts:
-                for p, v in part.first_frame_defaults(positions, quats, sigmas):
+                for p, v in part.first_frame_defaults(*moving):
                     layer.GetAttributeAtPath(p).default = v
-        samples = [s for part in self._parts for s in part.samples(positions, quats, sigmas)]
         nbytes = 0
-        for p, v in samples:
+        prev = self._w_covered
+        for p, v in (s for part in self._parts for s in part.samples(*moving)):
+            a = np.asarray(v)  # Vt arrays expose a buffer: no copy
+            last = self._w_last.get(p)
+            if last is not None and np.array_equal(last[1], a):
+                continue  # unchanged since the last sample: USD holds it
+            if last is not None and last[2] < prev:
+                # The value was held (unchanged frames, or hold_frames) up to the previous
+                # frame: author it there too, or linear interpolation would blend the new
+                # value into the held ones.
+                layer.SetTimeSample(p, prev, last[0])
+                nbytes += a.nbytes
             layer.SetTimeSample(p, t, v)
-            nbytes += _vt_nbytes(v)
-        self._w_last_samples, self._w_held_until = samples, None
+            nbytes += a.nbytes
+            self._w_last[p] = (v, a, t)
+        self._w_covered = t
         self._w_frames += 1
         self.bytes_written += nbytes
         self._unsaved += nbytes
@@ -440,8 +504,13 @@ def _np(a) -> np.ndarray:
     return np.asarray(a)
 
 
-def _vt_nbytes(v) -> int:
-    return np.asarray(v).nbytes  # Vt arrays expose a buffer: no copy
+def _static_mask(n: int, static) -> np.ndarray:
+    if static is None:
+        return np.zeros(n, bool)
+    m = np.asarray(_np(static))
+    if m.shape != (n,) or m.dtype != bool:
+        raise UsdExportError(f"static must be {n} booleans, got {m.dtype} {tuple(m.shape)}")
+    return m.copy()
 
 
 def _per_splat_inputs(n: int, colors, opacities, sh, ids):

@@ -385,10 +385,14 @@ class Baker:
         if self.rendering:
             self.preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
             self._q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
+        # Gaussians that keep their rest pose (GaussianAnimator): the unsimulated ones and the
+        # static region. The writer puts them in prims written once instead of every frame.
+        static = np.ones(scene.count, bool)
+        static[prep.foreground] = np.asarray(prep.static[:prep.count], bool)
         self.writer = UsdBakeWriter(
             self.out, n_points=scene.count, fps=self.settings.fps, start_frame=0, up_axis=up_axis,
             meters_per_unit=float(prep.transform.scale), fmt=self.settings.fmt, colors=scene.colors.cpu().numpy(),
-            opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(),
+            opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(), static=static,
         )
 
     # ---- frames

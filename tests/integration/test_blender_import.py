@@ -23,7 +23,7 @@ if importlib.util.find_spec("bpy") is None:  # pytest.importorskip without the i
                 allow_module_level=True)
 pytest.importorskip("pxr")
 
-from usd_export import UsdBakeWriter  # noqa: E402
+from usd_export import UsdBakeWriter, instance_positions  # noqa: E402
 from usd_export._geom import normalize_quats, srgb_to_linear  # noqa: E402
 
 N = 240
@@ -45,17 +45,21 @@ PROBE = textwrap.dedent('''
     for f in frames:
         sc.frame_set(f)
         dg = bpy.context.evaluated_depsgraph_get()
-        inst = {}
+        by_prim = {"Instancer": {}, "StaticInstancer": {}}
         for oi in dg.object_instances:
-            if oi.is_instance and oi.parent is not None and oi.parent.name == "Instancer":
+            if oi.is_instance and oi.parent is not None and oi.parent.name in by_prim:
                 m = oi.matrix_world
-                inst[oi.persistent_id[1]] = (list(m.translation), list(m.to_quaternion()),
-                                             list(m.to_scale()))
+                by_prim[oi.parent.name][oi.persistent_id[1]] = (
+                    list(m.translation), list(m.to_quaternion()), list(m.to_scale()))
+        inst = by_prim["Instancer"]
         idx = sorted(inst)
         rec = {"instance_ids": idx,
                "positions": [inst[i][0] for i in idx],
                "quats_wxyz": [inst[i][1] for i in idx],
                "scales": [inst[i][2] for i in idx]}
+        st = by_prim["StaticInstancer"]
+        rec["static_instance_ids"] = sorted(st)
+        rec["static_positions"] = [st[i][0] for i in sorted(st)]
         pts = bpy.data.objects["SplatColors"].evaluated_get(dg).data
         rec["points"] = [list(p.vector) for p in pts.attributes["position"].data]
         rec["point_attributes"] = sorted(a.name for a in pts.attributes)
@@ -164,21 +168,29 @@ def test_pdtool_bake_output_imports(tmp_path):
                prepare_options=PrepareOptions(static_below=POT_TOP),
                settings=BakeSettings(seconds=0.2, fps=30, quality="draft", fmt="both",
                                      stop_at_rest=False))
-    frames = (2, res.frames - 1)
+    frames = tuple(range(res.frames))
     probe = run_probe(out, frames)
     assert probe["frame_range"] == [0, res.frames - 1]
     stage = Usd.Stage.Open(str(out))
-    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
-    written = {f: np.asarray(inst.GetPositionsAttr().Get(f)) for f in frames}
-    assert np.abs(written[frames[0]] - written[frames[1]]).max() > 1e-4  # it moved
+    # the pinned pot is written once, in its own prim; the rest is sampled per frame
+    moving = np.asarray(UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer")).GetIdsAttr().Get())
+    static = np.asarray(UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/StaticInstancer")).GetIdsAttr().Get())
+    assert len(static) > 0.1 * scene.count and len(moving) + len(static) == scene.count
+    assert not stage.GetPrimAtPath("/Root/StaticInstancer").GetAttribute("positions").GetNumTimeSamples()
+    written = {f: instance_positions(stage, f)[1] for f in frames}
+    assert np.abs(written[frames[2]] - written[frames[-1]]).max() > 1e-4  # it moved
     # Blender converts to metres on import (apply_unit_conversion_scale): the bake's
     # metersPerUnit is the scene's scale, so world positions are samples * mpu.
     mpu = UsdGeom.GetStageMetersPerUnit(stage)
     assert mpu != 1.0  # the conversion is exercised, not trivially 1
-    for f in frames:
+    for f in frames:  # every frame, every instance, moving or pinned, by id
         rec = probe["frames"][str(f)]
-        assert rec["instance_ids"] == list(range(scene.count))
-        np.testing.assert_allclose(np.array(rec["positions"]), written[f] * mpu, rtol=0, atol=POS_TOL)
+        assert rec["instance_ids"] == list(range(len(moving)))
+        assert rec["static_instance_ids"] == list(range(len(static)))
+        got = np.zeros((scene.count, 3))
+        got[moving] = rec["positions"]
+        got[static] = rec["static_positions"]
+        np.testing.assert_allclose(got, written[f] * mpu, rtol=0, atol=POS_TOL)
     colors = np.asarray(UsdGeom.Points(stage.GetPrimAtPath("/Root/SplatColors"))
                         .GetDisplayColorPrimvar().Get())
     np.testing.assert_allclose(np.array(probe["frames"][str(frames[0])]["colors"]), colors,

@@ -171,8 +171,9 @@ def test_splat_schema_layout(both_file, data):
         t = 1 + f
         np.testing.assert_array_equal(np.asarray(field.GetPositionsAttr().Get(t)), pos[f])
         np.testing.assert_array_equal(np.asarray(field.GetScalesAttr().Get(t)), sig[f])  # sigma, unscaled
-        q = np.asarray(field.GetOrientationsAttr().Get(t))
-        np.testing.assert_allclose(q[:, [3, 0, 1, 2]], quats[f], atol=1e-6)
+        assert not field.GetOrientationsAttr().HasAuthoredValue()  # quath: orientationsh
+        q = np.asarray(field.GetOrientationshAttr().Get(t)).astype(np.float32)
+        np.testing.assert_allclose(q[:, [3, 0, 1, 2]], quats[f], atol=HALF_QUAT_TOL)
         # box of the 3-sigma ellipsoids
         assert_box_bounds(np.asarray(field.GetExtentAttr().Get(t)), pos[f], 3 * sig[f])
 
@@ -263,8 +264,9 @@ def test_streams_samples_to_disk_while_writing(tmp_path, data):
         sizes.append(w._tmp.stat().st_size)
     # every frame is appended to the temporary crate file as it is written; the
     # crate stores equal arrays once, so positions count once for all three prims:
-    # positions 12 + quath 8 + instancer scales 12 + quatf 16 + sigmas 12 bytes
-    per_frame = N * (12 + 8 + 12 + 16 + 12)
+    # positions 12 + quath 8 (the splat's orientationsh too) + instancer scales 12 +
+    # sigmas 12 bytes (the sigmas change every frame here)
+    per_frame = N * (12 + 8 + 12 + 12)
     assert sizes[1] - sizes[0] >= per_frame and sizes[2] - sizes[1] >= per_frame
     assert not (tmp_path / "s.usd").exists()
     w.close()
@@ -441,3 +443,99 @@ def test_unwritable_folder(tmp_path):
 def test_missing_folder(tmp_path):
     with pytest.raises(UsdExportError, match="does not exist"):
         UsdBakeWriter(tmp_path / "nope" / "x.usd", n_points=3, fps=30)
+
+
+# ---------------------------------------------------------------- static instances, held samples
+
+def pinned_bake(n=400, frames=8, seed=1):
+    """Half the instances pinned (their pose carries float-rounding jitter, as a bake's
+    scene -> simulation -> scene round trip gives), half moving; constant sigmas."""
+    pos, quats, sig, sh, opac = synthetic_bake(n, frames, seed=seed, sh_k=4)
+    static = np.zeros(n, bool)
+    static[: n // 2] = True
+    rng = np.random.default_rng(seed)
+    for f in range(frames):
+        pos[f, static] = pos[0, static] * (1 + rng.uniform(-2e-7, 2e-7, (static.sum(), 3))).astype(np.float32)
+        quats[f, static] = quats[0, static]
+        sig[f] = sig[0]
+    return (pos, quats, sig, sh, opac), static
+
+
+def test_static_instances_are_written_once(tmp_path):
+    from usd_export import instance_positions
+    data, static = pinned_bake()
+    pos, quats, sig, sh, opac = data
+    path = write(tmp_path / "s.usd", data, start=0, static=static, hold_to=20)
+    stage = Usd.Stage.Open(str(path))
+    names = {p.GetName() for p in stage.GetDefaultPrim().GetChildren()}
+    assert names == {"Instancer", "SplatColors", "Splats", "StaticInstancer", "StaticSplatColors", "StaticSplats"}
+    for prim in ("StaticInstancer", "StaticSplatColors", "StaticSplats"):
+        for attr in stage.GetPrimAtPath(f"/Root/{prim}").GetAttributes():
+            assert attr.GetNumTimeSamples() == 0, attr.GetPath()  # default values only
+    st = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/StaticInstancer"))
+    np.testing.assert_array_equal(np.asarray(st.GetIdsAttr().Get()), np.flatnonzero(static))
+    np.testing.assert_array_equal(np.asarray(st.GetPositionsAttr().Get()), pos[0, static])
+    mv = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    np.testing.assert_array_equal(np.asarray(mv.GetIdsAttr().Get()), np.flatnonzero(~static))
+    # constant sigmas: one sample; the moving positions: one per frame
+    assert mv.GetScalesAttr().GetTimeSamples() == [0.0]
+    assert mv.GetPositionsAttr().GetTimeSamples() == list(range(8))
+    # what a reader sees at every frame: all instances, by id, where they were written
+    for f in range(8):
+        ids, p = instance_positions(stage, f)
+        np.testing.assert_array_equal(ids, np.arange(len(static)))
+        np.testing.assert_allclose(p, pos[f], rtol=0, atol=1e-6)
+    validate_usd(path)
+
+
+def test_static_split_halves_the_per_frame_bytes_of_a_half_pinned_file(tmp_path):
+    data, static = pinned_bake(n=4000, frames=40)
+    full = write(tmp_path / "full.usd", data, start=0).stat().st_size
+    split = write(tmp_path / "split.usd", data, start=0, static=static).stat().st_size
+    # per frame half the bytes; the constant arrays (colours, SH, ids) are not halved
+    assert full > 1.7 * split, (full, split)
+
+
+def test_static_instances_that_move_are_refused(tmp_path):
+    data, static = pinned_bake()
+    pos = data[0].copy()
+    pos[3, 7] += 1e-3  # instance 7 is static
+    with pytest.raises(UsdExportError, match="instances passed as static changed since the first frame"):
+        write(tmp_path / "m.usd", (pos, *data[1:]), start=0, static=static)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(UsdExportError, match="static must be 400 booleans"):
+        write(tmp_path / "m.usd", data, static=np.ones(3, bool))
+
+
+def test_unchanged_frames_are_not_sampled_again(tmp_path):
+    """An object at rest repeats its pose: no new samples, yet every frame reads its
+    pose, and motion after the rest does not blend back into it."""
+    pos, quats, sig, sh, opac = synthetic_bake(n=50, frames=4)
+    frames = [0, 1, 2, 3, 3, 3, 3, 3, 0]  # frames 3-7 at rest, frame 8 moves again
+    path = tmp_path / "r.usd"
+    with UsdBakeWriter(path, n_points=50, fps=30, sh=sh) as w:
+        for t, f in enumerate(frames):
+            w.write_frame(t, pos[f], quats[f], sig[0])
+        w.hold_frames(12)
+    stage = Usd.Stage.Open(str(path))
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    assert inst.GetPositionsAttr().GetTimeSamples() == [0, 1, 2, 3, 7, 8]
+    assert inst.GetScalesAttr().GetTimeSamples() == [0]
+    for t, f in enumerate(frames):
+        np.testing.assert_array_equal(np.asarray(inst.GetPositionsAttr().Get(t)), pos[f])
+    # between two equal samples, interpolation is the pose (to 1 ulp)
+    np.testing.assert_allclose(np.asarray(inst.GetPositionsAttr().Get(5.5)), pos[3], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(inst.GetPositionsAttr().Get(12)), pos[0])
+    validate_usd(path)
+
+
+def test_validate_rejects_ids_repeated_across_instancers(tmp_path):
+    data, static = pinned_bake()
+    path = write(tmp_path / "d.usd", data, start=0, static=static)
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/StaticInstancer")).GetIdsAttr().Set(
+        np.flatnonzero(~static).astype(np.int64))
+    layer.Save()
+    with pytest.raises(UsdExportError, match="instance ids repeat"):
+        validate_usd(path, usd_validators=False)
