@@ -148,10 +148,11 @@ def blender_session(splat: Path, zip_path: Path, out_dir: Path, render_png: Path
     # render the result at its last frame
     sc.frame_set(sc.frame_end)
     s.splat_object.hide_render = True  # the rest pose; show the baked points
-    inst = bpy.data.objects.get("Instancer")
-    if inst is not None:
-        inst.hide_render = True  # the unit-sphere instances hide the colours (they are on SplatColors)
-    pts = bpy.data.objects["SplatColors"]
+    for name in ("Instancer", "StaticInstancer"):  # moving and pinned instances
+        inst = bpy.data.objects.get(name)
+        if inst is not None:
+            inst.hide_render = True  # the unit-sphere instances hide the colours (they are on *SplatColors)
+    point_sets = [bpy.data.objects[n] for n in ("SplatColors", "StaticSplatColors") if n in bpy.data.objects]
     for a in ("pdtool static box",):
         o = bpy.data.objects[a]
         o.modifiers.new("wire", "WIREFRAME").thickness = 0.006
@@ -183,7 +184,8 @@ def blender_session(splat: Path, zip_path: Path, out_dir: Path, render_png: Path
     attr = mat_pts.node_tree.nodes.new("ShaderNodeAttribute")
     attr.attribute_name = "displayColor"
     mat_pts.node_tree.links.new(attr.outputs["Color"], mat_pts.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
-    pts.data.materials.append(mat_pts)
+    for pts in point_sets:
+        pts.data.materials.append(mat_pts)
     cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
     sc.collection.objects.link(cam)
     sc.camera = cam
