@@ -592,7 +592,13 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int
 @click.option("--preset", help="Material preset instead of a fit: flower, leafy-plant, fabric-hat, rubber-cord, "
                                "jelly, or your own TOML file (see `pdtool presets materials`).")
 @click.option("--force", "force_vec", type=T.FORCE, required=True, metavar="FX,FY,FZ",
-              help="Acceleration in scene units per s^2, e.g. 0,0,1 pushes up at 1 unit/s^2 (each within +-1e9).")
+              help="Acceleration along the scene's axes, in object sizes per s^2 by default: 0,0,1 pushes along +z "
+                   "so that a free object would travel 3% of its size during a 0.25 s push, on any capture "
+                   "whatever its scale. Each component within +-1e9.")
+@click.option("--force-units", type=click.Choice(["size", "g", "scene"]), default="size", show_default=True,
+              help="Units of --force: size (the object's longest side per s^2); g (9.81 m/s^2 at the simulated "
+                   "size: --meters-per-unit, or a longest side of 1 m); scene (scene units per s^2, which depend "
+                   "on the capture's scale).")
 @click.option("--interaction", metavar="NAME|FILE",
               help="Force preset: poke (short tap at the top), gust (whole object), drag (long pull), "
                    "or a TOML file. Sets --at/--radius/--start/--duration; explicit options win.")
@@ -637,6 +643,7 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int
 @prepare_options_decorator
 @DEVICE_OPTION
 def bake(out: Path, scene: Path | None, material: Path | None, preset: str | None, force_vec: tuple[float, ...],
+         force_units: str,
          interaction: str | None, at_point: tuple[float, ...] | str | None, radius: float | None,
          force_box: tuple[float, ...] | None, start: float | None, duration: float | None, seconds: float | None,
          frames: int | None, fps: float, quality: str | None, fmt: str, preview: Path | None,
@@ -678,9 +685,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 
         overrides = dict(at=at_point, radius=radius, start=start, duration=duration, box=force_box)
         if interaction is not None:
-            spec = ForceSpec.from_interaction(interaction, force_vec, **overrides)
+            spec = ForceSpec.from_interaction(interaction, force_vec, units=force_units, **overrides)
         else:
-            spec = ForceSpec(accel=force_vec)
+            spec = ForceSpec(accel=force_vec, units=force_units)
             for k, v in overrides.items():
                 if v is not None:
                     setattr(spec, k, v)

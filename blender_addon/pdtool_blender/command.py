@@ -72,7 +72,8 @@ def bake_command(prefix: Sequence[str], *, scene: str | Path, out: str | Path, f
     """
     if (preset is None) == (material is None):
         raise ValueError("give a material preset or a material file, not both or neither")
-    cmd = [*prefix, "bake", "--scene", str(scene), "--force", _vec(force)]
+    # the arrow is drawn in the splat's own units, so the force is too
+    cmd = [*prefix, "bake", "--scene", str(scene), "--force", _vec(force), "--force-units", "scene"]
     cmd += ["--preset", preset] if preset is not None else ["--material", str(material)]
     if static_box is not None:
         cmd += ["--static-box", _vec(static_box)]

@@ -42,6 +42,8 @@ from pd_tool.video.folder import write_video_folder
 # the peak (after the force ended) for REST_FRAMES frames in a row.
 REST_FRACTION = 1e-4
 REST_FRAMES = 10
+FORCE_UNITS = ("size", "g", "scene")
+STANDARD_GRAVITY = 9.80665  # m/s^2: one g of --force
 DEFAULT_DURATION_S = 0.25  # force duration when neither --duration nor an interaction says
 
 
@@ -53,7 +55,10 @@ class ForceRegionError(PdToolError):
 class ForceSpec:
     """An acceleration applied to a region for a time window.
 
-    accel: (3,) scene units / s^2. at: a point (scene units), "top" (the free particle
+    accel: (3,) along the scene's axes, in `units`: "size" (the object's longest side per s^2:
+    a free object pushed for 0.25 s travels 3% of its size per unit, on any capture), "g"
+    (9.80665 m/s^2 at the simulated size: --meters-per-unit, or the longest side 1 m), or
+    "scene" (scene units / s^2, which depend on the capture's scale). at: a point (scene units), "top" (the free particle
     highest along up) or None (every free particle). radius: scene units (with a point or
     "top"); radius_fraction: the radius as a fraction of the object's longest side, used
     when radius is None. box: x0,y0,z0,x1,y1,z1 in scene units instead of at/radius.
@@ -68,15 +73,34 @@ class ForceSpec:
     start: float = 0.0
     duration: float = DEFAULT_DURATION_S
     magnitude: float = 1.0  # accel / --force: a force preset's factor, to quote limits in --force's units
+    units: str = "scene"  # the library's numbers are scene units; the CLI's --force defaults to g
+
+    def __post_init__(self) -> None:
+        if self.units not in FORCE_UNITS:
+            raise ValueError(f"force units must be one of {', '.join(FORCE_UNITS)}, not {self.units!r}")
+
+    def unit_m_s2(self, prep: PreparedScene) -> float:
+        """m/s^2 of one unit of accel in the simulation of `prep`."""
+        if self.units == "size":
+            return prep.object_size_m
+        return STANDARD_GRAVITY if self.units == "g" else float(prep.transform.scale)
+
+    def accel_sim(self, prep: PreparedScene) -> np.ndarray:
+        """The acceleration [3] in m/s^2 along the simulation's axes."""
+        return self.unit_m_s2(prep) * (np.asarray(self.accel, np.float64) @ prep.transform.R.T)
+
+    def unit_name(self) -> str:
+        return {"size": "object sizes/s^2", "g": "g", "scene": "scene units/s^2"}[self.units]
 
     @classmethod
-    def from_interaction(cls, name_or_path: str | Path, accel: tuple[float, float, float], **overrides: Any) -> "ForceSpec":
+    def from_interaction(cls, name_or_path: str | Path, accel: tuple[float, float, float], units: str = "scene",
+                         **overrides: Any) -> "ForceSpec":
         """A force preset (poke, gust, drag or a TOML file) scaled by accel, then overrides."""
         p = load_preset("forces", name_or_path)
         at = None if p["at"] == "all" else p["at"]
         spec = cls(accel=tuple(float(a) * p["magnitude"] for a in accel), at=at,
                    radius_fraction=p["radius"], start=p["start"], duration=p["duration"],
-                   magnitude=float(p["magnitude"]) or 1.0)
+                   magnitude=float(p["magnitude"]) or 1.0, units=units)
         for k, v in overrides.items():
             if v is not None:
                 setattr(spec, k, v)
@@ -333,7 +357,7 @@ class Baker:
             what="bake", quality=str(s.quality or "the fit's"), driver_ratio=ratio, device=dev,
             resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
                        f"{'the fit (a coarser --quality overrides it)' if self.follows_fit else '--quality'}")
-        speed = float(np.linalg.norm(p.transform.vector_to_sim(np.asarray(self.force.accel, np.float64)))) * self.push_s
+        speed = float(np.linalg.norm(self.force.accel_sim(p))) * self.push_s
         # through the module, so that a test can stand in for the estimate
         work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
                              frames=self.n_frames, frame_dt=self.frame_dt, E_max=self.E_top,
@@ -357,13 +381,14 @@ class Baker:
         )
         self.solver = MPMSolver(d_rest, self.drivers.volume.cpu().numpy(), self.drivers.mass.cpu().numpy(), E,
                                 d_static, cfg, device=self.dev)
-        accel_sim = prep.transform.vector_to_sim(np.asarray(force.accel, np.float64))
+        accel_sim = force.accel_sim(prep)
         mask = force_mask(prep, d_rest, d_static, force)
         free_E = E[~d_static] if (~d_static).any() else E
         check_force(float(np.linalg.norm(accel_sim)), self.push_s,
                     float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx,
                     self.opts.density_kg_m3, float(free_E.max()), float(max(prep.domain)),
-                    float(prep.transform.scale), nu=self.nu, gap_m=_free_space(prep), magnitude=force.magnitude)
+                    force.unit_m_s2(prep), nu=self.nu, gap_m=_free_space(prep), magnitude=force.magnitude,
+                    unit=force.unit_name())
         self.force_end = force.start + force.duration
         self.solver.add_force(mask, accel_sim, force.start, self.force_end)
         self.n_drivers = len(d_rest)

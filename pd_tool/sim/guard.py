@@ -65,8 +65,8 @@ def _round_down(x: float) -> float:
 
 
 def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, density: float,
-                E_max: float, box_m: float, scale: float, *, nu: float = 0.3, gap_m: float | None = None,
-                magnitude: float = 1.0) -> None:
+                E_max: float, box_m: float, unit_m_s2: float, *, nu: float = 0.3, gap_m: float | None = None,
+                magnitude: float = 1.0, unit: str = "scene units/s^2") -> None:
     """Raise SimulationUnstable before simulating when a force cannot end stable.
 
     The message names a --force length that simulates stably (safe_acceleration).
@@ -77,7 +77,8 @@ def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, de
         pushed_extent_m: size of the pushed region (longest side), m.
         density: kg/m^3.  E_max: stiffest free particle's Young's modulus, Pa.  nu: Poisson's ratio.
         box_m: longest side of the simulation box, m.
-        scale: metres per scene unit, to quote the limit in the user's units.
+        unit_m_s2: m/s^2 of one unit of --force (metres per scene unit, or g), to quote the
+            limit in the user's units; unit: that unit's name.
         gap_m: free space between the object and the box's walls, m (None: a fifth of box_m).
         magnitude: the force preset's factor between --force and the acceleration.
     """
@@ -89,9 +90,9 @@ def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, de
         from pd_tool.sim.cfl import wave_speed
 
         ok = safe_acceleration(duration_s, wave_speed(E_max, density, nu), box_m / 5.0 if gap_m is None else gap_m)
-        hint = _round_down(ok / (scale * magnitude))
+        hint = _round_down(ok / (unit_m_s2 * magnitude))
         raise SimulationUnstable(
-            f"the force cannot end stable: {accel_m_s2 / scale:.3g} scene units/s^2 for {duration_s:g} s would "
+            f"the force cannot end stable: {accel_m_s2 / unit_m_s2:.3g} {unit} for {duration_s:g} s would "
             f"carry the object {travel:.3g} m (the simulation box is {box_m:.3g} m) and needs {strain:.3g}x the "
             f"stress E = {E_max:.3g} Pa can give; lower --force below about {hint:g} (a push of that length "
             f"simulates stably), shorten --duration, or raise E")

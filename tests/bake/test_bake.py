@@ -129,3 +129,33 @@ def test_a_thin_grid_that_would_run_too_long_falls_back_to_the_quality_grid(thin
     assert res.exit_code == 0, res.output
     assert "x32 grid" in res.output
     assert "thin parts: kept the 32-cell grid; 64 cells would take longer than --max-minutes allows" in res.output
+
+
+def test_force_in_object_sizes_moves_any_capture_scale_the_same(plant_ply: Path, tmp_path: Path) -> None:
+    # The same plant captured in centimetres (100x the coordinates): --force 1,0,0 in the
+    # default units (object sizes per s^2) moves both the same fraction of their size; in
+    # scene units the centimetre capture would barely move.
+    from dataclasses import replace
+
+    from pxr import Usd
+
+    from pd_tool.io import load_splats
+    from usd_export import instance_positions
+
+    base = load_splats(plant_ply)
+    big = replace(base, positions=base.positions * 100.0, scales=base.scales * 100.0, raw=None)
+    peaks = {}
+    for name, scene, units in (("m", base, "size"), ("cm", big, "size"), ("cm_scene", big, "scene")):
+        ply = save_splats(scene, tmp_path / f"{name}.ply")
+        out = tmp_path / f"{name}.usd"
+        res = _bake(["--scene", str(ply), "--preset", "flower", "--force", "1,0,0", "--force-units", units,
+                     "--seconds", "0.5", "--quality", "draft", "--static-below", "20%", "--up", "+z",
+                     "--format", "instancer", "--device", "cpu", str(out)], tmp_path)
+        assert res.exit_code == 0, res.output
+        stage = Usd.Stage.Open(str(out))
+        rest = instance_positions(stage, 0)[1]
+        size = float(np.ptp(rest, axis=0).max())
+        peaks[name] = max(float(np.abs(instance_positions(stage, f)[1] - rest).max()) for f in range(1, 16)) / size
+    assert 0.005 < peaks["m"] < 0.5, peaks  # visible, nothing flies off
+    assert abs(peaks["cm"] / peaks["m"] - 1) < 0.05, peaks
+    assert peaks["cm_scene"] < 0.05 * peaks["m"], peaks

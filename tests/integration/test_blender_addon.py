@@ -128,9 +128,12 @@ SESSION = textwrap.dedent('''
     for f in (sc.frame_start, sc.frame_end):
         sc.frame_set(f)
         dg = bpy.context.evaluated_depsgraph_get()
-        inst = {oi.persistent_id[1]: list(oi.matrix_world.translation) for oi in dg.object_instances
-                if oi.is_instance and oi.parent is not None and oi.parent.name == "Instancer"}
-        rep["frames"][str(f)] = [inst[i] for i in sorted(inst)]
+        per_prim = {}
+        for name in ("Instancer", "StaticInstancer"):  # moving and pinned instances
+            inst = {oi.persistent_id[1]: list(oi.matrix_world.translation) for oi in dg.object_instances
+                    if oi.is_instance and oi.parent is not None and oi.parent.name == name}
+            per_prim[name] = [inst[i] for i in sorted(inst)]
+        rep["frames"][str(f)] = per_prim
     print("REPORT_JSON" + json.dumps(rep))
 ''')
 
@@ -200,6 +203,22 @@ def test_command_line_from_scene_objects(session, plant):
     assert argv[-1].endswith(".usd")
 
 
+def _by_id(usd: str, per_prim: dict) -> np.ndarray:
+    """Blender's instance positions of each instancer prim, put back in the bake's Gaussian
+    order through the prims' USD ids (Blender numbers each prim's instances from 0)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(usd)
+    out = np.full((N_SPLATS, 3), np.nan)
+    for name, pos in per_prim.items():
+        prim = stage.GetPrimAtPath(f"/Root/{name}")
+        if not prim.IsValid():
+            assert not pos, name
+            continue
+        out[np.asarray(UsdGeom.PointInstancer(prim).GetIdsAttr().Get())] = np.asarray(pos).reshape(-1, 3)
+    return out
+
+
 @needs_bpy
 def test_bake_imports_animated_instancer(session, plant):
     rep, _ = session
@@ -212,7 +231,7 @@ def test_bake_imports_animated_instancer(session, plant):
     assert {"Instancer", "SplatColors"} <= set(good["new_objects"])
     # 0.3 s at 10 fps: frames 0..3, and the scene's frame rate follows the bake
     assert rep["frame_range"] == [0, 3] and rep["fps"] == 10
-    f0, f1 = (np.array(rep["frames"][str(f)]) for f in rep["frame_range"])
+    f0, f1 = (_by_id(rep["usd"], rep["frames"][str(f)]) for f in rep["frame_range"])
     assert f0.shape == f1.shape == (N_SPLATS, 3)
     # imported in scene units on the preview: frame 0 is the splat at rest
     np.testing.assert_allclose(f0, scene.positions.numpy(), atol=1e-4)

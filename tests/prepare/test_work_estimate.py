@@ -203,7 +203,7 @@ def test_quality_presets_are_bounded(tmp_path, text) -> None:
     ("jelly", [], "0,0,1e4"),  # the whole free object pushed into the box's wall
     ("jelly", [], "1e4,0,0"),
     ("jelly", ["--static-below", "0.2", "--interaction", "poke"], "1e5,0,0"),  # a tap held by the pot
-    ("flower", ["--static-below", "0.2", "--interaction", "gust"], "1e4,0,0"),
+    ("flower", ["--static-below", "0.2", "--interaction", "gust"], "5e4,0,0"),
 ])
 def test_the_force_the_guard_suggests_simulates(plant, tmp_path, preset, extra, force) -> None:
     """The refusal names a force; the same bake with that force must run to the end."""
