@@ -17,11 +17,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from usd_export import instance_positions
 
 
 def bake_positions(scene, device: str, frames: int, quality: str, out: Path) -> np.ndarray:
     """Every frame's Gaussian positions [T, N, 3] of a bake (read back from the USD)."""
-    from pxr import Usd, UsdGeom
+    from pxr import Usd
 
     from pd_tool.bake.baker import BakeSettings, ForceSpec, bake
     from pd_tool.prepare.preparation import PrepareOptions
@@ -32,9 +33,8 @@ def bake_positions(scene, device: str, frames: int, quality: str, out: Path) -> 
          prepare_options=PrepareOptions(static_below=POT_TOP),
          settings=BakeSettings(seconds=(frames - 1) / 30, quality=quality, device=device, stop_at_rest=False))
     stage = Usd.Stage.Open(str(out))
-    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
-    attr = inst.GetPositionsAttr()
-    return np.stack([np.asarray(attr.Get(t)) for t in range(frames)])
+    # every instance by id: pinned ones sit on their own prim, written once
+    return np.stack([instance_positions(stage, t)[1] for t in range(frames)])
 
 
 def main() -> None:

@@ -45,6 +45,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from usd_export import instance_positions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -217,15 +218,15 @@ def bake_positions(folder: Path, name: str, scene_path: Path, material: list[str
 
     accel, point, radius, _ = force
     out = folder / f"{name}.usd"
-    cli(["bake", "--scene", str(scene_path), *material, "--force", ",".join(f"{a:.9g}" for a in accel),
+    cli(["bake", "--scene", str(scene_path), *material, "--force", ",".join(f"{a:.9g}" for a in accel), "--force-units", "scene",
          "--at", ",".join(f"{a:.9g}" for a in point), "--radius", f"{radius:.9g}",
          "--duration", str(NEW_FORCE["duration"]), "--seconds", str(seconds), "--format", "instancer",
          "--device", device, *extra, str(out)])
     stage = Usd.Stage.Open(str(out))  # held: its prims expire with it
-    attr = stage.GetPrimAtPath("/Root/Instancer").GetAttribute("positions")
     frames = int(round(seconds * 30)) + 1
     R = usd_frame(up)[0]
-    return np.stack([np.asarray(attr.Get(float(f)), np.float64) for f in range(frames)]) @ R
+    # every instance by id: pinned ones sit on their own prim, written once
+    return np.stack([instance_positions(stage, float(f))[1].astype(np.float64) for f in range(frames)]) @ R
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float:

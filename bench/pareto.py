@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from usd_export import instance_positions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -71,8 +72,8 @@ def read_usd_positions(path: Path, frames: int) -> np.ndarray:
     from pxr import Usd
 
     stage = Usd.Stage.Open(str(path))
-    attr = stage.GetPrimAtPath("/Root/Instancer").GetAttribute("positions")
-    return np.stack([np.asarray(attr.Get(float(f)), np.float64) for f in range(frames)])
+    # every instance by id: pinned ones sit on their own prim, written once
+    return np.stack([instance_positions(stage, float(f))[1].astype(np.float64) for f in range(frames)])
 
 
 def bake_plant(scene, case: BakeCase, *, seconds: float, fps: float, device: str, folder: Path,

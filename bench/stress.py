@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from usd_export import instance_positions
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 OK = ("stable", "guard", "rejected")
@@ -223,8 +225,8 @@ def _read_positions(path: Path, frames: int) -> np.ndarray:
     from pxr import Usd
 
     stage = Usd.Stage.Open(str(path))  # keep the stage alive while reading its prims
-    attr = stage.GetPrimAtPath("/Root/Instancer").GetAttribute("positions")
-    return np.stack([np.asarray(attr.Get(float(f)), np.float64) for f in range(frames)])
+    # every instance by id: pinned ones sit on their own prim, written once
+    return np.stack([instance_positions(stage, float(f))[1].astype(np.float64) for f in range(frames)])
 
 
 def _classify(pos: np.ndarray, prep, accel: float, duration: float, fps: float) -> dict:
