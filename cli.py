@@ -505,7 +505,7 @@ def _resolved_up(splats, up: str) -> str:
 
     axis, guess = auto_up(splats, up)
     if guess is not None and not guess.sure:
-        click.echo(up_line(guess), err=True)
+        click.echo(up_line(guess))  # information, not an error: stderr keeps only errors
     return axis
 
 

@@ -36,6 +36,10 @@ SIGN_MARGIN = 0.03  # the chosen end wins by this much
 HULL_POINTS = 3000  # footprint points kept for the hull (evenly strided, deterministic)
 
 
+DEFAULT_UP = "+z"  # what --up auto takes when the guess is not sure
+MIN_GUESS_POINTS = 20
+
+
 @dataclass(frozen=True)
 class UpGuess:
     """The guessed up axis, whether the guess is sure, and what decided it."""
@@ -112,8 +116,10 @@ def guess_up(positions: np.ndarray, scales: np.ndarray | None = None,
     """Guess the up axis of a scene from its Gaussians: positions [N, 3], scales [N, 3]
     (standard deviations), opacities [N] (0-1). See the module docstring."""
     pos = np.asarray(positions, np.float64)
-    keep = _object(pos, opacities)
+    keep = _object(pos, opacities) if len(pos) else np.zeros(0, bool)
     p = pos[keep]
+    if len(p) < MIN_GUESS_POINTS:  # too few Gaussians to show a base or an underside
+        return UpGuess(DEFAULT_UP, False, 0.0, 0.0, {})
     size = None if scales is None else np.asarray(scales, np.float64)[keep].max(axis=1)
     lo, hi = np.quantile(p, 0.005, axis=0), np.quantile(p, 0.995, axis=0)
     ext = np.maximum(hi - lo, 1e-12)
@@ -198,14 +204,15 @@ def resolve_up(positions: np.ndarray, up_axis: str, scales: np.ndarray | None = 
     if up_axis != "auto":
         return up_axis, None
     g = guess_up(positions, scales, opacities)
-    return g.axis, g
+    # an unsure guess is no better than the convention most splat tools write
+    return (g.axis if g.sure else DEFAULT_UP), g
 
 
 def up_line(guess: UpGuess) -> str:
     """One line saying which axis --up auto took, and how to override it."""
     if guess.sure:
         return f"up axis {guess.axis}, guessed from the splats (--up auto; give --up to override)"
-    others = " or ".join(a for a in UP_AXES if a[1] == guess.axis[1] and a != guess.axis)
-    return (f"up axis: took {guess.axis}, a guess that is not sure (margins {guess.axis_gap:.2f} axis, "
-            f"{guess.sign_gap:.2f} end); if the render shows the object on its side or upside down, give "
-            f"--up {others} or another axis")
+    return (f"up axis: took {DEFAULT_UP}, the default, as the guess from the splats ({guess.axis}, margins "
+            f"{guess.axis_gap:.2f} axis, {guess.sign_gap:.2f} end) is not sure; if the render shows the object "
+            f"on its side or upside down, give --up {guess.axis if guess.axis != DEFAULT_UP else '-y'} or "
+            "another axis")
