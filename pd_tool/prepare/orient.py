@@ -153,7 +153,11 @@ def object_heights(positions: np.ndarray, up_axis: str, opacities: np.ndarray | 
     """(bottom, top): the object's lowest and highest coordinate along `up_axis` (a signed
     coordinate along that direction), floaters and invisible Gaussians left out."""
     h = np.asarray(positions, np.float64) @ direction(up_axis)
-    keep = _object(np.asarray(positions, np.float64), opacities)
+    keep = _object(np.asarray(positions, np.float64), opacities) if len(h) else np.zeros(0, bool)
+    if not keep.any():  # every Gaussian an outlier (one or two of them): use them all
+        keep = np.ones(len(h), bool)
+    if not len(h):
+        return 0.0, 0.0
     return float(h[keep].min()), float(h[keep].max())
 
 
