@@ -45,3 +45,19 @@ def fit_dir(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("fit")
     tiny_plant_video(folder, 300, seed=0, size=24, n_frames=3)
     return folder
+
+
+@pytest.fixture
+def one_torch_thread():
+    """torch on one thread for the test, restored afterwards. On a shared 2-core machine
+    torch's intra-op threads spin against each other and make small tensor ops (tiny
+    images, finite differences over hundreds of forwards) ten times slower; the tests that
+    use this are serial anyway. Modules opt in with
+    `pytestmark = pytest.mark.usefixtures("one_torch_thread")`."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+

@@ -12,14 +12,7 @@ from pd_tool.drivers._ref import affine_ref, interpolate_rigid_ref, kabsch_ref
 from pd_tool.drivers.interpolate import AFFINE_REG
 from pd_tool.drivers.knn import nearest_drivers
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # On a shared 2-core machine torch's intra-op threads spin against each other and
-    # make small tensor ops ten times slower; these tests are serial anyway.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # float32 coordinates of order 1: a rotation is recovered to a few ulp times the

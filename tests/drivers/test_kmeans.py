@@ -17,14 +17,7 @@ from pd_tool.drivers.knn import knn
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # On a shared 2-core machine torch's intra-op threads spin against each other and
-    # make small tensor ops ten times slower; these tests are serial anyway.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def torus(n: int, gen: torch.Generator, noise: float = 0.0) -> torch.Tensor:

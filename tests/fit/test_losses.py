@@ -13,14 +13,7 @@ TOL64 = 1e-12  # float64: the separable convolution only reorders sums
 TOL32 = 2e-5  # float32 on 0-1 images: rounding in the variance terms E[x^2] - mu^2
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Tiny images: with 2 threads on a shared CPU, torch's thread hand-off costs 10x the
-    # arithmetic (finite differences run hundreds of forwards). Restored afterwards.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def ssim_map_ref(a: torch.Tensor, b: torch.Tensor, window: int, sigma: float) -> torch.Tensor:
