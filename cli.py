@@ -533,29 +533,37 @@ def _fmt_size(n: int) -> str:
               help="Coloured copy of the scene (.ply): red = left out, blue = static, others as they are.")
 @click.option("--png", type=PNG_OUT, help="Also render it to this PNG.")
 @click.option("--quality", default="default", show_default=True,
-              help="draft | default | final or a TOML file: select prepares the scene as `pdtool fit --quality Q` "
-                   "does (its grid, fill decision and static set), which a bake of the fitted material repeats.")
+              help="draft | default | final or a TOML file: the quality whose preparation (grid, fill decision, "
+                   "static set) select shows.")
+@click.option("--for", "stage", type=click.Choice(["fit", "bake"]), default="fit", show_default=True,
+              help="fit: as `pdtool fit --quality Q` prepares the scene, which a bake of the fitted material "
+                   "repeats; bake: as `pdtool bake --preset NAME --quality Q` does, on the quality's bake grid, "
+                   "raised for thin parts as the bake raises it.")
 @click.option("--grid-res", type=T.BoundedInt(10, 256), default=None,
-              help="Grid cells along the simulation box's longest side, e.g. 64.  [default: the quality's fit grid]")
+              help="Grid cells along the simulation box's longest side, e.g. 64.  [default: the grid --quality "
+                   "and --for give]")
 @prepare_options_decorator
 @DEVICE_OPTION
-def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int | None, device: str,
+def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, grid_res: int | None, device: str,
            **prep_kw) -> None:
     """Show which Gaussians a fit or bake would move, fix or leave out.
 
     Takes the same foreground and static-region options as fit and bake, prints what
     they select, and writes a coloured copy of the scene to look at (in pdtool render,
-    a splat viewer or a DCC).
+    a splat viewer or a DCC). The grid, the fill decision and the static set are those of
+    the fit at --quality (a bake of its material simulates the same), or with --for bake
+    those of a bake with a material preset.
 
     \b
     Example:
       pdtool select donut.ply --static-below 0.005 -o selection.ply --png selection.png
       pdtool select plant.ply --pin auto --quality draft -o selection.ply --png selection.png
+      pdtool select tree.splat --pin auto --for bake -o selection.ply --png selection.png
     """
     with user_errors():
         from pd_tool.core.device import resolve_device
         from pd_tool.io import load_splats, save_ply
-        from pd_tool.prepare import PrepareOptions, prepare_scene
+        from pd_tool.prepare import PrepareOptions, prepare_scene, refine_for_thin
         from pd_tool.core.atomic import check_destination, check_outputs
         from pd_tool.prepare.selection import selection_scene
 
@@ -565,11 +573,14 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int
                 check_destination(path)
         from pd_tool.materials.presets import fit_simulation, load_preset
 
-        fit_grid = fit_simulation(load_preset("quality", quality))[0]
+        preset = load_preset("quality", quality)
+        stage_grid = fit_simulation(preset)[0] if stage == "fit" else int(preset["grid_res"])
         dev = resolve_device(device)
         splats = load_splats(scene, device=dev)
-        opts = PrepareOptions(up_axis="auto", grid_res=grid_res or fit_grid).updated(**prepare_changes(**prep_kw))
+        opts = PrepareOptions(up_axis="auto", grid_res=grid_res or stage_grid).updated(**prepare_changes(**prep_kw))
         prep = prepare_scene(splats, opts)
+        if stage == "bake" and grid_res is None:  # the bake's raise for thin parts (before its time check)
+            prep = refine_for_thin(prep, int(preset.get("thin_grid_res", stage_grid))) or prep
         coloured = selection_scene(prep)
         save_ply(coloured, out)
         if png is not None:
@@ -577,9 +588,11 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, grid_res: int
             from pd_tool.render.views import render_image, scene_camera
 
             save_png(png, render_image(coloured, scene_camera(coloured, up_axis=prep.options.up_axis)))
-    click.echo(f"quality {quality}: " + (f"the {fit_grid}-cell grid that `pdtool fit --quality {quality}` and a bake "
-                                        f"of its material simulate on" if grid_res is None else
-                                        f"--grid-res {grid_res} instead of its {fit_grid}-cell fit grid"))
+    as_run = (f"`pdtool fit --quality {quality}` and a bake of its material prepare it" if stage == "fit" else
+              f"`pdtool bake --preset NAME --quality {quality}` prepares it")
+    click.echo(f"quality {quality}: " + (f"prepared as {as_run}, on a {max(prep.grid_dims)}-cell grid"
+                                        if grid_res is None else
+                                        f"--grid-res {grid_res} instead of the {stage_grid}-cell grid on which {as_run}"))
     _echo_report(prep.report)
     click.echo(f"wrote {out}" + (f" and {png}" if png else "") + " (red: left out, blue: static)")
 
@@ -652,18 +665,19 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
     """Simulate the object under a force and write an animated USD to OUT.
 
     The material comes from --preset, from --material, or, with neither, from the
-    last `pdtool fit` run in this folder. The force is an acceleration (scene units per
-    s^2) applied to the free particles within --radius of --at (or in --box, or the
-    whole object) from --start for --duration seconds. The output appears whole or
-    not at all. A bake whose work estimate exceeds --max-minutes is refused before it
-    starts.
+    last `pdtool fit` run in this folder. The force is an acceleration, in object sizes
+    per s^2 unless --force-units says otherwise, applied to the free particles within
+    --radius of --at (or in --box, or the whole object) from --start for --duration
+    seconds: --force 0,0,1 moves any capture a few percent of its size. The output
+    appears whole or not at all. A bake whose work estimate exceeds --max-minutes is
+    refused before it starts.
 
     \b
     Examples:
       pdtool bake --scene plant.ply --preset flower --force 0,0,1 --seconds 1 out.usd
       pdtool bake --force 0,0,1 out.usd          # uses the last fit in this folder
-      pdtool bake --scene donut.ply --preset jelly --static-below 0.01 \\
-          --interaction poke --force 0,0,-40 --preview poke.mp4 poke.usd
+      pdtool bake --scene donut.ply --preset jelly --pin auto \\
+          --interaction poke --force 0,0,-3 --preview poke.mp4 poke.usd
     """
     if material is not None and preset is not None:
         raise click.UsageError("give --material or --preset, not both")
@@ -716,6 +730,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         f"{result.substeps_per_frame} substeps/frame, {result.gaussians:,} Gaussians driven by "
         f"{result.drivers:,} particles, {result.seconds_elapsed:.1f} s, {_fmt_size(result.bytes_written)}"
     )
+    disp = result.displacement_per_frame
+    click.echo(f"peak motion {100 * result.peak_displacement / max(result.object_size, 1e-30):.2g}% of the object's "
+               f"size, at frame {max(range(len(disp)), key=disp.__getitem__)}")
 
 
 @main.command()

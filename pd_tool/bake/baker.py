@@ -147,6 +147,7 @@ class BakeResult:
     seconds_elapsed: float
     bytes_written: int
     peak_displacement: float  # scene units, over all Gaussians and frames
+    object_size: float  # the simulated Gaussians' longest extent, scene units
     displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
     timings: dict[str, float] = field(default_factory=dict)  # seconds: setup, simulate, interpolate, write, total
     report: list[str] = field(default_factory=list)
@@ -511,7 +512,7 @@ class Baker:
             out=self.out, frames=self.n_frames, simulated_frames=self.simulated, substeps_per_frame=self.substeps,
             gaussians=self.scene.count, drivers=self.n_drivers, seconds_elapsed=time.perf_counter() - self.t_start,
             bytes_written=self.out.stat().st_size, peak_displacement=max(self.disp),
-            displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
+            object_size=self.prep.object_size_m / float(self.prep.transform.scale), displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
         )
         if self.preview is not None:
             write_preview(self.preview_images, self.preview, self.settings.fps)

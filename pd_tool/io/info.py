@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from pd_tool.core.scene import GaussianScene
+from pd_tool.prepare.orient import guess_up, object_heights
 
 ROBUST_QUANTILE = 0.01  # the robust box ignores this fraction of points at each end, per axis
 
@@ -43,7 +44,6 @@ def scene_summary(scene: GaussianScene) -> dict[str, Any]:
         "memory_bytes": scene.nbytes(),
         "extra_properties": list(scene.extra),
     }
-    from pd_tool.prepare.orient import guess_up, object_heights
 
     guess = guess_up(pos, scales, opac)
     bottom, top = object_heights(pos, guess.axis, opac)

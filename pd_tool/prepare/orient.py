@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pd_tool.prepare.outliers import select_outliers
+
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 SUPPORT_SLAB = 0.05  # bottom fraction of the height whose footprint carries the object
 UNDERSIDE_SLAB = 0.2  # bottom fraction of the height whose Gaussians' sizes are compared
@@ -101,8 +103,6 @@ def _inside_margin(hull: np.ndarray, c: np.ndarray) -> float:
 
 def _object(positions: np.ndarray, opacities: np.ndarray | None) -> np.ndarray:
     """Mask of the Gaussians that make the object: visible, not isolated floaters."""
-    from pd_tool.prepare.preparation import select_outliers
-
     keep = np.ones(len(positions), bool) if opacities is None else np.asarray(opacities) >= 0.02
     if keep.sum() < 10:
         keep[:] = True

@@ -19,6 +19,8 @@ from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
 from pd_tool.prepare.fill import fill_interior
+from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
+from pd_tool.prepare.outliers import select_outliers
 from pd_tool.prepare.thickness import describe_refinement, thin_parts
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -27,7 +29,6 @@ DEFAULT_OBJECT_SIZE_M = 1.0  # longest object extent when no --meters-per-unit i
 # cell volumes and masses stay normal numbers (a micrometre to a thousand kilometres).
 OBJECT_SIZE_RANGE_M = (1e-6, 1e6)
 WALL_CELLS = 3  # grid cells at each face that the solver reserves for domain walls
-OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
 
 
 # ----------------------------------------------------------------------------- boxes
@@ -233,46 +234,6 @@ class PreparedScene:
 
 
 # ----------------------------------------------------------------------------- steps
-def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float) -> np.ndarray:
-    """Points [N] in each point's 3x3x3 block of voxels of size h (self included)."""
-    keys = np.floor((points - lo) / h).astype(np.int64)
-    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    base = uniq.min(axis=0) - 1
-    span = uniq.max(axis=0) - base + 2
-
-    def lin(k: np.ndarray) -> np.ndarray:
-        return ((k[:, 0] - base[0]) * span[1] + (k[:, 1] - base[1])) * span[2] + (k[:, 2] - base[2])
-
-    ukeys = lin(uniq)
-    order = np.argsort(ukeys)
-    sorted_keys = ukeys[order]
-    total = np.zeros(len(uniq), np.int64)
-    for d in np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3):
-        q = lin(uniq + d)
-        pos = np.clip(np.searchsorted(sorted_keys, q), 0, len(sorted_keys) - 1)
-        hit = sorted_keys[pos] == q
-        total[hit] += counts[order[pos[hit]]]
-    return total[inverse.reshape(-1)]
-
-
-def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS) -> np.ndarray:
-    """Mask [N] of isolated points: fewer than `min_neighbors` points (self included) in
-    their 3x3x3 voxel neighbourhood. The voxel size adapts to the point density: the finest
-    of max_cells, max_cells/2, ... voxels along the robust extent at which the median point
-    has at least 8 * min_neighbors neighbours. O(N log N), no pairwise distances."""
-    if len(points) == 0:
-        return np.zeros(0, bool)
-    lo = np.quantile(points, 0.01, axis=0)
-    hi = np.quantile(points, 0.99, axis=0)
-    extent = max(float((hi - lo).max()), 1e-12)
-    cells = max_cells
-    while True:
-        total = _neighbourhood_counts(points, lo, extent / cells)
-        if cells <= 4 or np.median(total) >= 8 * min_neighbors:
-            return total < min_neighbors
-        cells //= 2
-
-
 def select_foreground(scene: GaussianScene, options: PrepareOptions) -> tuple[np.ndarray, list[str]]:
     """Indices [F] of the Gaussians to simulate, and report lines saying why others were left out."""
     pos = scene.positions.detach().cpu().double().numpy()
@@ -312,7 +273,6 @@ def static_selection(positions_scene: np.ndarray, options: PrepareOptions) -> tu
     """Mask [F] of the Gaussians that stay fixed (Dirichlet cells in the simulator), and
     report lines: what --pin auto found, and a `warning:` line when a pin option pins
     nothing or more than PIN_MOST of the object. options.up_axis is resolved (not auto)."""
-    from pd_tool.prepare.orient import direction, find_base
 
     static = np.zeros(len(positions_scene), bool)
     lines: list[str] = []
@@ -422,7 +382,6 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     if options.density_kg_m3 <= 0 or not math.isfinite(options.density_kg_m3):
         raise PreparationError(f"density {options.density_kg_m3} must be a positive number of kg/m^3")
     if options.up_axis == "auto":
-        from pd_tool.prepare.orient import resolve_up, up_line
 
         up, guess = resolve_up(scene.positions.detach().cpu().double().numpy(),
                                "auto", scene.scales.detach().cpu().double().numpy(),

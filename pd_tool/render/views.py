@@ -9,6 +9,7 @@ import torch
 from pd_tool.core.cameras import Camera, auto_camera, load_cameras, select_view
 from pd_tool.core.errors import CameraError
 from pd_tool.core.scene import GaussianScene
+from pd_tool.prepare.orient import resolve_up
 from pd_tool.render import render
 
 DEFAULT_SIZE = (768, 432)  # width, height of an automatic camera, pixels (16:9)
@@ -45,7 +46,6 @@ def scene_camera(
 
 def auto_up(scene: GaussianScene, up_axis: str = "auto"):
     """(the up axis, the UpGuess behind it or None): `up_axis` itself unless "auto"."""
-    from pd_tool.prepare.orient import resolve_up
 
     return resolve_up(scene.positions.detach().cpu().double().numpy(), up_axis,
                       scene.scales.detach().cpu().double().numpy(), scene.opacities.detach().cpu().double().numpy())

@@ -18,6 +18,7 @@ import warp as wp
 
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
+from pd_tool.sim.cfl import cfl_substeps, wave_speed
 from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
@@ -630,8 +631,6 @@ def simulate_frames(sim: DiffSim, state: State, E: torch.Tensor, frame_dt: float
 def cfl_substeps_for(E: torch.Tensor, sim: DiffSim, frame_dt: float, vmax: float = 0.0, quantile: float = 1.0) -> int:
     """CFL substeps per frame for the current E (stiffest moving particle; with quantile
     < 1, that quantile of the moving particles' wave speeds), at least config.min_substeps."""
-    from pd_tool.sim.cfl import cfl_substeps, wave_speed
-
     moving = ~sim._static if sim._static.any() and not sim._static.all() else np.ones(sim.n, bool)
     c = wave_speed(E.detach().cpu().numpy()[moving], (sim._mass / sim._vol)[moving], sim.config.nu, quantile)
     return max(cfl_substeps(frame_dt, sim.geo.dx, c, vmax, sim.config.cfl_safety), sim.config.min_substeps or 0)

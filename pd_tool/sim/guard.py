@@ -7,6 +7,7 @@ import numpy as np
 
 from pd_tool.core.errors import SimulationUnstable
 from pd_tool.sim import kernels as K
+from pd_tool.sim.cfl import wave_speed
 
 
 def check_stats(stats: np.ndarray, frame: int, time_s: float, substeps: int) -> None:
@@ -87,7 +88,6 @@ def check_force(accel_m_s2: float, duration_s: float, pushed_extent_m: float, de
     travel = 0.5 * accel_m_s2 * duration_s ** 2  # a free particle's displacement, m
     strain = density * accel_m_s2 * max(pushed_extent_m, 1e-9) / E_max  # stress needed / E
     if travel > box_m and strain > HOPELESS_STRAIN:
-        from pd_tool.sim.cfl import wave_speed
 
         ok = safe_acceleration(duration_s, wave_speed(E_max, density, nu), box_m / 5.0 if gap_m is None else gap_m)
         hint = _round_down(ok / (unit_m_s2 * magnitude))

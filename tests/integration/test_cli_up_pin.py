@@ -42,7 +42,8 @@ def test_info_prints_the_up_guess_and_heights(shared_data: Path) -> None:
 def test_select_pin_auto_reports_the_pot_and_the_quality(plant, tmp_path) -> None:
     res = _run(["select", plant, "-o", tmp_path / "s.ply", "--pin", "auto", "--quality", "draft"])
     assert res.exit_code == 0, res.output
-    assert res.stdout.startswith("quality draft: the 24-cell grid")
+    assert res.stdout.startswith("quality draft: prepared as `pdtool fit --quality draft` and a bake of its material "
+                                 "prepare it, on a 24-cell grid")
     assert re.search(r"pin auto: [\d,]+ Gaussians \(2\d\.\d%\), heights .* along \+z", res.stdout), res.stdout
     assert "up axis +z" in res.stdout and res.stderr == ""
 
@@ -56,6 +57,28 @@ def test_select_uses_the_qualitys_fit_grid(plant, tmp_path) -> None:
     assert max(map(int, grids["draft"])) == 24 and max(map(int, grids["default"])) == 32
     line = _one_error_line(_run(["select", plant, "-o", tmp_path / "s.ply", "--quality", "superb"]))
     assert "superb" in line
+
+
+def _preparation_lines(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if re.match(r"(fill|pin auto|thin parts|[\d,]+ Gaussians simulated)", ln)]
+
+
+@pytest.mark.parametrize("quality", ["draft", "default"])
+def test_select_for_bake_shows_what_a_preset_bake_simulates(plant, tmp_path, quality) -> None:
+    # the grid (raised for the thin leaves at default), the fill decision and the static set
+    # that select prints are the bake's own report lines
+    common = ["--pin", "auto", "--quality", quality, "--device", "cpu"]
+    sel = _run(["select", plant, "-o", tmp_path / "s.ply", "--for", "bake", *common])
+    assert sel.exit_code == 0, sel.output
+    assert sel.stdout.startswith(f"quality {quality}: prepared as `pdtool bake --preset NAME --quality {quality}`")
+    baked = _run(["bake", "--scene", plant, "--preset", "leafy-plant", "--force", "1,0,0", "--frames", "2",
+                  "--format", "instancer", *common, tmp_path / "b.usd"])
+    assert baked.exit_code == 0, baked.output
+    want = _preparation_lines(baked.stdout)
+    assert len(want) >= 3 and any("Gaussians simulated" in ln for ln in want), baked.stdout
+    assert _preparation_lines(sel.stdout) == want
+    fit_sel = _run(["select", plant, "-o", tmp_path / "s.ply", *common])
+    assert _preparation_lines(fit_sel.stdout) != want  # the fit's grid is coarser
 
 
 def test_static_below_percent_and_warnings(plant, tmp_path) -> None:

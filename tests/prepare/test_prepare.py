@@ -8,8 +8,9 @@ import torch
 from pd_tool.core.errors import PreparationError
 from pd_tool.prepare.preparation import (
     WALL_CELLS, Box, PrepareOptions, SimTransform, fit_transform, particle_volumes,
-    prepare_scene, select_outliers, up_rotation,
+    prepare_scene, up_rotation,
 )
+from pd_tool.prepare.outliers import select_outliers
 from pd_tool.io.synthetic import POT_TOP, REGIONS, make_plant
 
 
