@@ -249,7 +249,7 @@ def main() -> None:
             rec = float(np.median(gaussian_E[labels == i]))
             regions[name] = {"truth_pa": REGION_TRUTH_E[name], "fitted_pa": rec,
                              "abs_ln_error": abs(float(np.log(rec / REGION_TRUTH_E[name]))),
-                             # the "relative error in log space": |ln E_fit - ln E| / ln E
+                             # relative error in log space, as the fit's goal states it: |ln E_fit - ln E| / ln E
                              "log_space_rel_error": abs(float(np.log(rec) - np.log(REGION_TRUTH_E[name])))
                              / float(np.log(REGION_TRUTH_E[name])),
                              "rel_error": rec / REGION_TRUTH_E[name] - 1.0}

@@ -16,7 +16,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # float32 coordinates of order 1: a rotation is recovered to a few ulp times the
-# condition of the neighbourhood; 1e-5 is the bound.
+# condition of the neighbourhood; 1e-5 is the bound we hold it to.
 TOL32 = 1e-5
 TOL64 = 1e-10
 

@@ -29,7 +29,7 @@ from usd_export._geom import normalize_quats, srgb_to_linear  # noqa: E402
 N = 240
 START, FRAMES, HOLD_TO = 1, 8, 12
 PROBE_FRAMES = (2, 7)  # two different frames with motion between them
-POS_TOL = 1e-4  # scene units; the issue's bar for positions after the round trip
+POS_TOL = 1e-4  # scene units; the bar for positions after the round trip through Blender
 QUAT_TOL = 3e-3  # quath storage (11-bit mantissa) plus Blender's float matrices
 
 PROBE = textwrap.dedent('''

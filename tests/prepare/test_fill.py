@@ -15,7 +15,7 @@ from pd_tool.core.errors import PreparationError
 from pd_tool.prepare.fill import AUTO_CLOSEDNESS, FillError, fill_interior
 
 CELL = 0.05  # m; a 0.5 m sphere spans 20 cells, like an object in a 64^3 box
-VOLUME_RTOL = 0.05  # the bound on the filled volume of a closed sphere
+VOLUME_RTOL = 0.05  # bound on the filled volume of a closed sphere
 
 
 def _quat_z_to(n: np.ndarray) -> np.ndarray:
