@@ -224,6 +224,23 @@ def test_real_captures_follow_auto(shared_data, name):
     assert r.decision == (name == "donut_fused.ply"), r.reason
 
 
+@pytest.mark.slow
+def test_the_donut_fills_the_same_on_every_fine_grid(shared_data):
+    # A converged reference and a raised bake must fill the scan as the default grid does:
+    # the shell's closedness and the filled volume stay put as the cell shrinks 2x.
+    from pd_tool.io import load_splats
+
+    scene = load_splats(shared_data / "donut_fused.ply")
+    pos = scene.positions.numpy().astype(np.float64)
+    longest = float((pos.max(0) - pos.min(0)).max())
+    runs = [fill_interior(scene.positions, scene.quats, scene.scales, scene.opacities, cell=longest * 1.6 / g,
+                          mode="auto", time_budget_s=300.0) for g in (64, 96, 128)]
+    assert all(r.decision for r in runs), [r.reason for r in runs]
+    assert min(r.closedness for r in runs) >= 0.95, [r.reason for r in runs]
+    vol = np.array([r.interior_volume for r in runs])
+    assert vol.max() / vol.min() < 1.05, vol
+
+
 # ------------------------------------------------------------------ reference twins
 
 
