@@ -33,16 +33,16 @@ import warp as wp
 from pd_tool.sim import kernels as K
 from pd_tool.sim.gather import (
     CELL_BLOCK,
-    CELL_CAPACITY_W,
-    CELLS_PER_PASS,
     PARTICLE_BLOCK,
     CellLists,
     cell_lane_row,
     cell_row_terms,
+    find_runs,
     g2p_bin,
     grid_update_clear_bins,
-    p2g_cells,
+    p2g_runs,
     red_add_vec4,
+    runs_per_pass,
 )
 
 
@@ -120,7 +120,7 @@ def g2p_adjoint_particle(
     back): adj holds the cotangents of the substep's output state and its u, F are
     overwritten with the partial cotangents of the input u and F (the P2G adjoint adds the
     rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the
-    cell lists (binned != 0, summed by scatter_cells) or straight to adj_grid_v."""
+    cell lists (binned != 0, summed by scatter_runs) or straight to adj_grid_v."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
@@ -130,6 +130,8 @@ def g2p_adjoint_particle(
     if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
+        if binned != 0:
+            lists.cell[p] = -1  # in no run
     else:
         inv_dx = 1.0 / dx
         gvel = adj.v[p] + dt * gu
@@ -155,17 +157,10 @@ def g2p_adjoint_particle(
         if binned == 0:
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
         else:
-            cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-            slot = wp.atomic_add(lists.counts, cell, 1)
-            if slot == 0:
-                lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
-            if slot < CELL_CAPACITY_W:
-                lists.pay_fx[p] = fx
-                lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
-                lists.pay_A[p] = Ag
-                lists.slots[cell * CELL_CAPACITY_W + slot] = p
-            else:
-                scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
+            lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+            lists.pay_fx[p] = fx
+            lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
+            lists.pay_A[p] = Ag
 
 
 @wp.func
@@ -288,7 +283,7 @@ def p2g_g2p_adjoint(
 
 @wp.func
 def cell_row_sums_vec(
-    cell: int,
+    run: int,
     a: int,
     b: int,
     lists: CellLists,
@@ -296,29 +291,29 @@ def cell_row_sums_vec(
     nodes: wp.vec3i,
     out: wp.array3d(dtype=wp.vec4),
 ):
-    """gather.cell_row_sums without the mass: the vector sums of one cell and row, then
+    """gather.cell_row_sums without the mass: the vector sums of one run and row, then
     three reductions (the vec4s' w unused: one 128-bit reduction beats three 32-bit ones)."""
-    n, _m, s0, s1, s2 = cell_row_terms(cell, a, b, lists, dx, nodes)
+    n, _m, s0, s1, s2 = cell_row_terms(run, a, b, lists, dx, nodes)
     red_add_vec4(out, n[0], n[1], n[2], wp.vec4(s0[0], s0[1], s0[2], 0.0))
     red_add_vec4(out, n[0], n[1], n[2] + 1, wp.vec4(s1[0], s1[1], s1[2], 0.0))
     red_add_vec4(out, n[0], n[1], n[2] + 2, wp.vec4(s2[0], s2[1], s2[2], 0.0))
 
 
 @wp.kernel(enable_backward=False)
-def scatter_cells(
+def scatter_runs(
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
-    cells_per_pass: int,
+    runs_per_pass: int,
     out: wp.array3d(dtype=wp.vec4),
 ):
-    """gather.p2g_cells for the grid-velocity cotangent (nine threads per occupied cell)."""
+    """gather.p2g_runs for the grid-velocity cotangent (nine threads per run)."""
     lane_row = cell_lane_row(wp.tid())
-    n = lists.n_occupied[0]
+    n = lists.n_starts[0]
     slot = lane_row[0]
     while slot < n:
-        cell_row_sums_vec(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, out)
-        slot += cells_per_pass
+        cell_row_sums_vec(slot, lane_row[1], lane_row[2], lists, dx, nodes, out)
+        slot += runs_per_pass
 
 
 @wp.kernel(enable_backward=False)
@@ -332,7 +327,7 @@ def grid_adjoint(
 ):
     """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and the stored
     momentum and mass (the next recompute's P2G adds into them: this saves a memset per
-    substep) and, when binned, clears the cell lists for the next substep's scatter.
+    substep) and, when binned, clears the run list for the next substep's scatter.
 
     A node no particle reached holds an all-zero vec4, and its grid-velocity cotangent is
     zero too (the cotangent scatter carries the same B-spline weights as the P2G; a weight
@@ -346,10 +341,8 @@ def grid_adjoint(
     i, j, k = wp.tid()
     nodes = step.nodes
     pad = step.pad
-    if binned != 0:
-        lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
-        if i == 0 and j == 0 and k == 0:
-            lists.n_occupied[0] = 0
+    if binned != 0 and i == 0 and j == 0 and k == 0:
+        lists.n_starts[0] = 0
     q = grid_mmv[i, j, k]
     m = q[3]
     if m == 0.0 and q[0] == 0.0 and q[1] == 0.0 and q[2] == 0.0:
@@ -413,14 +406,15 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
         # G2P of substep i_in (skipped if do_g2p is 0) into state i_out, binned for substep i_out
         wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
             do_g2p, ptcl, states[i_in].struct, states[i_out].struct, step, forces, float((k0 + i_out) * dt),
-            grids[i_in].v, lists, grids[i_out].mmv, ctx.stats])
+            grids[i_in].v, lists, ctx.stats])
+        wp.launch(find_runs, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[lists])
 
     nodes, dx = geo.nodes_vec, float(geo.dx)
-    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+    per_pass = runs_per_pass(lists)
     g2p_bin_into(0, 0, 0)
     for i in range(count):
         g = grids[i]
-        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+        wp.launch(p2g_runs, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, dx, nodes, per_pass, g.mmv])
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 0, lists])
         if i < count - 1:
@@ -446,7 +440,7 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     adj_state, adj_E = adj
     adj_s = adj_state.struct
     adj_gv, adj_mmv = adj_grid
-    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+    per_pass = runs_per_pass(lists)
     count = len(grids)
     last = count - 1
     wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
@@ -454,7 +448,8 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
         if binned:
-            wp.launch(scatter_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+            wp.launch(find_runs, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[lists])
+            wp.launch(scatter_runs, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                       inputs=[lists, dx, nodes, per_pass, adj_gv])
         wp.launch(grid_adjoint, dim=geo.nodes, device=dev, inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), lists])
         t_offset = float((k0 + i) * dt)

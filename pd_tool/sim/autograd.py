@@ -197,16 +197,16 @@ class DiffSim:
         return int(min(substeps, max(1, budget * 2**20 // per_substep)))
 
     def _lists(self, binned: bool):
-        # The fast path's cell lists on CUDA (a run leaves them empty); unbinned, a one-cell
-        # set that no kernel reads.
+        # The fast path's cell lists on CUDA (a run leaves them empty); unbinned, a
+        # one-particle set that no kernel reads.
         if binned:
             bins = getattr(self, "_bins", None)
             if bins is None:
-                bins = self._bins = alloc_cell_lists(self.geo.nodes, self.n, self.device)
+                bins = self._bins = alloc_cell_lists(self.n, self.device)
             return bins
         tiny = getattr(self, "_tiny_lists", None)
         if tiny is None:
-            tiny = self._tiny_lists = alloc_cell_lists((1, 1, 1), 1, self.device)
+            tiny = self._tiny_lists = alloc_cell_lists(1, self.device)
         return tiny
 
     def _adjoint_pool(self, count: int):

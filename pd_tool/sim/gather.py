@@ -1,5 +1,5 @@
-"""P2G with few float atomics for the fast path: particles binned by cell, nine threads per
-occupied cell, one per row of three stencil nodes.
+"""P2G with few float atomics for the fast path: particles grouped in runs of one cell, nine
+threads per run, one per row of three stencil nodes.
 
 The scatter P2G (kernels.p2g_scatter) does 27 x 4 float atomics per particle. On a GPU
 those atomics, not arithmetic, bound the substep (bench/sim_profile.py: 105 of the 136 us
@@ -7,18 +7,22 @@ of a 100k-particle substep on an H200). Here:
 
 1. `g2p_bin` (per particle): G2P of this substep (skipped for a run's first binning), then
    the particle's P2G payload for the next one (B-spline offset fx, mass, momentum, MLS
-   affine matrix: the stress is evaluated once per particle) and a slot in the list of its
-   stencil cell. The first particle of a cell appends the cell to the occupied cells.
-2. `p2g_cells` (9 threads per occupied cell, each owning a row of 3 stencil nodes): sum
-   the contributions of the cell's particles to those nodes, then one reduction per node
-   (`red_add_vec4`: momentum and mass in one 128-bit `red` on sm_90+). Atomics drop by the
-   particles per cell (about 8), and the threads of a cell read the same payload (L1
-   broadcasts) and write different nodes.
-3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid, the cell
-   counters and the occupied-cell count for the next substep.
+   affine matrix: the stress is evaluated once per particle) and its stencil cell.
+2. `find_runs` (per particle): the solver stores particles in cell order, so a cell's
+   particles sit next to each other. A run is such a stretch, cut at multiples of
+   RUN_MAX when the cell is crowded (a thin leaf on a fine grid: up to 500 particles in a
+   cell), so that its particles are summed by runs in parallel instead of one long loop.
+   Each run's first particle appends itself to the list of runs.
+3. `p2g_runs` (9 threads per run, each owning a row of 3 stencil nodes): sum the run's
+   particles' contributions to those nodes, then one reduction per node (`red_add_vec4`:
+   momentum and mass in one 128-bit `red` on sm_90+). Atomics drop by the particles per run
+   (about 8), and the threads of a run read the same payload (L1 broadcasts) and write
+   different nodes.
+4. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid and the
+   run count for the next substep.
 
-Cell lists have a fixed capacity (`CELL_CAPACITY`); a particle that finds its cell full
-scatters with atomics as before, so the result is exact at any compression.
+No particle is ever left out: particles that drift out of cell order only make more,
+shorter runs (one per particle at worst, 27 reductions each, as the scatter's 27).
 
 Only untaped runs use this (the fast path, and the differentiable path's forward and
 recompute); the taped replay keeps the scatter P2G, whose adjoint warp generates.
@@ -29,16 +33,16 @@ import warp as wp
 
 from pd_tool.sim import kernels as K
 
-CELL_CAPACITY = 16  # particle slots per cell; more spill to atomics (8 per cell is typical)
-CELL_CAPACITY_W = wp.constant(CELL_CAPACITY)
+RUN_MAX = 32  # a crowded cell's particles are cut into runs of 16 to 47 at multiples of this
+RUN_MAX_W = wp.constant(RUN_MAX)
 # CUDA threads per block (warp's default is 256); module attributes so that
 # bench/sim_profile.py --blocks can sweep them. H200, 100k particles: the particle kernel
 # takes 32 us at 256, 25 at 128, 24 at 64; the per-cell sums 29-31 us at any size.
 PARTICLE_BLOCK = 64
 CELL_BLOCK = 256
-# Occupied cells summed per pass of the per-cell kernel: it is launched for this many (or
-# every possible) cells and loops, instead of one idle thread group per possible cell.
-CELLS_PER_PASS = 16384
+# Runs summed per pass of the per-run kernel: it is launched for this many (or every
+# possible) runs and loops, instead of one idle thread group per possible run.
+RUNS_PER_PASS = 16384
 
 
 # One 128-bit reduction instead of four 32-bit atomics. Hopper (sm_90) has vector `red`
@@ -67,18 +71,16 @@ def red_add_vec4(arr: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int, value: 
 
 @wp.struct
 class CellLists:
-    """Per-cell particle lists and the per-particle P2G payload, on the device.
+    """Particle runs and the per-particle P2G payload, on the device.
 
-    counts [cells]: particles binned in each cell this substep (may exceed the capacity);
-    slots [cells * CELL_CAPACITY]: their indices; occupied [<= cells]: the cells holding at
-    least one particle, n_occupied [1] of them; pay_fx [N]: B-spline offset x/dx - base;
-    pay_mv [N]: momentum (kg m/s) and mass (kg); pay_A [N]: MLS affine matrix
-    m C - 4/dx^2 dt V tau (kg/s)."""
+    cell [N]: each particle's stencil cell this substep (-1: in no run); starts [<= N]: the
+    first particle of each run, n_starts [1] runs in all;
+    pay_fx [N]: B-spline offset x/dx - base; pay_mv [N]: momentum (kg m/s) and mass (kg);
+    pay_A [N]: MLS affine matrix m C - 4/dx^2 dt V tau (kg/s)."""
 
-    counts: wp.array(dtype=int)
-    slots: wp.array(dtype=int)
-    occupied: wp.array(dtype=int)
-    n_occupied: wp.array(dtype=int)
+    cell: wp.array(dtype=int)
+    starts: wp.array(dtype=int)
+    n_starts: wp.array(dtype=int)
     pay_fx: wp.array(dtype=wp.vec3)
     pay_mv: wp.array(dtype=wp.vec4)
     pay_A: wp.array(dtype=wp.mat33)
@@ -100,26 +102,45 @@ def bin_particle(
     dt: float,
     nodes: wp.vec3i,
     lists: CellLists,
-    grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """Write particle p's P2G payload and put it in its cell's list (or scatter on overflow)."""
+    """Write particle p's P2G payload and stencil cell."""
     inv_dx = 1.0 / dx
     b = K.stencil_base(x, inv_dx, nodes)
-    cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-    slot = wp.atomic_add(lists.counts, cell, 1)
-    if slot == 0:
-        lists.occupied[wp.atomic_add(lists.n_occupied, 0, 1)] = cell
-    if slot < CELL_CAPACITY_W:
-        lm = K.lame(E, nu)
-        tau = K.kirchhoff_stress(F, lm[0], lm[1])
-        lists.pay_fx[p] = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
-        mv = m * (v + a_ext * dt)
-        lists.pay_mv[p] = wp.vec4(mv[0], mv[1], mv[2], m)
-        lists.pay_A[p] = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
-        lists.slots[cell * CELL_CAPACITY_W + slot] = p
-    else:
-        # Overflow: the atomic scatter, added to the same grid as the binned sums.
-        K.p2g_scatter(x, v, C, F, E, vol, m, a_ext, nu, dx, dt, nodes, grid_mmv)
+    lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+    lm = K.lame(E, nu)
+    tau = K.kirchhoff_stress(F, lm[0], lm[1])
+    lists.pay_fx[p] = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    mv = m * (v + a_ext * dt)
+    lists.pay_mv[p] = wp.vec4(mv[0], mv[1], mv[2], m)
+    lists.pay_A[p] = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
+
+
+@wp.func
+def splits_run(lists: CellLists, p: int, c: int) -> int:
+    """1 where a stretch of cell c's particles is cut before particle p: at multiples of
+    RUN_MAX, where at least RUN_MAX / 2 of the cell's particles come before (a cell of a
+    few particles that happens to straddle a multiple stays one run)."""
+    cut = int(0)
+    if p % RUN_MAX_W == 0 and p >= RUN_MAX_W // 2:
+        if lists.cell[p - RUN_MAX_W // 2] == c:
+            cut = 1
+    return cut
+
+
+@wp.kernel(enable_backward=False)
+def find_runs(lists: CellLists):
+    """Particle p starts a run where its cell differs from particle p - 1's or where a
+    crowded cell's stretch is cut (splits_run); run starts append themselves to
+    lists.starts. A cell of -1 (a particle with nothing to add: the adjoint's static ones)
+    is in no run."""
+    p = wp.tid()
+    c = lists.cell[p]
+    prev = int(-1)
+    if p > 0:
+        prev = lists.cell[p - 1]
+    if c >= 0:
+        if c != prev or splits_run(lists, p, c) != 0:
+            lists.starts[wp.atomic_add(lists.n_starts, 0, 1)] = p
 
 
 @wp.kernel(enable_backward=False)
@@ -133,7 +154,6 @@ def g2p_bin(
     t_offset_next: float,
     grid_v: wp.array3d(dtype=wp.vec3),
     lists: CellLists,
-    grid_mmv: wp.array3d(dtype=wp.vec4),
     stats: wp.array(dtype=float),
 ):
     """G2P of this substep from s_in (its u and F) into `state` (unless do_g2p is 0: the
@@ -147,7 +167,7 @@ def g2p_bin(
         K.g2p_gather(p, ptcl, s_in, step, grid_v, state, stats)
     a_ext = K.external_accel(p, t_offset_next, forces)
     bin_particle(p, ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
-                 ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, lists, grid_mmv)
+                 ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, lists)
 
 
 @wp.func
@@ -165,17 +185,19 @@ def bspline_at(fx: float, a: int) -> float:
 
 @wp.func
 def cell_row_terms(
-    cell: int,
+    run: int,
     a: int,
     b: int,
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
 ):
-    """One cell's particles' shares of the three nodes (a, b, 0..2) of its stencil: the
-    node index of the first, the masses sum w_n m and the vectors sum w_n (q + A dpos_n)
-    of the payload (mass, q = momentum, A = affine matrix). The adjoint's scatter uses the
-    vector sums alone (adjoint.py)."""
+    """The shares of the particles of run `run` (from particle lists.starts[run] to the
+    next change of cell or cut) of the three nodes (a, b, 0..2) of their cell's stencil: the node index of the first, the masses sum w_n m and
+    the vectors sum w_n (q + A dpos_n) of the payload (mass, q = momentum, A = affine
+    matrix). The adjoint's scatter uses the vector sums alone (adjoint.py)."""
+    start = lists.starts[run]
+    cell = lists.cell[start]
     ck = cell % nodes[2]
     cj = (cell // nodes[2]) % nodes[1]
     ci = cell // (nodes[1] * nodes[2])
@@ -185,9 +207,12 @@ def cell_row_terms(
     mv0 = wp.vec3(0.0)
     mv1 = wp.vec3(0.0)
     mv2 = wp.vec3(0.0)
-    cnt = wp.min(lists.counts[cell], CELL_CAPACITY_W)
-    for s in range(cnt):
-        q = lists.slots[cell * CELL_CAPACITY_W + s]
+    n = lists.cell.shape[0]
+    q = start
+    while q < n:
+        if q > start:
+            if lists.cell[q] != cell or splits_run(lists, q, cell) != 0:
+                break
         fx = lists.pay_fx[q]
         pm = lists.pay_mv[q]
         A = lists.pay_A[q]
@@ -207,12 +232,13 @@ def cell_row_terms(
         mv0 += w0 * q0
         mv1 += w1 * (q0 + dq)
         mv2 += w2 * (q0 + 2.0 * dq)
+        q += 1
     return wp.vec3i(ci + a, cj + b, ck), wp.vec3(m0, m1, m2), mv0, mv1, mv2
 
 
 @wp.func
 def cell_row_sums(
-    cell: int,
+    run: int,
     a: int,
     b: int,
     lists: CellLists,
@@ -220,8 +246,8 @@ def cell_row_sums(
     nodes: wp.vec3i,
     grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """cell_row_terms of one cell and row, then three (momentum, mass) reductions."""
-    n, m, mv0, mv1, mv2 = cell_row_terms(cell, a, b, lists, dx, nodes)
+    """cell_row_terms of one run and row, then three (momentum, mass) reductions."""
+    n, m, mv0, mv1, mv2 = cell_row_terms(run, a, b, lists, dx, nodes)
     red_add_vec4(grid_mmv, n[0], n[1], n[2], wp.vec4(mv0[0], mv0[1], mv0[2], m[0]))
     red_add_vec4(grid_mmv, n[0], n[1], n[2] + 1, wp.vec4(mv1[0], mv1[1], mv1[2], m[1]))
     red_add_vec4(grid_mmv, n[0], n[1], n[2] + 2, wp.vec4(mv2[0], mv2[1], mv2[2], m[2]))
@@ -229,7 +255,7 @@ def cell_row_sums(
 
 @wp.func
 def cell_lane_row(t: int) -> wp.vec3i:
-    """Thread t of a nine-threads-per-cell launch: (cell lane, stencil offsets a, b) of the
+    """Thread t of a nine-threads-per-run launch: (run lane, stencil offsets a, b) of the
     row of nodes (a, b, 0..2) it owns."""
     lane = t // 9
     o = t - 9 * lane
@@ -238,29 +264,28 @@ def cell_lane_row(t: int) -> wp.vec3i:
 
 
 @wp.kernel(enable_backward=False)
-def p2g_cells(
+def p2g_runs(
     lists: CellLists,
     dx: float,
     nodes: wp.vec3i,
-    cells_per_pass: int,
+    runs_per_pass: int,
     grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
-    """Thread (cell lane, stencil offsets a, b): for the occupied cells lane, lane +
-    cells_per_pass, ... (the count is known only on the device), that cell's shares of the
-    row of nodes (a, b, 0..2).
+    """Thread (run lane, stencil offsets a, b): for the runs lane, lane + runs_per_pass,
+    ... (the count is known only on the device), that run's shares of the row of nodes
+    (a, b, 0..2).
 
-    Nine threads a cell: each payload read serves three nodes, and the cell's threads read
+    Nine threads a run: each payload read serves three nodes, and the run's threads read
     the same payload (L1 broadcasts). Measured on an H200 at 100k particles: 27 threads a
     cell 34 us, 9 threads 29 us, 3 threads 29 us; launching 9 threads per particle and
-    letting only each cell's first particle work, to save the shared occupied-cell
-    counter, 44 us.
+    letting only each cell's first particle work, to save the shared run counter, 44 us.
     """
     lane_row = cell_lane_row(wp.tid())
-    n = lists.n_occupied[0]
+    n = lists.n_starts[0]
     slot = lane_row[0]
     while slot < n:
-        cell_row_sums(lists.occupied[slot], lane_row[1], lane_row[2], lists, dx, nodes, grid_mmv)
-        slot += cells_per_pass
+        cell_row_sums(slot, lane_row[1], lane_row[2], lists, dx, nodes, grid_mmv)
+        slot += runs_per_pass
 
 
 @wp.kernel(enable_backward=False)
@@ -271,53 +296,56 @@ def grid_update_clear_bins(
     clear_grid: int,
     lists: CellLists,
 ):
-    """The grid update that also empties the cell lists for the next binning and, with
+    """The grid update that also empties the run list for the next binning and, with
     clear_grid (the fast path), zeroes mass and momentum for the next P2G; the backward's
     recompute keeps them (its adjoint reads them)."""
     i, j, k = wp.tid()
     grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], i, j, k, step)
     if clear_grid != 0:
         grid_mmv[i, j, k] = wp.vec4(0.0)
-    nodes = step.nodes
-    lists.counts[(i * nodes[1] + j) * nodes[2] + k] = 0
     if i == 0 and j == 0 and k == 0:
-        lists.n_occupied[0] = 0
+        lists.n_starts[0] = 0
 
 
-def alloc_cell_lists(nodes: tuple[int, int, int], n_particles: int, device) -> CellLists:
-    """CellLists for a grid of `nodes` and n_particles particles (zeroed)."""
-    n_cells = nodes[0] * nodes[1] * nodes[2]
+def alloc_cell_lists(n_particles: int, device) -> CellLists:
+    """CellLists for n_particles particles (zeroed)."""
+    n = max(1, n_particles)
     z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
     lists = CellLists()
-    lists.counts, lists.slots = z(n_cells), z(n_cells * CELL_CAPACITY)
-    lists.occupied, lists.n_occupied = z(min(n_cells, max(1, n_particles))), z(1)
-    lists.pay_fx, lists.pay_mv, lists.pay_A = z(n_particles, wp.vec3), z(n_particles, wp.vec4), z(n_particles, wp.mat33)
+    lists.cell, lists.starts, lists.n_starts = z(n), z(n), z(1)
+    lists.pay_fx, lists.pay_mv, lists.pay_A = z(n, wp.vec3), z(n, wp.vec4), z(n, wp.mat33)
     return lists
+
+
+def runs_per_pass(lists: CellLists) -> int:
+    """Thread groups of a per-run launch: one per possible run, at most RUNS_PER_PASS."""
+    return min(RUNS_PER_PASS, lists.starts.shape[0])
 
 
 def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None:
     """n substeps in place without a tape, with the binned P2G (see module doc).
 
     Same arguments as solver.run_substeps_fused plus the cell lists; the same result up to
-    the order of float sums. Three launches per substep. The lists are cleared here first,
-    so a call (or a replay of its captured graph) never sees counters left by the one before.
+    the order of float sums. Four launches per substep. The run count is cleared here
+    first, so a call (or a replay of its captured graph) never sees one left by the one
+    before.
     """
     dev, geo = ctx.device, ctx.geo
     ptcl, step, forces, sv = ctx.particles(), ctx.step(dt), ctx.forces_struct(), st.struct
     nodes, dx = geo.nodes_vec, float(geo.dx)
     count = st.u.shape[0]
     g.mmv.zero_()
-    lists.counts.zero_()
-    lists.n_occupied.zero_()
+    lists.n_starts.zero_()
 
     def bin_particles(do_g2p: int, t_offset: float) -> None:
         wp.launch(g2p_bin, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, ptcl, sv, sv, step, forces, float(t_offset), g.v, lists, g.mmv, ctx.stats])
+            do_g2p, ptcl, sv, sv, step, forces, float(t_offset), g.v, lists, ctx.stats])
+        wp.launch(find_runs, dim=count, device=dev, block_dim=PARTICLE_BLOCK, inputs=[lists])
 
     bin_particles(0, 0.0)
-    per_pass = min(CELLS_PER_PASS, lists.occupied.shape[0])
+    per_pass = runs_per_pass(lists)
     for s in range(n):
-        wp.launch(p2g_cells, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
+        wp.launch(p2g_runs, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, dx, nodes, per_pass, g.mmv])
         wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 1, lists])
         if s < n - 1:

@@ -464,7 +464,7 @@ class MPMSolver:
         self._stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=d)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
-        self._bins = alloc_cell_lists(self.geo.nodes, self.n, d) if self._gather else None
+        self._bins = alloc_cell_lists(self.n, d) if self._gather else None
         self._ctx: SubstepContext | None = None
 
     # ---------------------------------------------------------------- inputs

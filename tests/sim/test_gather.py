@@ -1,8 +1,9 @@
 """The atomic-free gather P2G (pd_tool/sim/gather.py) against the scatter P2G it replaces.
 
 Both are the same sums in a different order, so every particle output must agree to float32
-rounding: with forces, a static layer, ground, damping, gravity, and with cells so crowded
-that their lists overflow into the atomic fallback.
+rounding: with forces, a static layer, ground, damping, gravity, with cells so crowded
+that their particles split into several runs, and with particles out of cell order (runs
+of one particle).
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 import warp as wp
 
 from pd_tool.sim import MPMSolver, SimConfig
-from pd_tool.sim.gather import CELL_CAPACITY, red_add_vec4
+from pd_tool.sim.gather import RUN_MAX, red_add_vec4
 
 
 def block(n: int, side: float, seed: int = 0):
@@ -22,8 +23,8 @@ def block(n: int, side: float, seed: int = 0):
     return x, vol, vol * 1000.0, np.full(n, 2e5), static
 
 
-def run(x, vol, mass, E, static, cfg, device, gather, frames=3):
-    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, gather_p2g=gather)
+def run(x, vol, mass, E, static, cfg, device, gather, frames=3, sort=True):
+    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, gather_p2g=gather, sort_particles=sort)
     v = np.zeros_like(x)
     v[:, 0] = np.sin(40.0 * x[:, 2])
     v[:, 1] = 0.3 * np.cos(30.0 * x[:, 0])
@@ -34,17 +35,18 @@ def run(x, vol, mass, E, static, cfg, device, gather, frames=3):
     return sim.displacements(), sim.velocities(), sim.deformation_gradients()
 
 
-@pytest.mark.parametrize("side,label", [(0.3, "normal"), (0.06, "crowded")])
+@pytest.mark.parametrize("side,label", [(0.3, "normal"), (0.06, "crowded"), (0.3, "unsorted")])
 def test_gather_matches_scatter(device: str, side: float, label: str) -> None:
     x, vol, mass, E, static = block(3000, side)
     cfg = SimConfig(grid_res=32, substeps=8, damping=2.0, ground_z=0.3)
     if label == "crowded":
-        # The block spans ~2 cells: far more particles per cell than the lists hold.
+        # The block spans ~2 cells: far more particles per cell than a run holds.
         cells = np.floor(x / (1.0 / 32) - 0.5).astype(int)
         _, per_cell = np.unique(cells, axis=0, return_counts=True)
-        assert per_cell.max() > CELL_CAPACITY
-    ref = run(x, vol, mass, E, static, cfg, device, gather=False)
-    got = run(x, vol, mass, E, static, cfg, device, gather=True)
+        assert per_cell.max() > 4 * RUN_MAX
+    sort = label != "unsorted"  # random order: nearly every run is one particle
+    ref = run(x, vol, mass, E, static, cfg, device, gather=False, sort=sort)
+    got = run(x, vol, mass, E, static, cfg, device, gather=True, sort=sort)
     for name, a, b in zip(("u", "v", "F"), ref, got):
         assert np.all(np.isfinite(b)), name
         scale = max(float(np.abs(a).max()), 1e-3)
@@ -64,11 +66,11 @@ def test_gather_is_reusable_across_frames_and_configs(device: str) -> None:
         assert np.abs(ref - got).max() <= 2e-5 * np.abs(ref).max() + 1e-7
 
 
-def test_gather_loops_over_more_cells_than_one_pass(device: str, monkeypatch) -> None:
-    """Fewer cell lanes than occupied cells: each lane must loop until every cell is summed."""
+def test_gather_loops_over_more_runs_than_one_pass(device: str, monkeypatch) -> None:
+    """Fewer run lanes than runs: each lane must loop until every run is summed."""
     from pd_tool.sim import gather
 
-    monkeypatch.setattr(gather, "CELLS_PER_PASS", 7)
+    monkeypatch.setattr(gather, "RUNS_PER_PASS", 7)
     x, vol, mass, E, static = block(1500, 0.3, seed=5)
     cfg = SimConfig(grid_res=24, substeps=5)
     ref = run(x, vol, mass, E, static, cfg, device, gather=False, frames=2)
