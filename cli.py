@@ -598,7 +598,7 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
 
 
 @main.command()
-@click.argument("out", type=T.OutputFile([".usd", ".usda", ".usdc"], "a USD file"))
+@click.argument("out", type=T.OutputPath())
 @click.option("--scene", type=SCENE_PATH, help="Splat to animate (.ply/.splat). Default: the last fit's scene.")
 @click.option("--material", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Fitted material file (.pdmat) from `pdtool fit`. Default: the last fit in this folder.")
@@ -632,9 +632,13 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
 @click.option("--quality", default=None,
               help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio. Default: "
                    "with a fitted material, the fit's own (its E is calibrated to them); with --preset, default.")
-@click.option("--format", "fmt", type=click.Choice(["instancer", "splat", "both"]), default="both", show_default=True,
-              help="instancer: UsdGeom.PointInstancer of spheres (every DCC); splat: UsdVol 3D Gaussian splat "
-                   "schema (usd 26.03+); both.")
+@click.option("--format", "fmt", type=T.FormatList(), default="both", show_default=True,
+              help="What to write, comma-separated. USD, in OUT (.usd/.usdc/.usda), at most one of: instancer "
+                   "(UsdGeom.PointInstancer of spheres, every DCC), splat (UsdVol 3D Gaussian splat schema, usd "
+                   "26.03+), both. Splat files, for 3DGS viewers and Blender's 3DGS add-ons: ply-seq (a folder of "
+                   "3DGS .ply frames), spz-seq (a folder of .spz frames), gltf (a .glb with KHR_gaussian_splatting). "
+                   "One format: OUT is that output; several: the splat outputs go beside OUT (OUT.usd -> OUT_ply/, "
+                   "OUT_spz/, OUT.glb). All are written in one pass.")
 @click.option("--preview", type=T.OutputFile([".mp4", ".gif"], "a video"),
               help="Also render the animation to a video (.mp4 or .gif) from an automatic camera.")
 @click.option("--frames-out", type=T.OutputDir(),
@@ -659,10 +663,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
          force_units: str,
          interaction: str | None, at_point: tuple[float, ...] | str | None, radius: float | None,
          force_box: tuple[float, ...] | None, start: float | None, duration: float | None, seconds: float | None,
-         frames: int | None, fps: float, quality: str | None, fmt: str, preview: Path | None,
+         frames: int | None, fps: float, quality: str | None, fmt: tuple, preview: Path | None,
          frames_out: Path | None, camera: Path | None, view: str | None, gravity: bool, substeps: int | None,
          seed: int, refine_thin: bool, max_minutes: float, device: str, **prep_kw) -> None:
-    """Simulate the object under a force and write an animated USD to OUT.
+    """Simulate the object under a force and write the animation to OUT (USD, or splat
+    files with --format).
 
     The material comes from --preset, from --material, or, with neither, from the
     last `pdtool fit` run in this folder. The force is an acceleration, in object sizes
@@ -678,6 +683,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
       pdtool bake --force 0,0,1 out.usd          # uses the last fit in this folder
       pdtool bake --scene donut.ply --preset jelly --pin auto \\
           --interaction poke --force 0,0,-3 --preview poke.mp4 poke.usd
+      pdtool bake --force 0,0,1 --format both,ply-seq out.usd   # also out_ply/
+      pdtool bake --force 0,0,1 --format gltf out.glb
     """
     if material is not None and preset is not None:
         raise click.UsageError("give --material or --preset, not both")
@@ -689,6 +696,14 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
     if n_seconds > T.SECONDS_MAX:
         raise T.OptionError(f"at --fps {fps:g} that is {n_seconds:,.0f} s of animation, over {T.SECONDS_MAX:g} s; "
                             "give fewer --frames or a higher --fps", None, None, frames, "--frames")
+    usd_fmt, splat_formats = fmt
+    from pd_tool.core.errors import OutputError
+    from pd_tool.io.formats import output_paths
+
+    try:
+        output_paths(out, usd_fmt, splat_formats)
+    except OutputError as e:
+        raise click.BadParameter(str(e).removeprefix(f"OUT {out}: "), param_hint="OUT") from None
     if start is not None and start >= n_seconds:
         raise T.OptionError(f"the force would start at or after the animation's end ({n_seconds:g} s); start it "
                             "earlier or make the animation longer", None, None, start, "--start")
@@ -705,7 +720,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
             for k, v in overrides.items():
                 if v is not None:
                     setattr(spec, k, v)
-        settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=fmt, device=resolve_device(device),
+        settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=usd_fmt, splat_formats=splat_formats,
+                                device=resolve_device(device),
                                 gravity=gravity, substeps=substeps, seed=seed, refine_thin=refine_thin)
         job = app.BakeJob(out, spec, settings, scene=scene, material=material, preset=preset,
                           prepare=prepare_changes(**prep_kw), preview=preview, frames_out=frames_out, camera=camera,
@@ -725,11 +741,15 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
     if estimates:
         click.echo(f"work estimate up to {estimates[-1].describe()} on {estimates[-1].device} "
                    f"(--max-minutes {max_minutes:g})")
+    first = next(iter(result.outputs))
     click.echo(
-        f"wrote {result.out}: {result.frames} frames ({result.simulated_frames} simulated), "
-        f"{result.substeps_per_frame} substeps/frame, {result.gaussians:,} Gaussians driven by "
-        f"{result.drivers:,} particles, {result.seconds_elapsed:.1f} s, {_fmt_size(result.bytes_written)}"
+        f"wrote {result.out}{'/' if first.endswith('-seq') else ''}: {result.frames} frames "
+        f"({result.simulated_frames} simulated), {result.substeps_per_frame} substeps/frame, {result.gaussians:,} "
+        f"Gaussians driven by {result.drivers:,} particles, {result.seconds_elapsed:.1f} s, "
+        f"{_fmt_size(result.output_bytes[first])}"
     )
+    for name, path in list(result.outputs.items())[1:]:
+        click.echo(f"wrote {path}{'/' if name.endswith('-seq') else ''}: {name}, {_fmt_size(result.output_bytes[name])}")
     disp = result.displacement_per_frame
     click.echo(f"peak motion {100 * result.peak_displacement / max(result.object_size, 1e-30):.2g}% of the object's "
                f"size, at frame {max(range(len(disp)), key=disp.__getitem__)}")

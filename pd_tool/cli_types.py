@@ -281,6 +281,38 @@ class OutputFile(click.Path):
         return path
 
 
+class OutputPath(click.Path):
+    """An output named without a fixed kind (a file or a folder, decided by other options)
+    whose name passes check_name."""
+
+    def __init__(self) -> None:
+        super().__init__(path_type=Path)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Path:
+        path = Path(value) if not isinstance(value, Path) else value
+        why = check_name(path.resolve() if path.name in ("", ".", "..") else path)
+        if why:
+            _fail(why, value, param, ctx)
+        return path
+
+
+class FormatList(click.ParamType):
+    """`--format`: a comma-separated list of bake outputs (pd_tool.io.formats), parsed into
+    (the USD content or None, the splat formats)."""
+
+    name = "FORMAT[,FORMAT...]"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None):
+        if isinstance(value, tuple):
+            return value
+        from pd_tool.io.formats import parse_formats
+
+        try:
+            return parse_formats(value)
+        except ValueError as e:
+            _fail(str(e), value, param, ctx)
+
+
 class OutputDir(click.Path):
     """An output folder whose name passes check_name; not an existing file."""
 

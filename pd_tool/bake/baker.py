@@ -17,11 +17,13 @@ import numpy as np
 import torch
 
 from pd_tool.bake.animate import GaussianAnimator
+from pd_tool.bake.outputs import FrameOutputs, open_splat_writers
 from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder
 from pd_tool.core.cameras import Camera
-from pd_tool.core.errors import PdToolError, PreparationError, UsdExportError
-from pd_tool.core.quaternion import matrix_to_quat, quat_multiply
+from pd_tool.core.errors import OutputError, PdToolError, PreparationError
+from pd_tool.core.quaternion import matrix_to_quat
 from pd_tool.core.scene import GaussianScene
+from pd_tool.io.formats import FORMATS, output_paths
 from pd_tool.materials.file import MaterialFile
 from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import work
@@ -119,7 +121,8 @@ class BakeSettings:
     # a 16-cell grid moves the true E about as far from its 32-cell motion as the uniform
     # baseline is; docs/benchmarks.md); with a preset material, "default".
     quality: str | Path | None = None
-    fmt: str = "both"  # instancer | splat | both
+    fmt: str | None = "both"  # the USD file's content: instancer | splat | both; None: no USD file
+    splat_formats: tuple[str, ...] = ()  # ply-seq, spz-seq, gltf (pd_tool.bake.outputs), in the same pass
     device: str = "cpu"
     gravity: bool = False  # the scan is already in equilibrium under gravity
     substeps: int | None = None  # None: CFL
@@ -138,7 +141,7 @@ class BakeSettings:
 
 @dataclass
 class BakeResult:
-    out: Path
+    out: Path  # the first output: the USD file, or the one splat output
     frames: int
     simulated_frames: int
     substeps_per_frame: int
@@ -151,6 +154,8 @@ class BakeResult:
     displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
     timings: dict[str, float] = field(default_factory=dict)  # seconds: setup, simulate, interpolate, write, total
     report: list[str] = field(default_factory=list)
+    outputs: dict[str, Path] = field(default_factory=dict)  # format ('usd', 'ply-seq', ...) -> path
+    output_bytes: dict[str, int] = field(default_factory=dict)  # format -> bytes written
 
 
 def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np.ndarray, spec: ForceSpec) -> np.ndarray:
@@ -209,29 +214,40 @@ def check_bake_outputs(
     preview: str | Path | None = None,
     frames_dir: str | Path | None = None,
     inputs: Mapping[str, str | Path | None] | None = None,
-) -> None:
+    fmt: str | None = "both",
+    splat_formats: tuple[str, ...] = (),
+) -> dict[str, Path]:
     """Refuse, before any work, a bake whose outputs cannot be written or would destroy
-    something: OUT, --preview and --frames-out with names the file system takes, in
-    writable folders; --frames-out a new, empty or pdtool-made folder that holds neither
-    another output, an input nor the current folder; no output that is an input.
+    something: OUT (and the splat outputs beside it, pd_tool.bake.outputs), --preview and
+    --frames-out with names the file system takes, in writable folders; folder outputs
+    new, empty or pdtool-made, holding neither another output, an input nor the current
+    folder; no output that is an input. Returns {format: path} of the animation outputs.
     inputs: {option: path} of the files the bake reads (--scene, --material, --camera).
-    Raises OutputError / PreviewError / UsdExportError (one line each)."""
-    from usd_export.writer import SUFFIXES
-
+    Raises OutputError / PreviewError (one line each)."""
     out = Path(out)
-    if out.suffix.lower() not in SUFFIXES:
-        raise UsdExportError(f"{out}: output must end in {', '.join(SUFFIXES)}")
+    if fmt is None and not splat_formats:
+        raise OutputError("--format names no output; choose from " + ", ".join(FORMATS))
+    paths = output_paths(out, fmt, tuple(splat_formats))
     if preview is not None and Path(preview).suffix.lower() not in PREVIEW_SUFFIXES:
         raise PreviewError(f"--preview {preview}: must end in .mp4 or .gif, not '{Path(preview).suffix}'")
-    check_outputs({"OUT": out, "--preview": preview}, {"--frames-out": frames_dir}, inputs or {})
-    check_destination(out, "OUT")
-    if not os.path.isdir(out.parent):
-        raise UsdExportError(f"{out}: folder {out.parent} does not exist; create it or choose another output path")
+    label = {"usd": "OUT"} | {f: ("OUT" if p == out else f"--format {f} output") for f, p in paths.items() if f != "usd"}
+    folders = {label[f]: p for f, p in paths.items() if f in ("ply-seq", "spz-seq")}
+    files = {label[f]: p for f, p in paths.items() if f not in ("ply-seq", "spz-seq")}
+    check_outputs({**files, "--preview": preview}, {**folders, "--frames-out": frames_dir}, inputs or {})
+    for name, p in files.items():
+        check_destination(p, name)
+        if not os.path.isdir(p.parent):
+            raise OutputError(f"{p}: folder {p.parent} does not exist; create it or choose another output path",
+                              path=p)
+    for name, p in folders.items():
+        check_destination(p, name, folder=True)
+        check_replaceable_folder(p, name)
     if preview is not None:
         check_destination(preview, "--preview")
     if frames_dir is not None:
         check_destination(frames_dir, "--frames-out", folder=True)
         check_replaceable_folder(frames_dir, "--frames-out")
+    return paths
 
 
 class Baker:
@@ -285,7 +301,8 @@ class Baker:
         """Check the outputs, prepare the scene, pick its grid (finer for thin parts when
         time and memory allow), build drivers, solver and force, then open the writer."""
         read = {"--scene": getattr(self.scene, "source", None), **(inputs or {})}
-        check_bake_outputs(self.out, preview=self.preview, frames_dir=self.frames_dir, inputs=read)
+        self.paths = check_bake_outputs(self.out, preview=self.preview, frames_dir=self.frames_dir, inputs=read,
+                                        fmt=self.settings.fmt, splat_formats=self.settings.splat_formats)
         self._prepare(material, material_file, prepare_options, camera)
         self._choose_grid()
         self._build_simulation(material, material_file)
@@ -396,30 +413,36 @@ class Baker:
         self.substeps = self.solver.substeps_per_frame(self.frame_dt)
 
     def _open_outputs(self, camera: Camera | None) -> None:
-        """Every Gaussian follows its drivers, in the USD file's axes (which may be rotated
-        from the scene's); the writer is opened last, so that no later step can leave its
-        temporary file behind."""
+        """Every Gaussian follows its drivers; the writers are opened last, so that no
+        later step can leave their temporary outputs behind. The USD file may be rotated
+        from the scene's axes (usd_frame); the splat outputs keep them or convert them."""
         from usd_export import UsdBakeWriter
 
         scene, prep, dev = self.scene, self.prep, self.dev
         self.animator = GaussianAnimator(scene, prep, self.drivers, device=dev)
-        R_usd, up_axis = usd_frame(prep.options.up_axis)
-        self._R_usd = R_usd
-        self._R_usd_t = torch.as_tensor(R_usd, dtype=torch.float32, device=dev)
-        self._q_usd = matrix_to_quat(torch.as_tensor(R_usd)).float().to(dev)
-        self.all_scales = scene.scales.detach().cpu().numpy()
         if self.rendering:
             self.preview_cam = camera or scene_camera(scene, width=480, height=270, up_axis=prep.options.up_axis)
-            self._q_back = matrix_to_quat(torch.as_tensor(R_usd.T)).float().to(scene.device)
         # Gaussians that keep their rest pose (GaussianAnimator): the unsimulated ones and the
-        # static region. The writer puts them in prims written once instead of every frame.
+        # static region. The writers put them where they are written once, not every frame.
         static = np.ones(scene.count, bool)
         static[prep.foreground] = np.asarray(prep.static[:prep.count], bool)
-        self.writer = UsdBakeWriter(
-            self.out, n_points=scene.count, fps=self.settings.fps, start_frame=0, up_axis=up_axis,
-            meters_per_unit=float(prep.transform.scale), fmt=self.settings.fmt, colors=scene.colors.cpu().numpy(),
-            opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(), static=static,
-        )
+        R_usd, up_axis = usd_frame(prep.options.up_axis)
+        usd = None
+        if "usd" in self.paths:
+            usd = UsdBakeWriter(
+                self.paths["usd"], n_points=scene.count, fps=self.settings.fps, start_frame=0, up_axis=up_axis,
+                meters_per_unit=float(prep.transform.scale), fmt=self.settings.fmt, colors=scene.colors.cpu().numpy(),
+                opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(), static=static,
+            )
+        try:
+            splat = open_splat_writers(self.paths, scene.to("cpu"), static=static, up_axis=prep.options.up_axis,
+                                       fps=self.settings.fps)
+        except BaseException:
+            if usd is not None:
+                usd.abort()
+            raise
+        self.outputs = FrameOutputs(usd, R_usd, matrix_to_quat(torch.as_tensor(R_usd)).float(),
+                                    scene.scales.detach().cpu().numpy(), splat)
 
     # ---- frames
 
@@ -435,7 +458,7 @@ class Baker:
         f = self.frame
         if f == 0:
             pos, q = self._frame_arrays(None)
-            self.writer.write_frame(0, pos, q, self.all_scales)
+            self.outputs.write_frame(0, pos, q)
             self._pos0 = pos
             self.disp.append(0.0)
         else:
@@ -459,28 +482,24 @@ class Baker:
         pos, q = self._frame_arrays(d_now)
         self.timings["interpolate"] += time.perf_counter() - t
         t = time.perf_counter()
-        self.writer.write_frame(f, pos, q, self.all_scales)
+        self.outputs.write_frame(f, pos, q)
         self.timings["write"] += time.perf_counter() - t
         return pos, q
 
     def _frame_arrays(self, d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Positions [N, 3] (scene units) and quaternions [N, 4] (w, x, y, z) in the USD
-        file's axes for drivers at d_now [Q, 3] (m, simulation box); None: the rest pose."""
+        """Positions [N, 3] (scene units) and quaternions [N, 4] (w, x, y, z) in the
+        scene's axes for drivers at d_now [Q, 3] (m, simulation box); None: the rest pose."""
         with torch.no_grad():
             if d_now is None:
                 pos, q = self.animator.scene_positions, self.animator.scene_quats
             else:
                 pos, q = self.animator(d_now)
-            pos = pos @ self._R_usd_t.T
-            q = quat_multiply(self._q_usd.expand_as(q), q)
         return pos.cpu().numpy(), q.cpu().numpy()
 
     def _snap(self, pos: np.ndarray, q: np.ndarray) -> None:
-        # back from the USD axes to the scene's, where the automatic camera looks
         scene = self.scene
-        self.preview_images.append(render_image(
-            scene, self.preview_cam, positions=torch.as_tensor(pos @ self._R_usd, device=scene.device),
-            quats=quat_multiply(self._q_back.expand(len(q), 4), torch.as_tensor(q, device=scene.device))))
+        self.preview_images.append(render_image(scene, self.preview_cam, positions=torch.as_tensor(pos, device=scene.device),
+                                                quats=torch.as_tensor(q, device=scene.device)))
 
     def _came_to_rest(self) -> bool:
         """Whether kinetic energy has stayed below REST_FRACTION of its peak for REST_FRAMES
@@ -493,7 +512,7 @@ class Baker:
 
     def _hold_rest(self) -> None:
         held = self.n_frames - self.frame
-        self.writer.hold_frames(self.n_frames - 1)
+        self.outputs.hold_frames(self.n_frames - 1)
         self.disp.extend([self.disp[-1]] * held)
         self.preview_images.extend(self.preview_images[-1:] * held)
         self.frame = self.n_frames
@@ -503,16 +522,22 @@ class Baker:
     # ---- outputs
 
     def finish(self) -> BakeResult:
-        """Validate the USD and move it into place, then write the preview and frames
-        folder (each atomic). Call once `done`."""
+        """Validate the USD and move it and the splat outputs into place, then write the
+        preview and frames folder (each atomic). Call once `done`."""
         self._closed = True  # close() deletes its temporaries itself when it fails
-        self.writer.close()
+        t = time.perf_counter()
+        written = self.outputs.close()
+        self.timings["write"] += time.perf_counter() - t
         self.timings["total"] = time.perf_counter() - self.t_start
+        paths = {f: p for f, (p, _) in written.items()}
+        sizes = {f: n for f, (_, n) in written.items()}
         result = BakeResult(
-            out=self.out, frames=self.n_frames, simulated_frames=self.simulated, substeps_per_frame=self.substeps,
-            gaussians=self.scene.count, drivers=self.n_drivers, seconds_elapsed=time.perf_counter() - self.t_start,
-            bytes_written=self.out.stat().st_size, peak_displacement=max(self.disp),
-            object_size=self.prep.object_size_m / float(self.prep.transform.scale), displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
+            out=next(iter(paths.values())), frames=self.n_frames, simulated_frames=self.simulated,
+            substeps_per_frame=self.substeps, gaussians=self.scene.count, drivers=self.n_drivers,
+            seconds_elapsed=time.perf_counter() - self.t_start, bytes_written=sum(sizes.values()),
+            peak_displacement=max(self.disp), object_size=self.prep.object_size_m / float(self.prep.transform.scale),
+            displacement_per_frame=self.disp, report=self._report(), timings=self.timings, outputs=paths,
+            output_bytes=sizes,
         )
         if self.preview is not None:
             write_preview(self.preview_images, self.preview, self.settings.fps)
@@ -534,8 +559,8 @@ class Baker:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if not self._closed:  # left before finish(): publish nothing
-            self.writer.abort()
+        if not self._closed and hasattr(self, "outputs"):  # left before finish(): publish nothing
+            self.outputs.abort()
 
 
 def bake(
