@@ -96,14 +96,16 @@ class GltfSplatWriter:
             self.abort()
 
     # ---- binary chunk
-    def _accessor(self, a: np.ndarray, kind: str, *, bounds: bool = False) -> int:
+    def _accessor(self, a: np.ndarray, kind: str, *, bounds: bool = False, vertex: bool = True) -> int:
         data = np.ascontiguousarray(a, dtype="<f4")
         pad = (-self._size) % 4
         if pad:
             self._bin.write(b"\0" * pad)
             self._size += pad
-        self._views.append({"buffer": 0, "byteOffset": self._size, "byteLength": data.nbytes,
-                            "target": ARRAY_BUFFER})
+        view = {"buffer": 0, "byteOffset": self._size, "byteLength": data.nbytes}
+        if vertex:  # vertex attributes; an animation's keys are not
+            view["target"] = ARRAY_BUFFER
+        self._views.append(view)
         self._bin.write(data.tobytes())
         self._size += data.nbytes
         acc = {"bufferView": len(self._views) - 1, "componentType": FLOAT, "count": int(len(data)), "type": kind}
@@ -176,12 +178,13 @@ class GltfSplatWriter:
                "nodes": nodes, "meshes": meshes}
         if len(self._frames) > 1:
             times = np.arange(self.n_frames, dtype=np.float32) / self.fps
-            t_acc = self._accessor(times, "SCALAR", bounds=True)
+            t_acc = self._accessor(times, "SCALAR", bounds=True, vertex=False)
             samplers, channels = [], []
             shown = np.asarray(self.frame_nodes)
             for i, node in enumerate(frame_node):
                 on = (shown == i).astype(np.float32)[:, None].repeat(3, 1)
-                samplers.append({"input": t_acc, "output": self._accessor(on, "VEC3"), "interpolation": STEP})
+                samplers.append({"input": t_acc, "output": self._accessor(on, "VEC3", vertex=False),
+                                 "interpolation": STEP})
                 channels.append({"sampler": i, "target": {"node": node, "path": "scale"}})
             doc["animations"] = [{"name": "bake", "samplers": samplers, "channels": channels}]
         doc["bufferViews"] = self._views
