@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import struct
 import subprocess
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from pd_tool.io.formats import output_paths, parse_formats
 from pd_tool.io.gltf import Z_UP_TO_Y_UP, GltfSplatWriter
 from pd_tool.io.sequence import MANIFEST_NAME, SplatSequenceWriter
 from pd_tool.io.synthetic import make_plant
+from _glb import accessor as _accessor, read_glb as _read_glb
 
 ROOT = Path(__file__).resolve().parents[2]
 VALIDATOR = ROOT / ".ci" / "node" / "node_modules" / "gltf-validator"
@@ -101,26 +101,6 @@ def test_spz_refuses_positions_it_cannot_hold(tmp_path, scene):
     far.positions = far.positions + 5000.0
     with pytest.raises(OutputError, match="use --format ply-seq"):
         SplatSequenceWriter(tmp_path / "seq", far, fmt="spz", fps=30, up_axis="+z")
-
-
-def _read_glb(path: Path) -> tuple[dict, bytes]:
-    data = path.read_bytes()
-    magic, version, total = struct.unpack_from("<III", data, 0)
-    assert (magic, version, total) == (0x46546C67, 2, len(data))
-    n_json, kind = struct.unpack_from("<II", data, 12)
-    assert kind == 0x4E4F534A
-    doc = json.loads(data[20:20 + n_json])
-    n_bin, kind = struct.unpack_from("<II", data, 20 + n_json)
-    assert kind == 0x004E4942
-    return doc, data[28 + n_json:28 + n_json + n_bin]
-
-
-def _accessor(doc: dict, blob: bytes, i: int) -> np.ndarray:
-    acc = doc["accessors"][i]
-    view = doc["bufferViews"][acc["bufferView"]]
-    width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc["type"]]
-    a = np.frombuffer(blob, "<f4", acc["count"] * width, view["byteOffset"])
-    return a.reshape(acc["count"], width) if width > 1 else a
 
 
 def test_gltf_flipbook_holds_every_frame_in_gltf_axes(tmp_path, scene):

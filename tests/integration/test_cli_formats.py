@@ -1,0 +1,102 @@
+"""`pdtool bake --format` with the splat formats, through the command line: one pass writes
+the USD and every splat output, and each frame of each holds the same Gaussians where the
+USD has them; bad format lists and names are one-line refusals."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cli import main
+
+
+def _run(args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    from pd_tool.io import save_splats
+    from pd_tool.io.synthetic import make_plant
+
+    d = tmp_path_factory.mktemp("formats")
+    plant = save_splats(make_plant(1200, seed=1), d / "plant.ply")
+    # -y up, as a COLMAP capture: the USD file is turned to Z-up, the .ply frames are not
+    res = _run(["bake", "--scene", plant, "--preset", "jelly", "--force", "3,0,0", "--frames", "6",
+                "--quality", "draft", "--up", "-y", "--device", "cpu", "--format", "both,ply-seq,spz-seq,gltf",
+                d / "out.usd"])
+    assert res.exit_code == 0, res.output
+    return d, res.stdout
+
+
+def test_one_bake_writes_every_format(baked):
+    d, out = baked
+    for line in ("wrote " + str(d / "out.usd"), f"wrote {d / 'out_ply'}/: ply-seq", f"wrote {d / 'out_spz'}/: spz-seq",
+                 f"wrote {d / 'out.glb'}: gltf"):
+        assert line in out, out
+    assert len(list((d / "out_ply").glob("frame_*.ply"))) == 6
+    assert len(list((d / "out_spz").glob("frame_*.spz"))) == 6
+    assert json.loads((d / "out_ply" / "sequence.json").read_text())["scene_up_axis"] == "-y"
+
+
+def test_ply_frames_move_as_the_usd(baked):
+    from pxr import Usd
+
+    from pd_tool.bake.baker import usd_frame
+    from pd_tool.io import load_ply
+    from usd_export import instance_positions
+
+    d, _ = baked
+    stage = Usd.Stage.Open(str(d / "out.usd"))
+    R_usd, _ = usd_frame("-y")
+    moved = 0.0
+    rest = load_ply(d / "out_ply" / "frame_000000.ply").positions.numpy()
+    for f in range(6):
+        ply = load_ply(d / "out_ply" / f"frame_{f:06d}.ply").positions.numpy()
+        _, usd = instance_positions(stage, f)
+        assert np.abs(ply @ R_usd.T - usd).max() < 1e-4, f
+        moved = max(moved, float(np.abs(ply - rest).max()))
+    assert moved > 1e-3  # the frames differ: a sequence of the rest pose would pass the rest
+
+
+def test_spz_and_gltf_frames_match_the_ply_frames(baked):
+    gsply = pytest.importorskip("gsply", reason="the independent SPZ reader (pip install gsply) is not installed")
+    from pd_tool.bake.outputs import gltf_axes
+    from pd_tool.io import load_ply
+    from _glb import accessor as _accessor, read_glb as _read_glb
+
+    d, _ = baked
+    doc, blob = _read_glb(d / "out.glb")
+    meshes = {m["name"]: m["primitives"][0]["attributes"]["POSITION"] for m in doc["meshes"]}
+    static_n = doc["accessors"][meshes["static"]]["count"] if "static" in meshes else 0
+    R = gltf_axes("-y")
+    for f in (0, 5):
+        ply = load_ply(d / "out_ply" / f"frame_{f:06d}.ply").positions.numpy().astype(np.float64)
+        spz = gsply.read_spz(d / "out_spz" / f"frame_{f:06d}.spz").means
+        assert np.abs(spz - ply * [1, -1, -1]).max() < 2.5e-4
+        if f"frame_{f}" in meshes:
+            pts = _accessor(doc, blob, meshes[f"frame_{f}"])
+            assert len(pts) + static_n == len(ply)
+            # every glTF point is a .ply point turned to +Y up
+            turned = ply @ R.T
+            nearest = np.min(np.linalg.norm(pts[:, None, :] - turned[None, :, :], axis=2), axis=1)
+            assert nearest.max() < 1e-4
+
+
+@pytest.mark.parametrize("fmt,out,msg", [
+    ("both,ply-seq", "out.txt", "must end in .usd"),
+    ("gltf", "out.usd", "asks for no USD"),
+    ("gltf", "out", "ending in .glb"),
+    ("usdz", "out.usd", "unknown format 'usdz'"),
+    ("both,instancer", "out.usd", "one USD content at most"),
+])
+def test_bad_formats_are_one_line(baked, fmt, out, msg):
+    d, _ = baked
+    res = _run(["bake", "--scene", d / "plant.ply", "--preset", "jelly", "--force", "1,0,0", "--format", fmt,
+                d / out])
+    assert res.exit_code == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and msg in lines[0], res.stderr
