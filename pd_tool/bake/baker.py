@@ -156,6 +156,7 @@ class BakeResult:
     report: list[str] = field(default_factory=list)
     outputs: dict[str, Path] = field(default_factory=dict)  # format ('usd', 'ply-seq', ...) -> path
     output_bytes: dict[str, int] = field(default_factory=dict)  # format -> bytes written
+    output_seconds: dict[str, float] = field(default_factory=dict)  # format -> seconds spent writing it
 
 
 def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np.ndarray, spec: ForceSpec) -> np.ndarray:
@@ -537,7 +538,7 @@ class Baker:
             seconds_elapsed=time.perf_counter() - self.t_start, bytes_written=sum(sizes.values()),
             peak_displacement=max(self.disp), object_size=self.prep.object_size_m / float(self.prep.transform.scale),
             displacement_per_frame=self.disp, report=self._report(), timings=self.timings, outputs=paths,
-            output_bytes=sizes,
+            output_bytes=sizes, output_seconds=dict(self.outputs.seconds),
         )
         if self.preview is not None:
             write_preview(self.preview_images, self.preview, self.settings.fps)

@@ -2,6 +2,7 @@
 (pd_tool.io.formats names them), all written in one pass over the simulation."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -28,13 +29,18 @@ class FrameOutputs:
     def __init__(self, usd, R_usd: np.ndarray, q_usd, scales: np.ndarray, splat: dict) -> None:
         self.usd, self.splat = usd, splat
         self._R_usd, self._q_usd, self._scales = R_usd, q_usd, scales
+        self.seconds = {f: 0.0 for f in (["usd"] if usd is not None else []) + list(splat)}  # writing, per format
 
     def write_frame(self, frame: int, positions: np.ndarray, quats: np.ndarray) -> None:
         if self.usd is not None:
+            t = time.perf_counter()
             q = quat_multiply(self._q_usd.expand(len(quats), 4), torch.as_tensor(quats)).numpy()
             self.usd.write_frame(frame, positions @ self._R_usd.T, q, self._scales)
-        for w in self.splat.values():
+            self.seconds["usd"] += time.perf_counter() - t
+        for fmt, w in self.splat.items():
+            t = time.perf_counter()
             w.write_frame(frame, positions, quats)
+            self.seconds[fmt] += time.perf_counter() - t
 
     def hold_frames(self, last: int) -> None:
         if self.usd is not None:
@@ -47,10 +53,14 @@ class FrameOutputs:
         done: dict[str, tuple[Path, int]] = {}
         try:
             if self.usd is not None:
+                t = time.perf_counter()
                 self.usd.close()
+                self.seconds["usd"] += time.perf_counter() - t
                 done["usd"] = (self.usd.path, self.usd.path.stat().st_size)
             for fmt, w in self.splat.items():
+                t = time.perf_counter()
                 path = w.close()
+                self.seconds[fmt] += time.perf_counter() - t
                 done[fmt] = (path, w.bytes_written)
         except BaseException:
             self.abort()
