@@ -3,7 +3,10 @@
 The add-on holds no physics: it spells a `pdtool bake` command line from the objects in
 the scene (command.py), runs it in a separate process so that Blender stays responsive,
 polls it from a bpy.app.timers callback (progress from pdtool's tqdm bar on stderr) and
-imports the USD it writes with bpy.ops.wm.usd_import.
+imports the USD it writes with bpy.ops.wm.usd_import, or, where a Blender 3DGS add-on
+that plays .ply sequences is installed (the 4DGS Viewer/Editor extension,
+`bpy.ops.b4d.import_sequence`), also bakes a .ply sequence and loads it through that
+add-on, so that the animation shows as splats rather than as coloured points.
 
 Coordinates: pdtool works in the splat file's own units and axes ("scene units"). The
 "Load preview" object shows the splat in those coordinates; the helpers (box, arrow,
@@ -99,6 +102,11 @@ class PDTOOL_Settings(bpy.types.PropertyGroup):
     quality: bpy.props.EnumProperty(name="Quality", items=QUALITIES, default="default")
     seconds: bpy.props.FloatProperty(name="Seconds", default=2.0, min=0.01, soft_max=20.0, unit="TIME_ABSOLUTE")
     fps: bpy.props.IntProperty(name="FPS", default=30, min=1, max=240)
+    import_as: bpy.props.EnumProperty(
+        name="Import", default="AUTO",
+        items=[("AUTO", "Auto", "Splats when a 3DGS sequence add-on is installed, else USD"),
+               ("USD", "USD", "The animated USD through Blender's USD importer (coloured points)"),
+               ("SPLATS", "Splats", "A .ply sequence through the 3DGS add-on (bpy.ops.b4d.import_sequence)")])
     output_dir: bpy.props.StringProperty(
         name="Output", subtype="DIR_PATH",
         description="Folder for the baked .usd. Empty: pdtool_bakes/ beside the .blend, or a temp folder")
@@ -164,8 +172,30 @@ def _output_path(settings, scene_path: Path) -> Path:
     return out
 
 
+def sequence_importer_installed() -> bool:
+    """Whether a 3DGS add-on that imports .ply sequences is enabled."""
+    try:
+        return "import_sequence" in dir(bpy.ops.b4d)
+    except (AttributeError, KeyError, RuntimeError):
+        return False
+
+
+def wants_splats(settings) -> bool:
+    """Whether the bake also writes a .ply sequence to load through the 3DGS add-on.
+    Raises ValueError when the panel asks for splats and no such add-on is installed."""
+    if settings.import_as == "USD":
+        return False
+    if sequence_importer_installed():
+        return True
+    if settings.import_as == "SPLATS":
+        raise ValueError("no 3DGS sequence add-on is enabled (bpy.ops.b4d.import_sequence); install the 4DGS "
+                         "Viewer/Editor extension, or set Import to USD")
+    return False
+
+
 def build_command(context) -> tuple[list[str], Path]:
-    """argv of `pdtool bake` for the panel's settings, and the .usd it will write.
+    """argv of `pdtool bake` for the panel's settings, and the .usd it will write (with a
+    .ply sequence beside it, command.sequence_folder, when wants_splats).
 
     Raises ValueError (command.LauncherError included) with one line the user can act on.
     """
@@ -185,7 +215,8 @@ def build_command(context) -> tuple[list[str], Path]:
     out = _output_path(s, scene_path)
     argv = command.bake_command(prefix, scene=scene_path, out=out, force=force_vector(s),
                                 static_box=static_box(s), at=at, radius=radius, quality=s.quality,
-                                seconds=s.seconds, fps=s.fps, **mat)
+                                seconds=s.seconds, fps=s.fps, formats="both,ply-seq" if wants_splats(s) else None,
+                                **mat)
     return argv, out
 
 
@@ -245,7 +276,11 @@ class BakeJob:
             return "ERROR", line
         if scene is None:
             return "ERROR", "the scene that started the bake is gone; nothing imported"
-        objs = import_bake(scene, self.out, self.fps)
+        folder = command.sequence_folder(self.out)
+        if folder.is_dir() and sequence_importer_installed():
+            objs = import_sequence(scene, folder, self.fps)
+        else:
+            objs = import_bake(scene, self.out, self.fps)
         settings.progress, settings.last_error, settings.last_usd = 1.0, "", str(self.out)
         settings.status = f"imported frames {scene.frame_start}-{scene.frame_end} from {self.out.name}"
         return "INFO", f"pdtool: {settings.status} ({len(objs)} objects)"
@@ -269,6 +304,29 @@ def import_bake(scene, path: Path, fps: int) -> list:
                 o.matrix_world = frame.matrix_world @ o.matrix_world
     scene.render.fps, scene.render.fps_base = fps, 1.0
     scene.frame_set(scene.frame_start)
+    return new
+
+
+def import_sequence(scene, folder: Path, fps: int) -> list:
+    """Load a baked .ply sequence through the 3DGS add-on, frames from 1, at the
+    preview's place; set fps and frame range. The add-on converts the frames in the
+    background and fills the object when it is done."""
+    import json
+
+    manifest = json.loads((folder / "sequence.json").read_text())
+    up = command.UP_AXIS_4DGS.get(manifest.get("scene_up_axis"), "POS_Z")
+    before = set(bpy.data.objects)
+    bpy.ops.b4d.import_sequence(filepath=str(folder / manifest["files"][0]), fps=fps, start_frame=1, up_axis=up,
+                                full_quality=True, setup_scene=False)
+    new = [o for o in bpy.data.objects if o not in before]
+    frame = scene.pdtool.splat_object
+    if frame is not None:
+        for o in new:
+            if o.parent is None:
+                o.matrix_world = frame.matrix_world @ o.matrix_world
+    scene.render.fps, scene.render.fps_base = fps, 1.0
+    scene.frame_start, scene.frame_end = 1, int(manifest["frames"])
+    scene.frame_set(1)
     return new
 
 
@@ -517,6 +575,11 @@ class PDTOOL_PT_panel(bpy.types.Panel):
         row.prop(s, "seconds")
         row.prop(s, "fps")
         box.prop(s, "output_dir")
+        row = box.row()
+        row.prop(s, "import_as", expand=True)
+        if s.import_as != "USD" and not sequence_importer_installed():
+            box.label(text="no 3DGS sequence add-on: importing USD" if s.import_as == "AUTO" else
+                      "install a 3DGS sequence add-on, or import USD", icon="INFO")
 
         box = layout.box()
         box.label(text="Bake", icon="RENDER_ANIMATION")

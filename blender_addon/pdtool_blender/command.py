@@ -60,7 +60,7 @@ def bake_command(prefix: Sequence[str], *, scene: str | Path, out: str | Path, f
                  static_box: Sequence[float] | None = None, at: Sequence[float] | None = None,
                  radius: float | None = None, preset: str | None = None, material: str | Path | None = None,
                  quality: str = "default", seconds: float = 2.0, fps: float = 30.0,
-                 up: str | None = None, extra: Sequence[str] = ()) -> list[str]:
+                 up: str | None = None, formats: str | None = None, extra: Sequence[str] = ()) -> list[str]:
     """argv for `pdtool bake`. All geometry is in the splat's scene units.
 
     Args:
@@ -69,6 +69,8 @@ def bake_command(prefix: Sequence[str], *, scene: str | Path, out: str | Path, f
         static_box: (x0, y0, z0, x1, y1, z1) or None.
         at, radius: centre (3,) and radius of the pushed region, or None (whole object).
         preset / material: a material preset name or a fitted .pdmat; exactly one.
+        formats: `--format`, e.g. "both,ply-seq" (the .ply sequence goes beside `out`,
+            in sequence_folder(out)); None: pdtool's default, USD only.
     """
     if (preset is None) == (material is None):
         raise ValueError("give a material preset or a material file, not both or neither")
@@ -83,8 +85,21 @@ def bake_command(prefix: Sequence[str], *, scene: str | Path, out: str | Path, f
         cmd += ["--radius", _num(radius)]
     if up is not None:
         cmd += ["--up", up]
+    if formats is not None:
+        cmd += ["--format", formats]
     cmd += ["--quality", quality, "--seconds", _num(seconds), "--fps", _num(fps), *extra, str(out)]
     return cmd
+
+
+def sequence_folder(out: str | Path) -> Path:
+    """Where `pdtool bake --format both,ply-seq OUT.usd` writes the .ply sequence."""
+    out = Path(out)
+    return out.with_name(out.stem + "_ply")
+
+
+# `pdtool bake` records the scene's up axis in the sequence's manifest; the 3DGS add-on
+# takes one of three
+UP_AXIS_4DGS = {"-y": "NEG_Y", "+y": "POS_Y", "+z": "POS_Z"}
 
 
 def progress(stderr_text: str) -> tuple[int, int] | None:
