@@ -20,6 +20,8 @@ from typing import Any, Callable, Iterable
 
 from pd_tool.batch.jobs import Job, JobsFileError
 from pd_tool.core.atomic import PARKED, TEMP_SUFFIX_CHARS, atomic_output, temp_stem
+from pd_tool.core.errors import OutputError
+from pd_tool.io.formats import output_paths
 from pd_tool.materials.file import RECORD_PATH
 
 RECORD_SUFFIX = ".batch.json"
@@ -118,6 +120,16 @@ def job_files(job: Job, commands: CommandLines) -> JobFiles:
             outs.append(canonical(params[key], cwd))
             if key in _FOLDER_OUTPUTS:
                 folders.append(outs[-1])
+    fmt = params.get("fmt") if job.command == "bake" else None
+    if fmt is not None and params.get("out") is not None:  # OUT as --format spells it out
+        try:
+            paths = output_paths(params["out"], *fmt)
+        except OutputError:
+            paths = {}  # the command refuses OUT itself, in its own words
+        if paths:
+            outs.remove(canonical(params["out"], cwd))
+            outs[0:0] = [canonical(p, cwd) for p in paths.values()]  # the USD file (or OUT) stays first
+            folders += [canonical(p, cwd) for name, p in paths.items() if name.endswith("-seq")]
     if job.command == "fit" and params.get("out") is None and params.get("scene") is not None:
         outs.insert(0, canonical(Path(params["scene"]).with_suffix(".pdmat"), cwd))  # the CLI's default
     side: list[Path] = []

@@ -330,3 +330,17 @@ def test_cli_jobs_file_error_exits_2(tmp_path: Path) -> None:
     jobs.write_text('[[job]]\nname = "a"\ncommand = "bake"\nafter = ["nope"]\n')
     r = CliRunner().invoke(main, ["batch", str(jobs)])
     assert r.exit_code == 2 and "waits for 'nope', which is no job name" in r.output
+
+
+def test_job_files_know_the_splat_outputs_of_format(tmp_path: Path) -> None:
+    (tmp_path / "s.ply").write_bytes(b"x")
+    common = ["--scene", "s.ply", "--preset", "flower", "--force", "0,0,1", "--format"]
+    bake, seq = parse_jobs({"job": [
+        {"name": "b", "command": "bake", "args": [*common, "both,ply-seq,gltf", "o.usd"]},
+        {"name": "q", "command": "bake", "args": [*common, "spz-seq", "frames"]},
+    ]}, cwd=tmp_path)
+    root = tmp_path.resolve()
+    f = job_files(bake, COMMANDS)
+    assert f.outputs == [root / "o.usd", root / "o_ply", root / "o.glb"] and f.folders == [root / "o_ply"]
+    f = job_files(seq, COMMANDS)
+    assert f.outputs == [root / "frames"] and f.folders == [root / "frames"]
