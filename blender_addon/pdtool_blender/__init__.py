@@ -15,6 +15,7 @@ keeps everything consistent, and the baked result is placed with the preview's t
 """
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import tempfile
@@ -296,7 +297,24 @@ def import_bake(scene, path: Path, fps: int) -> list:
         # Scene units, not metres: the result lands on the preview and the helpers.
         bpy.ops.wm.usd_import(filepath=str(path), set_frame_range=True, apply_unit_conversion_scale=False,
                               create_collection=True)
-    new = [o for o in bpy.data.objects if o not in before]
+    return _place(scene, [o for o in bpy.data.objects if o not in before], fps)
+
+
+def import_sequence(scene, folder: Path, fps: int) -> list:
+    """Load a baked .ply sequence through the 3DGS add-on, frames from 1, at the
+    preview's place; set fps and frame range. The add-on converts the frames in the
+    background and fills the object when it is done."""
+    manifest = json.loads((folder / "sequence.json").read_text())
+    up = command.UP_AXIS_4DGS.get(manifest.get("scene_up_axis"), "POS_Z")
+    before = set(bpy.data.objects)
+    bpy.ops.b4d.import_sequence(filepath=str(folder / manifest["files"][0]), fps=fps, start_frame=1, up_axis=up,
+                                full_quality=True, setup_scene=False)
+    scene.frame_start, scene.frame_end = 1, int(manifest["frames"])
+    return _place(scene, [o for o in bpy.data.objects if o not in before], fps)
+
+
+def _place(scene, new: list, fps: int) -> list:
+    """Put newly imported objects where the preview is, set the fps and go to the first frame."""
     frame = scene.pdtool.splat_object
     if frame is not None:
         for o in new:
@@ -304,29 +322,6 @@ def import_bake(scene, path: Path, fps: int) -> list:
                 o.matrix_world = frame.matrix_world @ o.matrix_world
     scene.render.fps, scene.render.fps_base = fps, 1.0
     scene.frame_set(scene.frame_start)
-    return new
-
-
-def import_sequence(scene, folder: Path, fps: int) -> list:
-    """Load a baked .ply sequence through the 3DGS add-on, frames from 1, at the
-    preview's place; set fps and frame range. The add-on converts the frames in the
-    background and fills the object when it is done."""
-    import json
-
-    manifest = json.loads((folder / "sequence.json").read_text())
-    up = command.UP_AXIS_4DGS.get(manifest.get("scene_up_axis"), "POS_Z")
-    before = set(bpy.data.objects)
-    bpy.ops.b4d.import_sequence(filepath=str(folder / manifest["files"][0]), fps=fps, start_frame=1, up_axis=up,
-                                full_quality=True, setup_scene=False)
-    new = [o for o in bpy.data.objects if o not in before]
-    frame = scene.pdtool.splat_object
-    if frame is not None:
-        for o in new:
-            if o.parent is None:
-                o.matrix_world = frame.matrix_world @ o.matrix_world
-    scene.render.fps, scene.render.fps_base = fps, 1.0
-    scene.frame_start, scene.frame_end = 1, int(manifest["frames"])
-    scene.frame_set(1)
     return new
 
 
