@@ -44,6 +44,7 @@ import torch.nn.functional as F
 
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.quaternion import quat_to_matrix_np
+from pd_tool.prepare.cells import unique_cells
 
 SHELL_THRESHOLD = 0.3  # summed alpha * Gaussian value (0-1 per Gaussian) that makes a voxel shell
 SIGMA_MIN_VOXELS = 0.5  # smallest std-dev, in analysis voxels: a flat Gaussian still marks its voxel
@@ -318,8 +319,7 @@ def splat_density_ref(u, rot, sig_v, opa, radius, shape, deadline=None) -> np.nd
     dims = torch.tensor(shape)
     strides = torch.tensor([shape[1] * shape[2], shape[2], 1])
     radius = np.asarray(radius).reshape(len(u), -1) * np.ones((1, 3), np.int64)
-    keys, group = np.unique(radius, axis=0, return_inverse=True)
-    group = group.reshape(-1)
+    keys, group, _ = unique_cells(radius)
     for gk, r in enumerate(keys):
         sel = torch.from_numpy(np.nonzero(group == gk)[0])
         axes = [torch.arange(-int(v), int(v) + 1) for v in r]

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from pd_tool.prepare.cells import unique_cells
+
 OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
 
 
 def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float) -> np.ndarray:
     """Points [N] in each point's 3x3x3 block of voxels of size h (self included)."""
     keys = np.floor((points - lo) / h).astype(np.int64)
-    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    uniq, inverse, counts = unique_cells(keys)
     base = uniq.min(axis=0) - 1
     span = uniq.max(axis=0) - base + 2
 
@@ -26,7 +28,7 @@ def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float) -> np.nd
         pos = np.clip(np.searchsorted(sorted_keys, q), 0, len(sorted_keys) - 1)
         hit = sorted_keys[pos] == q
         total[hit] += counts[order[pos[hit]]]
-    return total[inverse.reshape(-1)]
+    return total[inverse]
 
 
 def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS) -> np.ndarray:

@@ -18,6 +18,7 @@ import torch
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
+from pd_tool.prepare.cells import unique_cells
 from pd_tool.prepare.fill import fill_interior
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
@@ -206,7 +207,7 @@ class PreparedScene:
 
     def occupied_cells(self, dx: float | None = None) -> int:
         """Grid cells (of edge `dx` m, default this grid's) that hold a simulated particle."""
-        return int(len(np.unique(np.floor(self.positions_sim / (dx or self.dx)).astype(np.int64), axis=0)))
+        return int(len(unique_cells(np.floor(self.positions_sim / (dx or self.dx)))[0]))
 
     def connected_ratio(self, ratio: float) -> float:
         """`ratio`, raised where needed so that the drivers number at least
@@ -371,9 +372,8 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
 
 def particle_volumes(positions_sim: np.ndarray, dx: float) -> np.ndarray:
     """Per-particle volume [N] m^3: a grid cell's volume divided by the particles in it."""
-    keys = np.floor(positions_sim / dx).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return (dx ** 3) / counts[inverse.reshape(-1)].astype(np.float64)
+    _, inverse, counts = unique_cells(np.floor(positions_sim / dx))
+    return (dx ** 3) / counts[inverse].astype(np.float64)
 
 
 def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -> PreparedScene:
