@@ -18,7 +18,7 @@ import torch
 
 from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.outputs import FrameOutputs, open_splat_writers
-from pd_tool.core.atomic import check_destination, check_outputs, check_replaceable_folder
+from pd_tool.core.atomic import check_destination, check_own_file, check_outputs, check_replaceable_folder
 from pd_tool.core.cameras import Camera
 from pd_tool.core.errors import OutputError, PdToolError, PreparationError
 from pd_tool.core.quaternion import matrix_to_quat
@@ -237,6 +237,8 @@ def check_bake_outputs(
     check_outputs({**files, "--preview": preview}, {**folders, "--frames-out": frames_dir}, inputs or {})
     for name, p in files.items():
         check_destination(p, name)
+        if p != out:  # beside OUT, not named by the user: never over someone else's file
+            check_own_file(p, f"the {name}")
         if not os.path.isdir(p.parent):
             raise OutputError(f"{p}: folder {p.parent} does not exist; create it or choose another output path",
                               path=p)
@@ -437,7 +439,7 @@ class Baker:
             )
         try:
             splat = open_splat_writers(self.paths, scene.to("cpu"), static=static, up_axis=prep.options.up_axis,
-                                       fps=self.settings.fps)
+                                       fps=self.settings.fps, named=self.out)
         except BaseException:
             if usd is not None:
                 usd.abort()

@@ -74,8 +74,10 @@ class FrameOutputs:
             w.abort()
 
 
-def open_splat_writers(paths: dict[str, Path], scene, *, static: np.ndarray, up_axis: str, fps: float) -> dict:
-    """The splat writers of `paths` (output_paths); each opens its temporary output."""
+def open_splat_writers(paths: dict[str, Path], scene, *, static: np.ndarray, up_axis: str, fps: float,
+                       named: Path | None = None) -> dict:
+    """The splat writers of `paths` (output_paths); each opens its temporary output. A
+    file output other than `named` (OUT, which the user named) replaces only pdtool's own."""
     writers: dict = {}
     try:
         for fmt, path in paths.items():
@@ -84,7 +86,7 @@ def open_splat_writers(paths: dict[str, Path], scene, *, static: np.ndarray, up_
             what = f"--format {fmt} output {path}"
             if fmt == "gltf":
                 writers[fmt] = GltfSplatWriter(path, scene, static=static, to_gltf=gltf_axes(up_axis), fps=fps,
-                                               what=what)
+                                               what=what, own_only=Path(path) != named)
             else:
                 writers[fmt] = SplatSequenceWriter(path, scene, fmt=fmt.split("-")[0], fps=fps, up_axis=up_axis,
                                                    what=what)

@@ -17,7 +17,7 @@ Ownership: pdtool replaces only what it wrote itself.
 - A file it writes beside another output without being asked by name (a fit's report,
   plots, E field, preview; the fit record; camera.json in a named folder) carries a mark:
   PNG tEXt `Software=pdtool`, a PLY header comment, a JSON key `written_by`, the mp4/gif
-  comment. Such a side output replaces only a file that carries the mark
+  comment, a .glb's asset generator. Such a side output replaces only a file that carries the mark
   (`atomic_output(..., own_only=True)`). Files the user names (OUT.usd, -o x.png) are
   replaced as asked, like cp.
 
@@ -264,8 +264,25 @@ def _gif_is_own(path: Path) -> bool:
     return isinstance(comment, bytes) and MARK_TEXT.encode() in comment
 
 
+def _glb_is_own(path: Path) -> bool:
+    # the JSON chunk's asset.generator, which pd_tool.io.gltf sets to "pdtool ..."
+    with open(path, "rb") as fh:
+        head = fh.read(20)
+        if len(head) < 20 or head[:4] != b"glTF":
+            return False
+        length, kind = struct.unpack("<II", head[12:20])
+        if kind != 0x4E4F534A or length > MANIFEST_MAX_BYTES:
+            return False
+        try:
+            doc = json.loads(fh.read(length).decode("utf-8"))
+        except (ValueError, UnicodeDecodeError, RecursionError):
+            return False
+    generator = doc.get("asset", {}).get("generator") if isinstance(doc, dict) else None
+    return isinstance(generator, str) and generator.startswith(WRITTEN_BY)
+
+
 _MARK_READERS = {".png": _png_is_own, ".ply": _ply_is_own, ".json": _json_is_own, ".mp4": _mp4_is_own,
-                 ".gif": _gif_is_own}
+                 ".gif": _gif_is_own, ".glb": _glb_is_own}
 
 
 def is_own_file(path: str | Path) -> bool:

@@ -51,10 +51,12 @@ class GltfSplatWriter:
     static [N] bool: splats that never move; to_gltf [3, 3]: rotation from scene axes to
     glTF's (x_gltf = to_gltf @ x_scene). `write_frame(f, positions, quats)` takes frame f's
     positions [N, 3] and (w, x, y, z) rotations [N, 4] in scene units and axes, frames in
-    order from 0; `hold_frames(last)` shows the last written frame up to frame `last`."""
+    order from 0; `hold_frames(last)` shows the last written frame up to frame `last`.
+    own_only: replace an existing file only when pdtool wrote it (an output the user did
+    not name)."""
 
     def __init__(self, path: str | Path, scene: GaussianScene, *, static: np.ndarray, to_gltf: np.ndarray,
-                 fps: float, what: str | None = None) -> None:
+                 fps: float, what: str | None = None, own_only: bool = False) -> None:
         self.path, self.fps = Path(path), float(fps)
         self.static = np.asarray(static, bool)
         self.moving = ~self.static
@@ -70,7 +72,7 @@ class GltfSplatWriter:
         self._bin = tempfile.TemporaryFile(dir=self.path.parent if self.path.parent.is_dir() else None)
         self._size = 0
         self._open = True
-        self._what = what
+        self._what, self._own_only = what, own_only
         scales = scene.scales.detach().cpu().numpy().astype(np.float32)
         opac = scene.opacities.detach().cpu().numpy().astype(np.float32).clip(0.0, 1.0)
         dc = scene.sh.detach().cpu().numpy()[:, 0].astype(np.float32)
@@ -202,7 +204,7 @@ class GltfSplatWriter:
         js += b" " * ((-len(js)) % 4)
         pad = (-self._size) % 4
         total = 12 + 8 + len(js) + 8 + self._size + pad
-        with atomic_output(self.path, what=self._what) as tmp:
+        with atomic_output(self.path, what=self._what, own_only=self._own_only) as tmp:
             with open(tmp, "wb") as f:
                 f.write(struct.pack("<III", GLB_MAGIC, GLB_VERSION, total))
                 f.write(struct.pack("<II", len(js), CHUNK_JSON))

@@ -155,3 +155,16 @@ def test_the_native_splat_prim_animates_and_validates(baked):
         ply.quats = quat_multiply(matrix_to_quat(torch.as_tensor(R_usd)).float().expand(ply.count, 4), ply.quats)
         assert np.abs(render_image(ply, cam).astype(float) - images[f]).mean() < 1.0  # 8-bit levels
     assert np.abs(images[5] - images[0]).mean() > 1.0, np.abs(images[5] - images[0]).mean()
+
+
+def test_outputs_beside_out_replace_only_pdtools_own(baked, tmp_path):
+    d, _ = baked
+    (tmp_path / "b.glb").write_text("my own model")  # beside b.usd, not named by the user
+    args = ["bake", "--scene", d / "plant.ply", "--preset", "jelly", "--force", "1,0,0", "--frames", "2",
+            "--quality", "draft", "--device", "cpu", "--format", "instancer,gltf", tmp_path / "b.usd"]
+    res = _run(args)
+    assert res.exit_code == 2 and "was not written by pdtool" in res.stderr
+    assert (tmp_path / "b.glb").read_text() == "my own model" and not (tmp_path / "b.usd").exists()
+    (tmp_path / "b.glb").unlink()
+    assert _run(args).exit_code == 0
+    assert _run(args).exit_code == 0  # its own .glb: replaced
