@@ -168,3 +168,20 @@ def test_outputs_beside_out_replace_only_pdtools_own(baked, tmp_path):
     (tmp_path / "b.glb").unlink()
     assert _run(args).exit_code == 0
     assert _run(args).exit_code == 0  # its own .glb: replaced
+
+
+def test_a_bake_stopped_midway_leaves_no_output_and_no_temporary(tmp_path):
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.io.synthetic import make_plant
+    from pd_tool.materials.presets import Material
+
+    def stop(done: int, total: int) -> None:
+        if done == 2:
+            raise KeyboardInterrupt  # Ctrl-C in the middle of the frames
+
+    with pytest.raises(KeyboardInterrupt):
+        bake(make_plant(600, seed=0), tmp_path / "s.usd", force=ForceSpec(accel=(2.0, 0.0, 0.0)),
+             material=Material.from_preset("jelly"), progress=stop,
+             settings=BakeSettings(seconds=0.2, quality="draft", fmt="both",
+                                   splat_formats=("ply-seq", "spz-seq", "gltf")))
+    assert list(tmp_path.iterdir()) == []
