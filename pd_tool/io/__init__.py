@@ -1,4 +1,6 @@
-"""Splat file I/O: INRIA 3DGS .ply (binary and ASCII) and antimatter15 .splat."""
+"""Splat file I/O: INRIA 3DGS .ply (binary and ASCII) and antimatter15 .splat read and
+written here; the animated outputs of `bake --format` (formats.py names them) in
+sequence.py (.ply and .spz frames), spz.py and gltf.py."""
 from __future__ import annotations
 
 from pathlib import Path
