@@ -1,8 +1,9 @@
-"""Bake: simulate a prepared object under a force and stream the animation to USD.
+"""Bake: simulate a prepared object under a force and stream the animation to USD and the
+splat formats of `--format`.
 
 Data flow: scene -> prepare (foreground, static, simulation box) -> driving particles ->
 fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
-usd_export (streamed, atomic). Frames after the object is at rest again are held (no
+every output (pd_tool.bake.outputs: usd_export and pd_tool.io's writers; streamed, atomic). Frames after the object is at rest again are held (no
 simulation, no new samples), see REST_*.
 """
 from __future__ import annotations
@@ -255,13 +256,15 @@ def check_bake_outputs(
 
 class Baker:
     """One bake, in warp's example shape: the constructor prepares everything and opens the
-    USD writer, `step()` writes one frame until `done`, `finish()` publishes the outputs.
+    writers, `step()` writes one frame until `done`, `finish()` publishes the outputs.
 
     Use it as a context manager: an error or Ctrl-C before `finish()` returns deletes the
-    temporary USD, so no half-written file ever appears at `out`. Arguments as for `bake`.
+    temporaries, so no half-written file ever appears at `out` or beside it. Arguments as
+    for `bake`.
 
     After setup: n_frames, frame_dt (s), substeps (per frame), prep (the PreparedScene that
-    is simulated), solver, writer. While stepping: frame (the next one step() writes),
+    is simulated), solver, outputs (pd_tool.bake.outputs.FrameOutputs), paths (format ->
+    path). While stepping: frame (the next one step() writes),
     simulated (frames simulated so far), disp (max |x - x0| per written frame, scene
     units), preview_images ([H, W, 3] each) and timings (seconds per stage).
     """
@@ -302,7 +305,7 @@ class Baker:
               prepare_options: PrepareOptions | None, camera: Camera | None,
               inputs: Mapping[str, str | Path | None] | None) -> None:
         """Check the outputs, prepare the scene, pick its grid (finer for thin parts when
-        time and memory allow), build drivers, solver and force, then open the writer."""
+        time and memory allow), build drivers, solver and force, then open the writers."""
         read = {"--scene": getattr(self.scene, "source", None), **(inputs or {})}
         self.paths = check_bake_outputs(self.out, preview=self.preview, frames_dir=self.frames_dir, inputs=read,
                                         fmt=self.settings.fmt, splat_formats=self.settings.splat_formats)
