@@ -584,7 +584,9 @@ def bake(
     camera: Camera | None = None,
     inputs: Mapping[str, str | Path | None] | None = None,
 ) -> BakeResult:
-    """Simulate `scene` under `force` and write an animated USD to `out` (atomic).
+    """Simulate `scene` under `force` and write the animation to `out` (atomic): the USD
+    file and the splat formats of settings.fmt / settings.splat_formats
+    (pd_tool.io.formats names the outputs beside `out`).
 
     Give either a homogeneous `material` (a preset) or a fitted `material_file`
     (pd_tool.materials.file.MaterialFile). `progress(done, total)` is called once per frame.
