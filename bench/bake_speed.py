@@ -48,7 +48,7 @@ def main() -> None:
     scene = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin)
     kw = dict(force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material=Material.from_preset(args.preset))
     with tempfile.TemporaryDirectory() as tmp:
-        bake(make_plant(2000, seed=1, device=args.device), Path(tmp) / "warm.usd",
+        bake(make_plant(2000, seed=1, device=args.device, thin=False), Path(tmp) / "warm.usd",
              prepare_options=PrepareOptions(static_below=POT_TOP),
              settings=BakeSettings(seconds=0.1, fps=args.fps, quality=args.quality, fmt=args.fmt,
                                    device=args.device), **kw)

@@ -52,7 +52,7 @@ def hardware(device: str) -> str:
 def plant_points(n: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
     from pd_tool.io.synthetic import make_plant
 
-    scene = make_plant(n, seed=0)
+    scene = make_plant(n, seed=0, thin=False)
     return scene.positions.to(device), scene.quats.to(device)
 
 
@@ -138,7 +138,7 @@ def bench_accuracy(args) -> dict:
     from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 
     dev = args.device
-    scene = make_plant(args.gaussians, seed=0)
+    scene = make_plant(args.gaussians, seed=0, thin=False)
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=args.grid_res))
     x = prep.positions_sim
     size = prep.object_size_m

@@ -48,7 +48,7 @@ def main() -> None:
     init_warp_quietly()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        scene_path = save_splats(make_plant(args.gaussians, seed=0), tmp / "plant.ply")
+        scene_path = save_splats(make_plant(args.gaussians, seed=0, thin=False), tmp / "plant.ply")
         from pd_tool.io import load_splats
 
         scene = load_splats(scene_path, device=args.device)

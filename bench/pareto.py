@@ -185,7 +185,7 @@ def fit_sweep(args) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        scene_path = save_splats(make_plant(args.fit_gaussians, seed=0), tmp / "plant.ply")
+        scene_path = save_splats(make_plant(args.fit_gaussians, seed=0, thin=False), tmp / "plant.ply")
         scene = load_splats(scene_path, device=args.device)
         cam = scene_camera(scene, width=args.fit_size, height=args.fit_size)
         video, _, _ = plant_reference_for_fit(tmp / "video", scene, cam, args.fit_quality, n_frames=args.fit_frames,
@@ -262,7 +262,7 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(out, indent=2))
         return
-    scene = make_plant(args.gaussians, seed=0, device=args.device)
+    scene = make_plant(args.gaussians, seed=0, device=args.device, thin=False)
     size = float(np.ptp(scene.positions.cpu().numpy(), axis=0).max())
     grids = [int(g) for g in args.grids.split(",")]
     cases: dict[tuple, BakeCase] = {}
@@ -282,7 +282,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         # warm-up: compile/load kernels outside the timings
-        bake_plant(make_plant(500, seed=1, device=args.device), BakeCase(16, 0.5, 0.1), seconds=0.1, fps=args.fps,
+        bake_plant(make_plant(500, seed=1, device=args.device, thin=False), BakeCase(16, 0.5, 0.1), seconds=0.1, fps=args.fps,
                    device=args.device, folder=tmp)
         if args.reference_only:
             info, _ = reference_positions(scene, args, tmp)

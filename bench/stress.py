@@ -61,7 +61,7 @@ def make_scene(geometry: str, cov: str, opacity: str, seed: int = 0):
     rng = np.random.default_rng(seed)
     prep_kw: dict = {}
     if geometry in ("plant", "edge", "far"):
-        s = make_plant(400, seed=seed)
+        s = make_plant(400, seed=seed, thin=False)
         pos, scales = s.positions.numpy().astype(np.float64), s.scales.numpy().astype(np.float64)
         prep_kw["static_below"] = POT_TOP
         if geometry == "edge":

@@ -133,7 +133,7 @@ def bake_frame_rate(device: str, counts: list[int], frames: int) -> dict:
     per = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in counts:
-            scene = make_plant(n, seed=0)
+            scene = make_plant(n, seed=0, thin=False)
             res = bake(scene, Path(tmp) / f"b{n}.usd", force=ForceSpec(accel=(0.0, 0.0, 0.0)),
                        material=Material.from_preset("flower"), prepare_options=PrepareOptions(static_below=POT_TOP),
                        settings=BakeSettings(seconds=(frames - 1) / 30.0, quality="draft", fmt="both", device=device,

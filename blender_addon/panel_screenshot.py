@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def make_plant(path: Path, n: int) -> None:
     # torch in its own process: bpy and torch/usd-core do not share one process here
     code = ("import sys; from pd_tool.io.synthetic import make_plant; from pd_tool.io import save_splats; "
-            f"save_splats(make_plant({n}, seed=0), sys.argv[1])")
+            f"save_splats(make_plant({n}, seed=0, thin=False), sys.argv[1])")
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
 
 

@@ -161,14 +161,14 @@ def reference_height(width: int) -> int:
 
 
 def write_plant_with_video(folder: str | Path, n: int, *, size: int = 64, frames: int = 4) -> Path:
-    """The synthetic plant of n Gaussians (make_plant(n, seed=0)) as `folder`/plant.ply and
+    """The synthetic plant of n Gaussians (make_plant(n, seed=0, thin=False)) as `folder`/plant.ply and
     a reference video of it as the video folder `folder`/video: REGION_TRUTH_E pushed
     sideways, `frames` frames at 30 fps of `size` x `size` px from the scene camera, on a
     coarse discretisation (24 cells, driver ratio 0.1, CFL safety 0.6) that keeps it quick
     at any n. Deterministic; the CPU is used. Returns `folder`."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    save_splats(make_plant(n, seed=0), folder / "plant.ply")
+    save_splats(make_plant(n, seed=0, thin=False), folder / "plant.ply")
     scene = load_splats(folder / "plant.ply")  # as a fit reads it back
     plant_reference_video(folder / "video", scene, scene_camera(scene, width=size, height=size),
                           prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=24),

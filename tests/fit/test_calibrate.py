@@ -93,7 +93,9 @@ def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        _, pb, _ = tiny_plant_problem(tmp_path, 500, seed=3, size=24)
+        # 2 cm leaves: 500 Gaussians of 3 mm leaves on a 24-cell grid make the loss rough
+        # at this scale (central differences from h = 0.05 to 0.005 scatter by 60%)
+        _, pb, _ = tiny_plant_problem(tmp_path, 500, seed=3, size=24, thin=False)
         pb.s.stage1_level = True
         with torch.no_grad():  # a push along x, so that E changes the frames
             pb.velocities[0].net.last_layer.bias.copy_(torch.tensor([0.4, 0.0, 0.0]))

@@ -92,13 +92,13 @@ def test_prepare_reports_thin_leaves_and_the_quality_to_try() -> None:
     lines = [line for line in thin.report if line.startswith("thin parts:")]
     assert len(lines) == 1 and " mm thick" in lines[0], thin.report  # 3 mm leaves and petals
     # the 2 cm leaves are thin at 16 cells, and not at the quality the line names
-    coarse = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=16))
+    coarse = prepare_scene(make_plant(20000, thin=False), PrepareOptions(static_below=POT_TOP, grid_res=16))
     line = next(line for line in coarse.report if line.startswith("thin parts:"))
     named = line.split("--quality ")[1].split()[0]
     from pd_tool.materials.presets import load_preset
 
     grid = int(load_preset("quality", named)["grid_res"])
-    fine = prepare_scene(make_plant(20000), PrepareOptions(static_below=POT_TOP, grid_res=grid))
+    fine = prepare_scene(make_plant(20000, thin=False), PrepareOptions(static_below=POT_TOP, grid_res=grid))
     assert not any(line.startswith("thin parts:") for line in fine.report), fine.report
 
 
@@ -182,6 +182,6 @@ def test_refine_for_thin_leaves_a_scene_without_thin_parts_alone() -> None:
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin
     from pd_tool.io.synthetic import POT_TOP, make_plant
 
-    thick = prepare_scene(make_plant(6000), PrepareOptions(static_below=POT_TOP, grid_res=48))  # 2 cm leaves
+    thick = prepare_scene(make_plant(6000, thin=False), PrepareOptions(static_below=POT_TOP, grid_res=48))  # 2 cm leaves
     assert thick.thin is None or not thick.thin.thin
     assert refine_for_thin(thick, 256) is None
