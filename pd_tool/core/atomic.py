@@ -47,7 +47,8 @@ TEMP_NAME_BYTES = 96  # of the output's name kept in a temporary's name: NAME_MA
 TEMP_SUFFIX_CHARS = 16  # of the output's suffix kept in a file temporary's name
 PARKED = "previous"  # the folder being replaced, inside its `.NAME.XXXXXXXX.old` temporary
 _FIX_SPACE = "free some space or choose a writable folder"
-_FIX = {errno.ENAMETOOLONG: "choose a shorter name"}
+_FIX_FOLDER = "check that the output folder exists and is a folder, not a file"
+_FIX = {errno.ENAMETOOLONG: "choose a shorter name", errno.ENOTDIR: _FIX_FOLDER, errno.ENOENT: _FIX_FOLDER}
 # errnos that say what is wrong with the destination itself (anything else, e.g. a broken
 # pipe to an encoder, is a symptom: the destination is examined for the cause)
 _DEST_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EPERM, errno.EDQUOT, errno.EFBIG,
@@ -110,7 +111,8 @@ def destination_problem(path: str | Path) -> int | None:
         if len(os.fsencode(part)) > name_max:
             return errno.ENAMETOOLONG
     if not folder.is_dir():
-        return errno.ENOTDIR
+        # gone since _existing_ancestor saw it (removed while we write): ENOENT
+        return errno.ENOTDIR if folder.exists() else errno.ENOENT
     try:
         st = os.statvfs(folder)
     except OSError:
@@ -568,7 +570,7 @@ def atomic_output(path: str | Path, *, directory: bool = False, what: str | None
     if directory:
         check_replaceable_folder(path, what, known=known)
     if path_kind(path.parent) not in (None, "dir") and not os.path.isdir(path.parent):
-        raise OutputError(f"cannot write {shown}: {path.parent} is a file, not a folder; {_FIX_SPACE}", path=shown)
+        raise OutputError(f"cannot write {shown}: {path.parent} is a file, not a folder; choose a folder", path=shown)
     code = destination_problem(path)  # before any work, and before a temporary exists
     if code is not None:
         raise output_error(shown, code)

@@ -187,7 +187,7 @@ def test_fit_record(fit_dir, dest, tmp_path):
 
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EFBIG, errno.EPERM,
-                                  errno.ENAMETOOLONG])
+                                  errno.ENAMETOOLONG, errno.ENOTDIR, errno.ENOENT])
 def test_atomic_output_turns_write_errors_into_one_line(tmp_path: Path, code: int) -> None:
     target = tmp_path / "out.png"
     target.write_text("old")
@@ -195,7 +195,9 @@ def test_atomic_output_turns_write_errors_into_one_line(tmp_path: Path, code: in
         with atomic_output(target) as tmp:
             tmp.write_text("half")
             raise OSError(code, os.strerror(code), str(tmp))
-    fix = "choose a shorter name" if code == errno.ENAMETOOLONG else FIX
+    fix = {errno.ENAMETOOLONG: "choose a shorter name",
+           errno.ENOTDIR: "check that the output folder exists and is a folder, not a file",
+           errno.ENOENT: "check that the output folder exists and is a folder, not a file"}.get(code, FIX)
     assert str(e.value) == f"cannot write {target}: {os.strerror(code)}; {fix}"
     assert isinstance(e.value, OSError)  # still an OSError for code that handles those
     assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["out.png"]
@@ -224,7 +226,7 @@ def test_atomic_output_errors_outside_the_body(tmp_path: Path, monkeypatch) -> N
     monkeypatch.setattr(os, "replace", real)
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "file").write_text("x")
-    with pytest.raises(OutputError, match="file is a file, not a folder"):
+    with pytest.raises(OutputError, match="file is a file, not a folder; choose a folder$"):
         with atomic_output(tmp_path / "file" / "x.json") as tmp:
             pass
 
