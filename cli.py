@@ -631,7 +631,8 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
 @click.option("--fps", type=T.FPS, default=30.0, show_default=True, help="Frames per second.")
 @click.option("--quality", default=None,
               help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio. Default: "
-                   "with a fitted material, the fit's own (its E is calibrated to them); with --preset, default.")
+                   "with a fitted material, the fit's own (its E is calibrated to them; another quality matches "
+                   "the fit's motion first, see --match-fit); with --preset, default.")
 @click.option("--format", "fmt", type=T.FormatList(), default="both", show_default=True,
               help="What to write, comma-separated. USD, in OUT (.usd/.usdc/.usda), at most one of: instancer "
                    "(UsdGeom.PointInstancer of spheres, every DCC), splat (UsdVol 3D Gaussian splat schema, usd "
@@ -656,6 +657,11 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
                    "cell, simulate on a finer grid, up to the quality's thin_grid_res (draft 64, default 128, "
                    "final 192 cells), so that they bend as a converged simulation does. Not for a fitted material "
                    "simulated as its fit was.")
+@click.option("--match-fit/--no-match-fit", default=True, show_default=True,
+              help="With a fitted material and a --quality that simulates on another grid than the fit did, scale "
+                   "E part by part (a few short runs first) so that the bake moves as the fit's simulation did, the "
+                   "motion it matched to the video. Off: the fitted E as it is, which moves differently where parts "
+                   "are thin.")
 @MAX_MINUTES_OPTION
 @prepare_options_decorator
 @DEVICE_OPTION
@@ -665,7 +671,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
          force_box: tuple[float, ...] | None, start: float | None, duration: float | None, seconds: float | None,
          frames: int | None, fps: float, quality: str | None, fmt: tuple, preview: Path | None,
          frames_out: Path | None, camera: Path | None, view: str | None, gravity: bool, substeps: int | None,
-         seed: int, refine_thin: bool, max_minutes: float, device: str, **prep_kw) -> None:
+         seed: int, refine_thin: bool, match_fit: bool, max_minutes: float, device: str, **prep_kw) -> None:
     """Simulate the object under a force and write the animation to OUT (USD, or splat
     files with --format).
 
@@ -722,7 +728,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                     setattr(spec, k, v)
         settings = BakeSettings(seconds=n_seconds, fps=fps, quality=quality, fmt=usd_fmt, splat_formats=splat_formats,
                                 device=resolve_device(device),
-                                gravity=gravity, substeps=substeps, seed=seed, refine_thin=refine_thin)
+                                gravity=gravity, substeps=substeps, seed=seed, refine_thin=refine_thin,
+                                match_fit=match_fit)
         job = app.BakeJob(out, spec, settings, scene=scene, material=material, preset=preset,
                           prepare=prepare_changes(**prep_kw), preview=preview, frames_out=frames_out, camera=camera,
                           view=parse_view(view))

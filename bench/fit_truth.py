@@ -14,7 +14,8 @@ For each scene and hidden E field:
   3. `pdtool fit SCENE VIDEO0 VIDEO1` at `--quality` through the CLI;
   4. `pdtool bake --material` under a new force (diagonal, at the side of the object at
      70% of its height: another direction and place than either video's push) as the fit
-     simulated (no --quality), at default and at final; the uniform start E (the fit's
+     simulated (no --quality), and at default and at final, matched to the fit's motion
+     (the product's bake) and with the fitted E as it is (--no-match-fit); the uniform start E (the fit's
      --init-e) and the best uniform E (the truth's geometric mean over the moving
      Gaussians, an oracle a user could at best hand-tune to) baked at default;
   5. each bake's positions (read back from its USD) against the converged truth under the
@@ -307,7 +308,9 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     E_best = float(np.exp(np.mean(np.log(E_true[free]))))
     bakes = {"fitted, as fit": (["--material", str(out)], [])}
     for qname in args.bake_qualities:
+        # the product's bake (matched to the fit's motion first) and the fitted E as it is
         bakes[f"fitted, {qname}"] = (["--material", str(out)], ["--quality", qname])
+        bakes[f"fitted as is, {qname}"] = (["--material", str(out)], ["--quality", qname, "--no-match-fit"])
     for label_e, E in (("uniform start", E_uniform), ("best uniform", E_best)):
         mat = folder / f"{label_e.replace(' ', '_')}.toml"
         mat.write_text(f"E = {E:.9g}\nnu = 0.3\ndensity = 1000.0\n")

@@ -19,6 +19,7 @@ import torch
 
 from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.outputs import FrameOutputs, open_splat_writers
+from pd_tool.bake.transfer import Discretisation, MotionMatch, match_fit_motion, window_frames
 from pd_tool.core.atomic import check_destination, check_own_file, check_outputs, check_replaceable_folder
 from pd_tool.core.cameras import Camera
 from pd_tool.core.errors import OutputError, PdToolError, PreparationError
@@ -26,7 +27,7 @@ from pd_tool.core.quaternion import matrix_to_quat
 from pd_tool.core.scene import GaussianScene
 from pd_tool.io.formats import FORMATS, output_paths
 from pd_tool.materials.file import MaterialFile
-from pd_tool.materials.presets import Material, load_preset
+from pd_tool.materials.presets import Material, fit_simulation, load_preset
 from pd_tool.prepare import work
 from pd_tool.prepare.memory import PREVIEW_PIXELS, InsufficientMemory, check_memory, estimate_bake_memory
 from pd_tool.prepare.preparation import (WALL_CELLS, Box, PreparedScene, PrepareOptions, prepare_scene,
@@ -134,6 +135,11 @@ class BakeSettings:
     # its grid resolves (pd_tool.prepare.preparation.refine_for_thin); never for a fitted material
     # simulated as its fit was
     refine_thin: bool = True
+    # a fitted material baked on another discretisation than its fit's (--quality): scale its
+    # E part by part so that the bake moves as the fit did under this force
+    # (pd_tool.bake.transfer); off: the fitted E as it is, which moves differently where
+    # parts are thin
+    match_fit: bool = True
 
     @property
     def frames(self) -> int:
@@ -326,6 +332,7 @@ class Baker:
         (grid, self.thin_grid, self.cfl_safety, quality_ratio, self.seed, self.follows_fit,
          self.sim_note) = _discretisation(s, material_file)
         opts.grid_res = grid
+        self.fit_sim = material_file.fit_simulation() if material_file is not None else None
         mat = material if material is not None else material_file
         self.nu, self.damping = mat.nu, mat.damping
         opts.density_kg_m3 = mat.density
@@ -345,6 +352,8 @@ class Baker:
             camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
         self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
         self.push_s = min(self.force.duration, max(s.seconds - self.force.start, 0.0))
+        self.match: MotionMatch | None = None
+        self.match_frames = 0  # frames each run of the match simulates (0: no match)
 
     def _choose_grid(self) -> None:
         """Raise the grid for thin parts unless the finer run would not fit in memory or
@@ -384,9 +393,74 @@ class Baker:
         speed = float(np.linalg.norm(self.force.accel_sim(p))) * self.push_s
         # through the module, so that a test can stand in for the estimate
         work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
-                             frames=self.n_frames, frame_dt=self.frame_dt, E_max=self.E_top,
+                             frames=self.n_frames + self._match_frames(p, ratio), frame_dt=self.frame_dt, E_max=self.E_top,
                              density=self.opts.density_kg_m3, nu=self.nu, speed=speed, cfl_safety=self.cfl_safety,
                              substeps=s.substeps, preview_pixels=self.preview_pixels, device=dev)
+
+    def _matches(self, p: PreparedScene, ratio: float) -> bool:
+        """Whether a fitted material is matched to this discretisation (pd_tool.bake.transfer):
+        asked for, and the grid, driver ratio or CFL safety differ from the fit's."""
+        fit = self.fit_sim
+        if fit is None or self.follows_fit or not self.settings.match_fit:
+            return False
+        cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else self.cfl_safety
+        return (max(p.grid_dims) != fit["grid_res"] or not np.isclose(ratio, fit["driver_ratio"])
+                or not np.isclose(self.cfl_safety, cfl))
+
+    def _match_frames(self, p: PreparedScene, ratio: float) -> int:
+        """Frames the match adds to the bake's work: its runs on this discretisation and
+        one on the fit's (an upper bound; the fit's grid is coarser)."""
+        if not self._matches(p, ratio):
+            return 0
+        from pd_tool.bake.transfer import MAX_RUNS
+        frames = window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
+        return (MAX_RUNS + 1) * frames
+
+    def _new_solver(self, prep: PreparedScene, drivers, E: np.ndarray, cfl_safety: float) -> tuple[MPMSolver, np.ndarray]:
+        """A solver for `drivers` of `prep` with per-driver E [Q] (Pa), the bake's force on its
+        region; and that region's mask [Q]."""
+        s, force = self.settings, self.force
+        d_rest = drivers.positions.double().cpu().numpy()
+        d_static = drivers.static.cpu().numpy().astype(bool)
+        cfg = SimConfig(
+            grid_res=max(prep.grid_dims), domain=prep.domain, nu=self.nu,
+            gravity=(0.0, 0.0, -9.81) if s.gravity else (0.0, 0.0, 0.0), damping=self.damping,
+            substeps=s.substeps, cfl_safety=cfl_safety,
+        )
+        solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), E, d_static, cfg,
+                           device=self.dev)
+        mask = force_mask(prep, d_rest, d_static, force)
+        solver.add_force(mask, force.accel_sim(prep), force.start, force.start + force.duration)
+        return solver, mask
+
+    def _discretisation_of(self, prep: PreparedScene, drivers, E: np.ndarray, cfl_safety: float) -> Discretisation:
+        """`prep`'s drivers as pd_tool.bake.transfer sees them."""
+        def run(E_run: np.ndarray, frames: int) -> np.ndarray:
+            solver, _ = self._new_solver(prep, drivers, E_run, cfl_safety)
+            sq = np.empty((frames, solver.n), np.float32)
+            for f in range(frames):
+                solver.step_frame(self.frame_dt)
+                sq[f] = (solver.displacements() ** 2).sum(-1)
+            return sq
+
+        return Discretisation(static=drivers.static.cpu().numpy().astype(bool), mass=drivers.mass.cpu().numpy(), E=E,
+                              run=run,
+                              scale=float(prep.transform.scale))
+
+    def _match_fit(self, material_file: MaterialFile, E: np.ndarray) -> np.ndarray:
+        """E [Q] for this bake's drivers that moves as the fit's discretisation moved the
+        fitted E under this force (pd_tool.bake.transfer)."""
+        fit = self.fit_sim
+        fit_prep = prepare_scene(self.scene, self.opts.updated(grid_res=int(fit["grid_res"])))
+        fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]))
+        fit_E = material_file.E_at(fit_prep.transform.to_scene(fit_drivers.positions.double().cpu().numpy()))
+        fit_cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else self.cfl_safety
+        frames = window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
+        self.match = match_fit_motion(self._discretisation_of(fit_prep, fit_drivers, fit_E, fit_cfl),
+                                      self._discretisation_of(self.prep, self.drivers, E, self.cfl_safety),
+                                      frames, window_s=frames / self.settings.fps)
+        self.sim_note = self.match.line(int(fit["grid_res"]), max(self.prep.grid_dims))
+        return self.match.E
 
     def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
         """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
@@ -396,17 +470,14 @@ class Baker:
         d_static = self.drivers.static.cpu().numpy().astype(bool)
         if material_file is not None:
             E = material_file.E_at(prep.transform.to_scene(d_rest))
+            if self._matches(prep, self.ratio):
+                E = self._match_fit(material_file, E)
+                self.E_top = float(E.max())
+                self._check_cost(prep, self.ratio)  # a stiffer E takes more substeps
         else:
             E = np.full(len(d_rest), material.E, np.float64)
-        cfg = SimConfig(
-            grid_res=max(prep.grid_dims), domain=prep.domain, nu=self.nu,
-            gravity=(0.0, 0.0, -9.81) if s.gravity else (0.0, 0.0, 0.0), damping=self.damping,
-            substeps=s.substeps, cfl_safety=self.cfl_safety,
-        )
-        self.solver = MPMSolver(d_rest, self.drivers.volume.cpu().numpy(), self.drivers.mass.cpu().numpy(), E,
-                                d_static, cfg, device=self.dev)
+        self.solver, mask = self._new_solver(prep, self.drivers, E, self.cfl_safety)
         accel_sim = force.accel_sim(prep)
-        mask = force_mask(prep, d_rest, d_static, force)
         free_E = E[~d_static] if (~d_static).any() else E
         check_force(float(np.linalg.norm(accel_sim)), self.push_s,
                     float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx,
@@ -414,7 +485,6 @@ class Baker:
                     force.unit_m_s2(prep), nu=self.nu, gap_m=_free_space(prep), magnitude=force.magnitude,
                     unit=force.unit_name())
         self.force_end = force.start + force.duration
-        self.solver.add_force(mask, accel_sim, force.start, self.force_end)
         self.n_drivers = len(d_rest)
         self.substeps = self.solver.substeps_per_frame(self.frame_dt)
 
@@ -624,5 +694,6 @@ def _discretisation(settings: BakeSettings, material_file) -> tuple[int, int | N
     if fit is not None and (int(q["grid_res"]) != fit["grid_res"] or float(q["driver_ratio"]) != fit["driver_ratio"]):
         note = (f"note: the material was fitted on a {fit['grid_res']}-cell grid with {fit['driver_ratio']:g} driving "
                 f"particles per Gaussian; --quality {settings.quality} simulates on {int(q['grid_res'])} cells with "
-                f"{float(q['driver_ratio']):g}, which moves differently (leave --quality out to match the fit)")
+                f"{float(q['driver_ratio']):g}, which moves differently where parts are thin (leave --quality out to "
+                f"simulate as the fit did)")
     return int(q["grid_res"]), thin, float(q["cfl_safety"]), float(q["driver_ratio"]), settings.seed, False, note

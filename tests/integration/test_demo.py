@@ -93,6 +93,8 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
                                  catch_exceptions=False)
         coarse = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
                                            "--device", "cpu", "coarse.usd"], catch_exceptions=False)
+        plain = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
+                                          "--no-match-fit", "--device", "cpu", "plain.usd"], catch_exceptions=False)
     finally:
         os.chdir(old)
     assert res.exit_code == 0, res.output
@@ -104,6 +106,9 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     sim = mf.fit_simulation()
     assert f"{sim['grid_res']}-cell grid" in res.output and "as the fit did" in res.output
     assert f"driven by {len(mf.driver_E):,} particles" in res.output
-    # a named quality with another grid still bakes, and says that it moves differently
+    # a named quality with another grid matches the fit's motion first and says so; without
+    # the match it says that the fitted E moves differently there
     assert coarse.exit_code == 0, coarse.output
-    assert "moves differently" in coarse.output
+    assert "fitted material matched to this grid: E x" in coarse.output, coarse.output
+    assert plain.exit_code == 0, plain.output
+    assert "moves differently" in plain.output and "matched" not in plain.output

@@ -1,0 +1,123 @@
+"""Matching a fitted material's motion on another discretisation: the search on analytic
+responses, the amplitude against a direct computation, and a bake of the thin plant."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pd_tool.bake.transfer import (MAX_FACTOR, MAX_STEP, TOLERANCE, Discretisation, amplitude, match_fit_motion,
+                                   next_log_factor, window_frames)
+
+
+def _analytic(stiffer: float, exponent: float, q: int = 50, frames: int = 6) -> tuple[Discretisation, Discretisation]:
+    """A fit whose drivers swing 1 mm at its E, and a bake whose drivers are `stiffer` times
+    as stiff at the same E, both swinging as E**exponent (a tap: -0.5, a slow push: -1)."""
+    static = np.zeros(q, bool)
+    static[:5] = True
+    shape = np.sin(np.linspace(0.0, math.pi, frames))[:, None] ** 2  # [T, 1]: one swing
+
+    def make(k: float) -> Discretisation:
+        E0 = np.full(q, 2e5)
+
+        def run(E: np.ndarray, n: int) -> np.ndarray:
+            assert n == frames
+            amp = 1e-3 * (k * E / E0) ** exponent  # m, per driver
+            sq = shape * amp[None] ** 2
+            sq[:, static] = 0.0
+            return sq
+
+        return Discretisation(static=static, mass=np.ones(q), E=E0, run=run, scale=0.5)
+
+    return make(1.0), make(stiffer)
+
+
+@pytest.mark.parametrize("stiffer,exponent", [(0.05, -0.5), (0.05, -1.0), (8.0, -0.5), (30.0, -0.3), (1.0, -0.5)])
+def test_match_finds_the_factor(stiffer: float, exponent: float) -> None:
+    fit, bake = _analytic(stiffer, exponent)
+    m = match_fit_motion(fit, bake, 6)
+    assert m.matched and m.runs <= 5, (m.runs, m.factor)
+    # the bake moves as the fit when its E is the fit's over `stiffer`
+    assert abs(math.log(m.factor * stiffer)) <= TOLERANCE / abs(exponent) + 1e-9, m.factor
+    np.testing.assert_allclose(m.E, bake.E * m.factor)
+    assert abs(m.ratio - 1.0) <= math.expm1(TOLERANCE)
+    if stiffer == 1.0:
+        assert m.runs == 1 and m.factor == 1.0  # already the same: one run, no change
+
+
+def test_match_stops_at_the_limits() -> None:
+    # a bake 1e6 times too stiff cannot be matched within MAX_FACTOR: the best run is kept,
+    # at the limit, and the result says it is not matched
+    fit, bake = _analytic(1e6, -1.0)
+    m = match_fit_motion(fit, bake, 6, max_runs=5)
+    assert not m.matched and m.runs == 5
+    assert m.factor == pytest.approx(1.0 / MAX_FACTOR)
+    assert "still moves" in m.line(32, 128) and "--no-match-fit" in m.line(32, 128)
+
+
+def test_next_log_factor_brackets_and_limits() -> None:
+    # one run, too much motion: a tap's slope, at most MAX_STEP
+    assert next_log_factor([(0.0, 0.2)]) == pytest.approx(0.4)
+    assert next_log_factor([(0.0, 5.0)]) == pytest.approx(MAX_STEP)
+    # a bracket: regula falsi between its tightest ends
+    x = next_log_factor([(0.0, 0.4), (2.0, -0.4), (1.0, 0.1)])
+    assert 1.0 < x < 2.0 and x == pytest.approx(1.0 + 0.1 / 0.5 * 1.0)
+    # a measured slope steers the step; never past the largest factor
+    assert next_log_factor([(0.0, 0.3), (0.5, 0.2)]) == pytest.approx(0.5 + 0.2 / 0.2)
+    assert next_log_factor([(4.0, 0.5), (4.5, 0.49)]) == pytest.approx(math.log(MAX_FACTOR))
+
+
+def test_amplitude_against_a_direct_computation() -> None:
+    rng = np.random.default_rng(1)
+    disp = rng.normal(size=(7, 40, 3))
+    moving = rng.random(40) > 0.3
+    mass = rng.uniform(0.5, 2.0, 40)
+    sq = (disp ** 2).sum(-1)
+    peaks = [max(np.dot(disp[t, i], disp[t, i]) for t in range(7)) for i in np.flatnonzero(moving)]
+    direct = math.sqrt(sum(m * p for m, p in zip(mass[moving], peaks)) / mass[moving].sum())
+    assert amplitude(sq, moving, mass, 2.0) == pytest.approx(direct / 2.0)
+    assert amplitude(sq, np.zeros(40, bool), mass, 2.0) == 0.0
+
+
+def test_window_frames() -> None:
+    assert window_frames(2.0, 0.1, 30) == 33  # the force and a second of ringing
+    assert window_frames(0.3, 0.1, 30) == 9  # never past the bake
+    assert window_frames(0.0, 0.0, 30) == 1
+
+
+def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
+    """A material fitted on 16 cells (a file as a fit writes it, with a smooth E field),
+    baked at draft: on draft's grid, raised for the 3 mm leaves, with draft's drivers, the
+    fitted E alone moves its farthest Gaussian 1.6x as far as the fit's simulation did;
+    matched, within draft's bound."""
+    from pd_tool.bake import BakeSettings, ForceSpec, bake
+    from pd_tool.io.synthetic import make_plant
+    from pd_tool.materials.file import MaterialFile
+    from pd_tool.prepare.preparation import PrepareOptions
+
+    scene = make_plant(3000, seed=0, thin=True)
+    pos = scene.positions.double().numpy()
+    h = (pos[:, 2] - pos[:, 2].min()) / np.ptp(pos[:, 2])
+    E = 10 ** (6.3 - 1.5 * h) * np.where(pos[:, 0] > np.median(pos[:, 0]), 3.0, 1.0)
+    mf = MaterialFile(driver_E=E, driver_v0=np.zeros((len(E), 3), np.float32), driver_rest=pos,
+                      meta={"simulation": {"grid_res": 16, "driver_ratio": 0.1, "driver_seed": 0, "cfl_safety": 0.5},
+                            "nu": 0.3, "density": 700.0})
+    opts = PrepareOptions(up_axis="+z", static_below=float(pos[:, 2].min() + 0.1 * np.ptp(pos[:, 2])),
+                          density_kg_m3=700.0)
+    force = ForceSpec(accel=(4.0, 0.0, 0.0), at="top", radius_fraction=0.3, duration=0.1, units="size")
+    peaks = {}
+    for name, quality, match in (("fitted", None, True), ("plain", "draft", False), ("matched", "draft", True)):
+        r = bake(scene, tmp_path / f"{name}.usd", force=force, material_file=mf, prepare_options=opts,
+                 settings=BakeSettings(seconds=0.6, fps=30, quality=quality, fmt="instancer", match_fit=match,
+                                       stop_at_rest=False))
+        peaks[name] = r.peak_displacement / r.object_size
+        if name == "matched":
+            line = next(x for x in r.report if x.startswith("fitted material matched"))
+            assert "within" in line, line
+    assert peaks["fitted"] > 0.02, peaks  # the poke moves it
+    # draft's bound, as for a preset against a converged reference: within 25%. The match
+    # is on the drivers' mass-weighted swing, this check on the farthest Gaussian; one
+    # factor for the whole object leaves the motion's shape as the finer grid makes it
+    assert abs(peaks["plain"] / peaks["fitted"] - 1.0) > 0.25, peaks  # the gap the match closes
+    assert peaks["matched"] == pytest.approx(peaks["fitted"], rel=0.25), peaks
