@@ -12,7 +12,9 @@ of each one's largest displacement from rest in the window, in scene units, so t
 discretisations with different drivers compare. It falls as E rises (as 1/E for a slow push, as 1/sqrt(E) for a
 tap, and more weakly while the push itself sets the motion), so the factor is found by a
 safeguarded secant search on log(motion) against log(factor): secant steps while the sign
-of the error holds, regula falsi inside the bracket once it changes.
+of the error holds, regula falsi inside the bracket once it changes. Where the motion
+barely answers E (a part that flies off, a push that sets the motion), no factor matches,
+and the fitted E is kept as it is.
 
 One factor for the whole object. Factors per part (k-means parts, thin and thick apart,
 with Broyden steps) did not converge in five runs on the thin plant: a leaf rides on its
@@ -33,6 +35,9 @@ MAX_FACTOR = 100.0  # E is never scaled beyond this either way
 MAX_STEP = math.log(10.0)  # a run changes the factor at most tenfold
 FIRST_SLOPE = -0.5  # d log(motion) / d log(E) before two runs measure it: a tap's
 SLOPES = (-2.0, -0.1)  # measured slopes are clipped to this range
+# a measured slope flatter than this: the motion under this force barely depends on E (a
+# part that flies off, a push that sets the motion), so E is left as fitted
+FLAT_SLOPE = 0.1
 RING_S = 1.0  # s of motion after the force ends that the window keeps
 
 
@@ -63,9 +68,14 @@ class MotionMatch:
     seconds: float
     window_s: float
     matched: bool
+    flat: bool = False  # the motion barely answered E: the fitted E is kept
 
     def line(self, fit_grid: int, grid: int) -> str:
         """The report line of the bake."""
+        if self.flat:
+            return (f"fitted material baked as it is: under this force the motion barely depends on E, so no factor "
+                    f"makes {grid} cells move as the fit's {fit_grid} did ({self.ratio - 1:+.0%} off; {self.runs} "
+                    f"runs of {self.window_s:.2g} s, {self.seconds:.1f} s)")
         head = (f"fitted material matched to this grid: E x{self.factor:.3g}, so that {grid} cells move as the fit's "
                 f"{fit_grid} did under this force ({self.runs} runs of {self.window_s:.2g} s, {self.seconds:.1f} s)")
         if self.matched:
@@ -126,7 +136,7 @@ def match_fit_motion(fit: Discretisation, bake: Discretisation, frames: int, *, 
         progress(1, total)
     moving = ~bake.static
     tried: list[tuple[float, float]] = []
-    x = 0.0
+    x, flat = 0.0, False
     while target > 0 and len(tried) < max_runs:
         got = amplitude(bake.run(bake.E * math.exp(x), frames), moving, bake.mass, bake.scale)
         tried.append((x, math.log(max(got, 1e-300) / target)))
@@ -134,9 +144,19 @@ def match_fit_motion(fit: Discretisation, bake: Discretisation, frames: int, *, 
             progress(len(tried) + 1, total)
         if abs(tried[-1][1]) <= tolerance:
             break
+        if len(tried) > 1:
+            (xa, ea), (xb, eb) = tried[-2], tried[-1]
+            if abs(eb - ea) < FLAT_SLOPE * abs(xb - xa):
+                flat = True
+                break
         x = next_log_factor(tried)
     if not tried:  # nothing moves in the fit's simulation: nothing to match
         return MotionMatch(bake.E, 1.0, 1.0, 0, time.perf_counter() - t0, window_s, True)
-    best_x, best_e = min(tried, key=lambda p: abs(p[1]))
+    if flat:  # keep the fitted E: a factor that changes nothing visible is no match
+        best_x, best_e = tried[0]
+    else:  # the best run; of runs as good within the tolerance, the smallest change
+        least = min(abs(e) for _, e in tried)
+        best_x, best_e = min((p for p in tried if abs(p[1]) <= least + tolerance), key=lambda p: abs(p[0]))
     return MotionMatch(E=bake.E * math.exp(best_x), factor=math.exp(best_x), ratio=math.exp(best_e), runs=len(tried),
-                       seconds=time.perf_counter() - t0, window_s=window_s, matched=abs(best_e) <= tolerance)
+                       seconds=time.perf_counter() - t0, window_s=window_s, matched=abs(best_e) <= tolerance,
+                       flat=flat)

@@ -121,3 +121,18 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
     # factor for the whole object leaves the motion's shape as the finer grid makes it
     assert abs(peaks["plain"] / peaks["fitted"] - 1.0) > 0.25, peaks  # the gap the match closes
     assert peaks["matched"] == pytest.approx(peaks["fitted"], rel=0.25), peaks
+
+
+def test_motion_that_does_not_answer_E_keeps_the_fitted_E() -> None:
+    # 20% more motion on the bake's grid whatever E is (a part that flies off): two runs,
+    # then the fitted E as it is, and the report says why
+    fit, bake = _analytic(1.0, -0.5)
+
+    def run(E: np.ndarray, n: int) -> np.ndarray:
+        return fit.run(fit.E, n) * 1.2 ** 2 * (E[0] / fit.E[0]) ** -0.02
+
+    flat = Discretisation(static=bake.static, mass=bake.mass, E=bake.E, run=run, scale=bake.scale)
+    m = match_fit_motion(fit, flat, 6)
+    assert m.flat and m.runs == 2 and m.factor == 1.0 and not m.matched
+    np.testing.assert_array_equal(m.E, flat.E)
+    assert m.ratio == pytest.approx(1.2) and "baked as it is" in m.line(32, 64)
