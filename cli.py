@@ -658,10 +658,10 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
                    "final 192 cells), so that they bend as a converged simulation does. Not for a fitted material "
                    "simulated as its fit was.")
 @click.option("--match-fit/--no-match-fit", default=True, show_default=True,
-              help="With a fitted material and a --quality that simulates on another grid than the fit did, scale "
-                   "E part by part (a few short runs first) so that the bake moves as the fit's simulation did, the "
-                   "motion it matched to the video. Off: the fitted E as it is, which moves differently where parts "
-                   "are thin.")
+              help="With a fitted material and a --quality that simulates on another grid or driver count than the "
+                   "fit did, first scale E by one factor (up to five short runs under this force) so that the bake "
+                   "swings as far as the fit's simulation did, the motion it matched to the video. Off: the fitted E "
+                   "as it is, which moves differently where parts are thin or drivers sparse.")
 @MAX_MINUTES_OPTION
 @prepare_options_decorator
 @DEVICE_OPTION

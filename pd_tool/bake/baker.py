@@ -2,7 +2,8 @@
 splat formats of `--format`.
 
 Data flow: scene -> prepare (foreground, static, simulation box) -> driving particles ->
-fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
+(a fitted material on another discretisation than its fit's: E matched to the fit's
+motion, pd_tool.bake.transfer) -> fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
 every output (pd_tool.bake.outputs: usd_export and pd_tool.io's writers; streamed, atomic). Frames after the object is at rest again are held (no
 simulation, no new samples), see REST_*.
 """
@@ -27,7 +28,7 @@ from pd_tool.core.quaternion import matrix_to_quat
 from pd_tool.core.scene import GaussianScene
 from pd_tool.io.formats import FORMATS, output_paths
 from pd_tool.materials.file import MaterialFile
-from pd_tool.materials.presets import Material, fit_simulation, load_preset
+from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import work
 from pd_tool.prepare.memory import PREVIEW_PIXELS, InsufficientMemory, check_memory, estimate_bake_memory
 from pd_tool.prepare.preparation import (WALL_CELLS, Box, PreparedScene, PrepareOptions, prepare_scene,
@@ -136,7 +137,7 @@ class BakeSettings:
     # simulated as its fit was
     refine_thin: bool = True
     # a fitted material baked on another discretisation than its fit's (--quality): scale its
-    # E part by part so that the bake moves as the fit did under this force
+    # E by one factor so that the bake swings as the fit did under this force
     # (pd_tool.bake.transfer); off: the fitted E as it is, which moves differently where
     # parts are thin
     match_fit: bool = True
