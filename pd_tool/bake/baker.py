@@ -444,8 +444,10 @@ class Baker:
                 sq[f] = (solver.displacements() ** 2).sum(-1)
             return sq
 
-        return Discretisation(static=drivers.static.cpu().numpy().astype(bool), mass=drivers.mass.cpu().numpy(), E=E,
-                              run=run,
+        # the Gaussians each driver carries: each Gaussian shared among its K drivers
+        nb = drivers.neighbors[:prep.count].cpu().numpy()
+        weight = np.bincount(nb.ravel(), minlength=len(E)) / max(nb.shape[1], 1)
+        return Discretisation(static=drivers.static.cpu().numpy().astype(bool), weight=weight, E=E, run=run,
                               scale=float(prep.transform.scale))
 
     def _match_fit(self, material_file: MaterialFile, E: np.ndarray) -> np.ndarray:

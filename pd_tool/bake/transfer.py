@@ -7,9 +7,10 @@ differently from the motion the fit matched to the video. `match_fit_motion` sca
 one factor until the bake's discretisation moves as the fit's does under the bake's own
 force, over a short window.
 
-The motion compared is the swing's amplitude: the mass-weighted RMS over the moving drivers
-of each one's largest displacement from rest in the window, in scene units, so that two
-discretisations with different drivers compare. It falls as E rises (as 1/E for a slow push, as 1/sqrt(E) for a
+The motion compared is how far the object swings: the 99th percentile over the Gaussians
+of the largest displacement from rest in the window, read from the drivers (each weighted
+by the Gaussians it carries), in scene units, so that two discretisations with different
+drivers compare. It falls as E rises (as 1/E for a slow push, as 1/sqrt(E) for a
 tap, and more weakly while the push itself sets the motion), so the factor is found by a
 safeguarded secant search on log(motion) against log(factor): secant steps while the sign
 of the error holds, regula falsi inside the bracket once it changes. Where the motion
@@ -38,6 +39,7 @@ SLOPES = (-2.0, -0.1)  # measured slopes are clipped to this range
 # a measured slope flatter than this: the motion under this force barely depends on E (a
 # part that flies off, a push that sets the motion), so E is left as fitted
 FLAT_SLOPE = 0.1
+QUANTILE = 0.99  # of the Gaussians: how far the object swings, as bench/convergence.py's peak
 RING_S = 1.0  # s of motion after the force ends that the window keeps
 
 
@@ -46,10 +48,11 @@ class Discretisation:
     """One way of simulating the object: drivers [Q] at rest (m, simulation box), which are
     static, their E (Pa), and a `run(E, frames)` that simulates `frames` frames from rest
     under the bake's force and returns each driver's squared displacement at each frame
-    [frames, Q] (m^2). mass [Q] kg; `scale`: metres per scene unit."""
+    [frames, Q] (m^2). weight [Q]: the Gaussians each driver carries (a Gaussian shares
+    itself among its drivers); `scale`: metres per scene unit."""
 
     static: np.ndarray
-    mass: np.ndarray
+    weight: np.ndarray
     E: np.ndarray
     run: Callable[[np.ndarray, int], np.ndarray]
     scale: float
@@ -90,15 +93,19 @@ def window_frames(seconds: float, force_end: float, fps: float) -> int:
     return max(1, int(math.ceil(min(seconds, force_end + RING_S) * fps)))
 
 
-def amplitude(sq: np.ndarray, moving: np.ndarray, mass: np.ndarray, scale: float) -> float:
-    """The mass-weighted RMS over the moving drivers of each one's largest displacement over
-    the frames, scene units: every driver's swing counts whenever it peaks, and the mass
-    weights make two sets of drivers of one object agree however they sample it.
-    sq [T, Q]: squared displacements, m^2; moving [Q] bool; mass [Q] kg."""
-    w = np.where(moving, np.asarray(mass, np.float64), 0.0)
+def amplitude(sq: np.ndarray, moving: np.ndarray, weight: np.ndarray, scale: float) -> float:
+    """How far the object swings: the QUANTILE, by weight, of the moving drivers' largest
+    displacements over the frames, scene units. sq [T, Q]: squared displacements, m^2;
+    moving [Q] bool; weight [Q]: the Gaussians each driver carries, so that the quantile
+    is one over the Gaussians, as the eye and the bake's peak see the motion, and two sets
+    of drivers of one object agree however they sample it."""
+    w = np.where(moving, np.asarray(weight, np.float64), 0.0)
     if w.sum() <= 0:
         return 0.0
-    return float(np.sqrt(np.asarray(sq, np.float64).max(axis=0) @ w / w.sum())) / scale
+    peak = np.sqrt(np.asarray(sq, np.float64).max(axis=0))
+    order = np.argsort(peak)
+    cum = np.cumsum(w[order]) / w.sum()
+    return float(peak[order][min(int(np.searchsorted(cum, QUANTILE)), len(order) - 1)]) / scale
 
 
 def next_log_factor(tried: list[tuple[float, float]]) -> float:
@@ -131,14 +138,14 @@ def match_fit_motion(fit: Discretisation, bake: Discretisation, frames: int, *, 
     discretisation, keeping the best run. progress(done, total) after each run."""
     t0 = time.perf_counter()
     total = max_runs + 1
-    target = amplitude(fit.run(fit.E, frames), ~fit.static, fit.mass, fit.scale)
+    target = amplitude(fit.run(fit.E, frames), ~fit.static, fit.weight, fit.scale)
     if progress:
         progress(1, total)
     moving = ~bake.static
     tried: list[tuple[float, float]] = []
     x, flat = 0.0, False
     while target > 0 and len(tried) < max_runs:
-        got = amplitude(bake.run(bake.E * math.exp(x), frames), moving, bake.mass, bake.scale)
+        got = amplitude(bake.run(bake.E * math.exp(x), frames), moving, bake.weight, bake.scale)
         tried.append((x, math.log(max(got, 1e-300) / target)))
         if progress:
             progress(len(tried) + 1, total)
