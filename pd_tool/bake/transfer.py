@@ -154,8 +154,8 @@ def match_fit_motion(fit: Discretisation, bake: Discretisation, frames: int, *, 
         if len(tried) > 1:
             (xa, ea), (xb, eb) = tried[-2], tried[-1]
             if abs(eb - ea) < FLAT_SLOPE * abs(xb - xa):
-                flat = True
-                break
+                flat = len(tried) == 2  # from the start: E does not set this motion
+                break  # later: the search has stalled; the best run so far stands
         x = next_log_factor(tried)
     if not tried:  # nothing moves in the fit's simulation: nothing to match
         return MotionMatch(bake.E, 1.0, 1.0, 0, time.perf_counter() - t0, window_s, True)

@@ -139,3 +139,18 @@ def test_motion_that_does_not_answer_E_keeps_the_fitted_E() -> None:
     assert m.flat and m.runs == 2 and m.factor == 1.0 and not m.matched
     np.testing.assert_array_equal(m.E, flat.E)
     assert m.ratio == pytest.approx(1.2) and "baked as it is" in m.line(32, 64)
+
+
+def test_a_search_that_stalls_keeps_its_best_run_with_the_least_change() -> None:
+    # twice the fit's motion at the fitted E, falling as a tap's until a floor at 1.5x: the
+    # search stalls on the floor and keeps the first run that reached it (E x4), not x30
+    fit, bake = _analytic(1.0, -0.5)
+
+    def run(E: np.ndarray, n: int) -> np.ndarray:
+        f = E[0] / fit.E[0]
+        return fit.run(fit.E, n) * max(2.0 * f ** -0.5, 1.5) ** 2
+
+    floor = Discretisation(static=bake.static, weight=bake.weight, E=bake.E, run=run, scale=bake.scale)
+    m = match_fit_motion(fit, floor, 6)
+    assert not m.flat and not m.matched and m.runs == 3
+    assert m.factor == pytest.approx(4.0) and m.ratio == pytest.approx(1.5)
