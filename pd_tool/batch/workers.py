@@ -309,11 +309,30 @@ class LocalBackend:
         if cancel:
             # Let each pool's manager thread finish closing its wake-up pipe now: at exit,
             # Python 3.11's concurrent.futures wakes it without a lock and can hit the pipe
-            # while the thread closes it ("OSError: Bad file descriptor" on stderr).
+            # while the thread closes it ("OSError: Bad file descriptor" on stderr). On a
+            # busy machine the thread can outlast the wait, so that late wake-up, which
+            # shutdown() has already made, is also told to ignore a pipe closed under it.
             for p in pools:
                 thread = getattr(p, "_executor_manager_thread", None)
                 if thread is not None:
                     thread.join(timeout=STOP_GRACE_S)
+                _quiet_wakeup(getattr(p, "_executor_manager_thread_wakeup", None))
+
+
+def _quiet_wakeup(wakeup: Any) -> None:
+    """Make a concurrent.futures wake-up pipe's wakeup() ignore the pipe being closed under
+    it by its manager thread (the exit-time race above)."""
+    if wakeup is None or not hasattr(wakeup, "wakeup"):
+        return
+    loud = wakeup.wakeup
+
+    def wake() -> None:
+        try:
+            loud()
+        except OSError:  # closed meanwhile: the thread it would wake has finished
+            pass
+
+    wakeup.wakeup = wake
 
 
 def ray_resources(job: Job, cluster_gpus: int, cpus_per_job: float = 1.0) -> dict[str, float]:
