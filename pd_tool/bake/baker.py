@@ -3,8 +3,8 @@ splat formats of `--format`.
 
 Data flow: scene -> prepare (foreground, static, simulation box) -> driving particles ->
 (a fitted material on another discretisation than its fit's: E matched to the fit's
-motion, pd_tool.bake.transfer) -> fast MPM (no tape) -> per frame: rigid interpolation to every Gaussian -> scene units ->
-every output (pd_tool.bake.outputs: usd_export and pd_tool.io's writers; streamed, atomic). Frames after the object is at rest again are held (no
+motion, pd_tool.bake.transfer) -> fast MPM (no tape) -> per frame: rigid interpolation to
+every Gaussian -> scene units -> every output (pd_tool.bake.outputs: usd_export and pd_tool.io's writers; streamed, atomic). Frames after the object is at rest again are held (no
 simulation, no new samples), see REST_*.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import torch
 
 from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.outputs import FrameOutputs, open_splat_writers
-from pd_tool.bake.transfer import Discretisation, MotionMatch, match_fit_motion, window_frames
+from pd_tool.bake.transfer import MAX_RUNS, Discretisation, MotionMatch, match_fit_motion, window_frames
 from pd_tool.core.atomic import check_destination, check_own_file, check_outputs, check_replaceable_folder
 from pd_tool.core.cameras import Camera
 from pd_tool.core.errors import OutputError, PdToolError, PreparationError
@@ -353,8 +353,7 @@ class Baker:
             camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
         self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
         self.push_s = min(self.force.duration, max(s.seconds - self.force.start, 0.0))
-        self.match: MotionMatch | None = None
-        self.match_frames = 0  # frames each run of the match simulates (0: no match)
+        self.match: MotionMatch | None = None  # the fitted material's match, once made
 
     def _choose_grid(self) -> None:
         """Raise the grid for thin parts unless the finer run would not fit in memory or
@@ -410,10 +409,9 @@ class Baker:
 
     def _match_frames(self, p: PreparedScene, ratio: float) -> int:
         """Frames the match adds to the bake's work: its runs on this discretisation and
-        one on the fit's (an upper bound; the fit's grid is coarser)."""
-        if not self._matches(p, ratio):
+        one on the fit's (an upper bound; the fit's grid is coarser); none once it is made."""
+        if self.match is not None or not self._matches(p, ratio):
             return 0
-        from pd_tool.bake.transfer import MAX_RUNS
         frames = window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
         return (MAX_RUNS + 1) * frames
 
