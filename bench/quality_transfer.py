@@ -163,8 +163,8 @@ def main() -> None:
                 print(f"{name:6} {key:18} {row.grid:4d} {row.drivers:7d} {row.peak:7.2%} {row.peak_ratio:8.3f} "
                       f"{row.rms:6.1%} {row.factor:6.3g} {row.match_runs:4d} {row.match_seconds:7.1f} "
                       f"{row.seconds:7.1f}", flush=True)
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
+            if args.json:  # after every scene, so a run cut short keeps what it measured
+                args.json.write_text(json.dumps(result, indent=2))
 
 
 if __name__ == "__main__":

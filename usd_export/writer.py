@@ -367,10 +367,12 @@ class UsdBakeWriter:
         if self._last_t is not None and t <= self.end_time_code:
             raise UsdExportError(f"time code {t:g}: frames must increase "
                                  f"(last covered {self.end_time_code:g})")
-        # copy: a queued frame must not change when the caller reuses its buffers
-        pos = np.array(_np(positions), dtype=np.float32, order="C", copy=copy)
-        q = np.array(_np(orientations), dtype=np.float32, order="C", copy=copy)
-        s = np.array(_np(scales), dtype=np.float32, order="C", copy=copy)
+        # copy: a queued frame must not change when the caller reuses its buffers. Without
+        # it, asarray converts only what needs it (numpy 2 refuses copy=False then).
+        as_f32 = np.array if copy else np.asarray
+        pos = as_f32(_np(positions), dtype=np.float32, order="C")
+        q = as_f32(_np(orientations), dtype=np.float32, order="C")
+        s = as_f32(_np(scales), dtype=np.float32, order="C")
         for name, a, cols in (("positions", pos, 3), ("orientations", q, 4), ("scales", s, 3)):
             if a.shape != (n, cols):
                 raise UsdExportError(f"frame {t:g}: {name} has shape {tuple(a.shape)}, "

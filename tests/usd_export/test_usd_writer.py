@@ -109,6 +109,23 @@ def test_instancer_samples_equal_written(both_file, data):
     np.testing.assert_allclose(np.asarray(pv.GetPrimvar("displayOpacity").Get()), opac)
 
 
+@pytest.mark.parametrize("threaded", [False, True])
+def test_float64_and_strided_frames(tmp_path, data, threaded):
+    """A simulation hands float64 or strided arrays; the writer converts them to float32
+    with or without its thread (numpy 2 refuses a conversion asked to avoid copies)."""
+    pos, quats, sig, _, _ = data
+    path = tmp_path / "f64.usd"
+    with UsdBakeWriter(path, n_points=N, fps=30, fmt="instancer", threaded=threaded) as w:
+        for f in range(2):
+            wide = np.concatenate([pos[f], pos[f]], axis=1).astype(np.float64)  # [N, 6]
+            w.write_frame(f, wide[:, :3], quats[f].astype(np.float64), sig[f].astype(np.float64))
+    stage = Usd.Stage.Open(str(path))
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    for f in range(2):
+        np.testing.assert_array_equal(np.asarray(inst.GetPositionsAttr().Get(f)), pos[f])
+        np.testing.assert_allclose(np.asarray(inst.GetScalesAttr().Get(f)), 2.0 * sig[f], rtol=1e-6)
+
+
 def test_held_frames_keep_last_pose(both_file, data):
     pos = data[0]
     stage = Usd.Stage.Open(str(both_file))
