@@ -194,15 +194,18 @@ def compare(runs: dict[str, tuple[np.ndarray, np.ndarray, Run]], case: Case) -> 
 
 def plot(sources: list[Path], png: Path) -> None:
     """Peak against the reference's, by grid, one line per scene: the runs at the default
-    CFL safety and driver ratio (0.5 / 0.5) and the finer check, from earlier --json files;
-    a later file's scene replaces an earlier one's point at the same grid."""
+    CFL safety and driver ratio (0.5 / 0.5), the reference (1) and the finer check, from
+    earlier --json files; a later file's scene replaces that scene's whole line (a later run
+    of a scene measures it against its own reference)."""
     from pd_tool.render.plots import line_plot
 
     points: dict[str, dict[int, float]] = {}
     for src in sources:
+        lines: dict[str, dict[int, float]] = {}
         for r in json.loads(src.read_text())["runs"]:
-            if r["setting"] == "check" or (r["cfl"] == 0.5 and r["ratio"] == 0.5):
-                points.setdefault(r["scene"], {})[int(r["grid"])] = float(r["peak_ratio"])
+            if r["setting"] in ("check", "reference") or (r["cfl"] == 0.5 and r["ratio"] == 0.5):
+                lines.setdefault(r["scene"], {})[int(r["grid"])] = float(r["peak_ratio"])
+        points.update(lines)
     series = {name: (sorted(p), [p[g] for g in sorted(p)]) for name, p in points.items()}
     line_plot(png, series, title="peak motion against a converged reference", xlabel="grid cells",
               ylabel="peak / reference")

@@ -53,12 +53,16 @@ def _pot(rng, n):
 def _stem(rng, n):
     # a solid slightly curved cylinder from the soil to STEM_TOP; its radius is about one
     # grid cell at the draft/default grids, so that MPM resolves its bending
-    t = rng.uniform(0, 1, n)
-    z = POT_TOP - 0.02 + t * (STEM_TOP - POT_TOP + 0.02)
+    z = POT_TOP - 0.02 + rng.uniform(0, 1, n) * (STEM_TOP - POT_TOP + 0.02)
     r = STEM_RADIUS * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
-    bend = 0.03 * t ** 2
-    return np.stack([r * np.cos(th) + bend, r * np.sin(th), z], 1)
+    return np.stack([r * np.cos(th) + _stem_bend(z), r * np.sin(th), z], 1)
+
+
+def _stem_bend(z):
+    """The stem axis's offset along +x at height z (metres)."""
+    t = (np.asarray(z) - (POT_TOP - 0.02)) / (STEM_TOP - POT_TOP + 0.02)
+    return 0.03 * t ** 2
 
 
 LEAF_THICKNESS = 0.02  # metres: the plant's leaves, as the tests and fit benchmarks use it
@@ -66,26 +70,40 @@ PETAL_THICKNESS = 0.04  # metres: its flower head
 THIN_THICKNESS = 0.003  # metres: leaves and petals of the thin plant, as real ones are
 
 
-def _leaves(rng, n, thickness=LEAF_THICKNESS):
+# rooted parts reach this far into the stem (metres): a thin leaf or petal that only
+# touches its stem comes apart from it on a grid fine enough to resolve it (a cell's gap
+# separates MPM particles), and then flies off under a push
+ROOT_DEPTH = 0.01
+
+
+def _leaves(rng, n, thickness=LEAF_THICKNESS, rooted=False):
+    """Two leaves. rooted: each starts ROOT_DEPTH inside the stem, on its bent axis (thin
+    leaves); else at the straight axis's radius, which leaves one 1.3 cm off the bent stem:
+    a 2 cm leaf still overlaps it within a cell at the grids it is simulated on."""
     out = []
     for k, (zc, ang) in enumerate(((0.42, 0.3), (0.56, 0.3 + np.pi))):
         m = n // 2 if k == 0 else n - n // 2
         # an ellipse 16 cm x 6 cm, rising 25 degrees, `thickness` thick
         u = rng.uniform(0, 1, m)
         v = rng.uniform(-1, 1, m) * np.sqrt(np.clip(1 - (2 * u - 1) ** 2, 0, 1))
-        along = STEM_RADIUS + 0.16 * u
+        root = STEM_RADIUS - ROOT_DEPTH if rooted else STEM_RADIUS
+        along = root + (0.16 + STEM_RADIUS - root) * u
         across = 0.03 * v
         up = along * np.tan(np.radians(25)) + rng.uniform(-thickness / 2, thickness / 2, m)
         c, s = np.cos(ang), np.sin(ang)
-        out.append(np.stack([along * c - across * s, along * s + across * c, zc + up], 1))
+        x0 = float(_stem_bend(zc)) if rooted else 0.0
+        out.append(np.stack([x0 + along * c - across * s, along * s + across * c, zc + up], 1))
     return np.concatenate(out)
 
 
-def _flower(rng, n, thickness=PETAL_THICKNESS):
-    # a flat head: a disc of petals of radius 13 cm, `thickness` thick (4 cm), cupped
+def _flower(rng, n, thickness=PETAL_THICKNESS, rooted=False):
+    """A flat head: a disc of petals of radius 13 cm, `thickness` thick, cupped. Its
+    underside rests on the stem's top; rooted: ROOT_DEPTH below it, so that a thin
+    head holds on to its stem."""
     rr = 0.13 * np.sqrt(rng.uniform(0, 1, n))
     th = rng.uniform(0, 2 * np.pi, n)
-    z = STEM_TOP + 0.02 + rng.uniform(-thickness / 2, thickness / 2, n) + 0.15 * rr
+    base = STEM_TOP - ROOT_DEPTH if rooted else STEM_TOP
+    z = base + thickness / 2 + rng.uniform(-thickness / 2, thickness / 2, n) + 0.15 * rr
     return np.stack([rr * np.cos(th) + 0.03, rr * np.sin(th), z], 1)
 
 
@@ -115,8 +133,8 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
     counts[-1] = n - sum(counts[:-1])
     leaf_t, petal_t = (THIN_THICKNESS, THIN_THICKNESS) if thin else (LEAF_THICKNESS, PETAL_THICKNESS)
     # drawn in this order from one generator: the plant of a seed stays the same
-    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), _leaves(rng, counts[2], leaf_t),
-             _flower(rng, counts[3], petal_t)]
+    parts = [_pot(rng, counts[0]), _stem(rng, counts[1]), _leaves(rng, counts[2], leaf_t, rooted=thin),
+             _flower(rng, counts[3], petal_t, rooted=thin)]
     pos = np.concatenate(parts)
     labels = np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(counts)])
     # splat size from the local spacing of each region: about half the mean neighbour gap

@@ -19,3 +19,77 @@ def unique_cells(cells: np.ndarray, *, index: bool = False):
     _, first, inverse, counts = np.unique(key, return_index=True, return_inverse=True, return_counts=True)
     out = (cells[first], inverse.reshape(-1), counts)
     return out + (first,) if index else out
+
+
+# the 13 neighbour offsets of a cell's 26 with a positive first non-zero component: each
+# touching pair of cells is found once
+_HALF = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                  if (a, b, c) > (0, 0, 0)], np.int64)
+
+
+def cell_components(cells: np.ndarray) -> np.ndarray:
+    """Connected groups of distinct integer cells [M, 3] (unique rows), cells touching at a
+    face, edge or corner counting as connected: one label [M] per cell, the smallest cell
+    index in its group.
+
+    Pairs of touching cells come from a sorted int64 key; the groups from hooking each pair's
+    larger root onto the smaller and halving paths until nothing changes (a few rounds on
+    a long stem, where label spreading would take one round per cell along it)."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 3)
+    m = len(cells)
+    if m == 0:
+        return np.zeros(0, np.int64)
+    lo = cells.min(axis=0) - 1  # a margin, so that a neighbour's key never wraps
+    span = cells.max(axis=0) - lo + 2
+    c = cells - lo
+
+    def key(a):
+        return (a[:, 0] * span[1] + a[:, 1]) * span[2] + a[:, 2]
+
+    k = key(c)
+    order = np.argsort(k)
+    ks = k[order]
+    us, vs = [], []
+    for off in _HALF:
+        nk = key(c + off)
+        at = np.minimum(np.searchsorted(ks, nk), m - 1)
+        hit = ks[at] == nk
+        us.append(np.nonzero(hit)[0])
+        vs.append(order[at[hit]])
+    u, v = np.concatenate(us), np.concatenate(vs)
+    parent = np.arange(m)
+    while True:
+        pu, pv = parent[u], parent[v]
+        differ = pu != pv
+        if not differ.any():
+            return parent
+        np.minimum.at(parent, np.maximum(pu, pv)[differ], np.minimum(pu, pv)[differ])
+        while True:  # point every cell at its root
+            up = parent[parent]
+            if np.array_equal(up, parent):
+                break
+            parent = up
+
+
+def cell_components_ref(cells: np.ndarray) -> np.ndarray:
+    """cell_components by breadth-first search over a dict of cells (tests)."""
+    cells = [tuple(int(x) for x in r) for r in np.asarray(cells, np.int64).reshape(-1, 3)]
+    where = {c: i for i, c in enumerate(cells)}
+    label = np.full(len(cells), -1, np.int64)
+    for i, c in enumerate(cells):
+        if label[i] >= 0:
+            continue
+        group, todo = [i], [c]
+        label[i] = i
+        while todo:
+            x, y, z = todo.pop()
+            for a in (-1, 0, 1):
+                for b in (-1, 0, 1):
+                    for d in (-1, 0, 1):
+                        j = where.get((x + a, y + b, z + d))
+                        if j is not None and label[j] < 0:
+                            label[j] = i
+                            group.append(j)
+                            todo.append(cells[j])
+        label[group] = min(group)
+    return label

@@ -18,7 +18,7 @@ import torch
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
-from pd_tool.prepare.cells import unique_cells
+from pd_tool.prepare.cells import cell_components, unique_cells
 from pd_tool.prepare.fill import fill_interior
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
@@ -208,6 +208,22 @@ class PreparedScene:
     def occupied_cells(self, dx: float | None = None) -> int:
         """Grid cells (of edge `dx` m, default this grid's) that hold a simulated particle."""
         return int(len(unique_cells(np.floor(self.positions_sim / (dx or self.dx)))[0]))
+
+    def detached_share(self, dx: float | None = None) -> float:
+        """The share of the moving particles that a grid of cell `dx` m (default this grid's)
+        holds apart from the static ones: in groups of touching occupied cells with no
+        static particle (without static particles, outside the group holding the most).
+        MPM particles a whole empty cell apart hardly interact, so such a part flies off
+        under a push."""
+        cells, inverse, _ = unique_cells(np.floor(self.positions_sim / (dx or self.dx)))
+        group = cell_components(cells)[inverse]
+        static = np.asarray(self.static, bool)
+        if static.any():
+            anchored = np.isin(group, np.unique(group[static]))
+        else:
+            anchored = group == np.bincount(group).argmax()
+        moving = ~static
+        return float((~anchored & moving).sum() / max(int(moving.sum()), 1))
 
     def connected_ratio(self, ratio: float) -> float:
         """`ratio`, raised where needed so that the drivers number at least
@@ -421,19 +437,34 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes)
     if thin is not None and thin.thin:
         report.append(thin.line(max(dims)))
-    return PreparedScene(
+    prep = PreparedScene(
         scene=scene, options=options, foreground=fg, static=static, transform=transform,
         positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,
         dx=dx, grid_dims=dims, report=report, fill_source=fill_source, thin=thin,
     )
+    if static.any() and (~static).any():
+        apart = prep.detached_share()
+        if apart >= DETACHED_NOTE:
+            report.append(f"loose parts: {apart:.0%} of the moving particles are a cell or more apart from the "
+                          f"pinned ones on this grid, so a push carries them off as loose pieces; pin them "
+                          f"(--static-box) or leave them out (--foreground-box)")
+    return prep
+
+
+# the share of the moving particles held apart from the static ones
+# (PreparedScene.detached_share) from which preparation says so
+DETACHED_NOTE = 0.02
 
 
 # A finer grid for thin parts only where the particles still fill it: the convergence
-# benchmark's 192- and 256-cell runs of the thin plant (4.4 and 2.9 particles per occupied
-# cell) agree within 1%; a 3,000-Gaussian plant on 64 cells (2.8) moved a third further than
-# on 48 (4.8).
+# benchmark's 192- and 256-cell runs of the thin plant agree within 2% at 9.8 and 5.2
+# particles per occupied cell, and differ by 14% at 4.2 and 2.8; a 3,000-Gaussian plant on
+# 64 cells (2.8) moved a third further than on 48 (4.8).
 MIN_PARTICLES_PER_CELL = 4.0
 MIN_DRIVERS_PER_CELL = 2.0  # PreparedScene.connected_ratio
+# a finer grid may hold at most this much more of the moving particles apart from the static
+# ones than the quality's grid does (PreparedScene.detached_share)
+MAX_MORE_DETACHED = 0.01
 
 
 def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | None:
@@ -444,8 +475,12 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
     The grid is the one ThinParts.grid_needed asks for, rounded up to a multiple of 16 (the
     benchmark's plant with 3 mm leaves asks for 123-135 cells and moves as the converged
     reference does at 128: docs/benchmarks.md, "Convergence against a fine reference").
-    The new preparation's report ends with one line that says what was raised and why; a
-    scene too sparse for any finer grid gets a line in `prep.report` saying so.
+    The grid stops where fewer than MIN_PARTICLES_PER_CELL particles fill an occupied cell,
+    and where its cells would hold more of the moving particles apart from the static ones
+    than the quality's grid does (a gap wider than a cell between a part and its support:
+    PreparedScene.detached_share). The new preparation's report ends with one line that
+    says what was raised and why; a scene that no finer grid suits gets a line in
+    `prep.report` saying why.
     """
 
     thin, grid = prep.thin, int(prep.options.grid_res)
@@ -453,18 +488,36 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
         return None
     asked = min(int(max_grid_res), 16 * math.ceil(thin.grid_needed / 16))
     target = asked
-    # a grid finer than the particles fill resolves nothing: keep MIN_PARTICLES_PER_CELL
+    # a grid finer than the particles fill resolves nothing: keep MIN_PARTICLES_PER_CELL;
+    # and one whose cells open gaps between parts that the quality's grid holds together
+    # would let those parts fly off
     longest = float(np.ptp(prep.positions_sim[: prep.count], axis=0).max())
-    while target > grid and prep.n_particles < MIN_PARTICLES_PER_CELL * prep.occupied_cells(
-            cell_size(longest, prep.options.padding, target)[0]):
+    detached = prep.detached_share()
+    stop, apart, finer = "", 0.0, None  # stop: why the last grid tried was refused
+    while target > grid:
+        dx = cell_size(longest, prep.options.padding, target)[0]
+        if prep.n_particles < MIN_PARTICLES_PER_CELL * prep.occupied_cells(dx):
+            stop = "sparse"
+        else:
+            stop, apart = "apart", prep.detached_share(dx)  # on cells of dx, not yet the finer box's
+        if stop == "apart" and apart <= detached + MAX_MORE_DETACHED:
+            finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
+            apart = finer.detached_share()  # where its own cells fall
+            if apart <= detached + MAX_MORE_DETACHED:
+                break
+            finer = None
         target -= 16
-    if target <= grid:
-        if target < asked:
+    if finer is None:
+        if stop == "sparse":
             prep.report.append(f"thin parts: kept the {grid}-cell grid: {prep.n_particles:,} particles are too few "
                                f"to fill a finer one ({MIN_PARTICLES_PER_CELL:g} per occupied cell), so only a "
                                f"denser capture would resolve them")
+        elif stop == "apart":
+            prep.report.append(f"thin parts: kept the {grid}-cell grid: a finer one leaves {apart:.0%} of the moving "
+                               f"particles a cell or more apart from the pinned ones, and they would fly off; close "
+                               f"the gap in the scene, or pin or crop the floating part (--static-box, "
+                               f"--foreground-box)")
         return None
-    finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
     still = finer.thin is not None and finer.thin.thin
     if still:  # one line says it all: drop the finer grid's own notice
         finer.report.remove(finer.thin.line(max(finer.grid_dims)))

@@ -20,3 +20,24 @@ def test_unique_cells_matches_numpy_rows():
 def test_unique_cells_of_nothing():
     uniq, inverse, counts = unique_cells(np.zeros((0, 3)))
     assert uniq.shape == (0, 3) and len(inverse) == 0 and len(counts) == 0
+
+
+def test_cell_components_match_a_breadth_first_search():
+    from pd_tool.prepare.cells import cell_components, cell_components_ref
+
+    rng = np.random.default_rng(1)
+    for trial in range(30):
+        n = int(rng.integers(1, 600))
+        cells = unique_cells(rng.integers(0, int(rng.integers(3, 16)), (n, 3)))[0]
+        assert np.array_equal(cell_components(cells), cell_components_ref(cells)), trial
+
+
+def test_cell_components_join_corners_and_split_gaps():
+    from pd_tool.prepare.cells import cell_components
+
+    # a diagonal chain touches at corners only; a cell two steps away is its own group
+    cells = np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2], [4, 2, 2], [0, 0, 600]])
+    assert cell_components(cells).tolist() == [0, 0, 0, 3, 4]
+    stem = np.stack([np.zeros(3000, int), np.zeros(3000, int), np.arange(3000)], 1)[::-1]
+    assert (cell_components(stem) == 0).all()  # one group, rooted at its smallest index
+    assert len(cell_components(np.zeros((0, 3)))) == 0

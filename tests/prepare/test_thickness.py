@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from pd_tool.prepare import thickness as T
 
@@ -152,6 +153,46 @@ def test_refine_for_thin_raises_the_grid_to_resolve_thin_leaves_within_the_ceili
         assert full.n_particles < MIN_PARTICLES_PER_CELL * full.occupied_cells(nxt)
     assert full.dx < capped.dx < coarse.dx
     assert refine_for_thin(coarse, 32) is None  # no room to grow
+
+
+def _plant_with_a_floating_flower(gap: float, n: int = 20000):
+    """The thin plant with its flower head lifted `gap` m off the stem."""
+    from pd_tool.io.synthetic import REGIONS, make_plant
+
+    scene = make_plant(n, thin=True)
+    flower = torch.as_tensor(scene.labels == REGIONS.index("flower"))
+    scene.positions[flower, 2] += gap
+    return scene, float(flower.float().mean())
+
+
+def test_the_thin_plant_holds_together_on_fine_grids() -> None:
+    from pd_tool.prepare.preparation import PrepareOptions, cell_size, prepare_scene
+    from pd_tool.io.synthetic import POT_TOP, make_plant
+
+    prep = prepare_scene(make_plant(20000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=32))
+    for grid in (32, 64, 128):  # its leaves and flower reach into the stem
+        assert prep.detached_share(cell_size(prep.object_size_m, prep.options.padding, grid)[0]) < 0.002, grid
+    assert not any(r.startswith("loose parts") for r in prep.report)
+
+
+def test_a_finer_grid_that_would_tear_a_part_off_is_not_taken() -> None:
+    from pd_tool.prepare.preparation import MAX_MORE_DETACHED, PrepareOptions, prepare_scene, refine_for_thin
+    from pd_tool.io.synthetic import POT_TOP
+
+    scene, share = _plant_with_a_floating_flower(0.04)  # under a 32-cell cell, over two 96-cell ones
+    coarse = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=32))
+    assert coarse.thin is not None and coarse.thin.thin and coarse.detached_share() < 0.002
+    finer = refine_for_thin(coarse, 256)
+    if finer is None:
+        assert coarse.report[-1].startswith("thin parts: kept the 32-cell grid: a finer one leaves")
+        assert "--static-box" in coarse.report[-1]
+    else:  # raised only as far as the flower stays on
+        assert finer.options.grid_res < 96 and finer.detached_share() <= MAX_MORE_DETACHED
+    torn = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=128))
+    moving = ~np.asarray(torn.static, bool)
+    assert torn.detached_share() == pytest.approx(share * len(moving) / moving.sum(), abs=0.02)  # the flower
+    line = [r for r in torn.report if r.startswith("loose parts:")]
+    assert len(line) == 1 and f"{torn.detached_share():.0%}" in line[0] and "--foreground-box" in line[0]
 
 
 def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
