@@ -741,8 +741,16 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                 estimates.append(est)
                 bar.note = f" (up to {est.describe()})"
 
-            result = app.bake(job, progress=lambda done, total: bar.update_to(done, total), max_minutes=max_minutes,
-                              on_estimate=on_estimate)
+            def frames_done(done: int, total: int) -> None:
+                if "match" in held:  # the match's bar ends where the frames begin
+                    held.pop("match").close()
+                bar.update_to(done, total)
+
+            def match_runs(done: int, total: int) -> None:
+                held.setdefault("match", LazyBar("matching the fitted E to this grid", "run")).update_to(done, total)
+
+            result = app.bake(job, progress=frames_done, max_minutes=max_minutes, on_estimate=on_estimate,
+                              match_progress=match_runs)
     for line in result.report:
         click.echo(line)
     if estimates:

@@ -170,9 +170,11 @@ def resolve_bake_inputs(job: BakeJob) -> BakeInputs:
 
 
 def bake(job: BakeJob, *, progress: BakeProgress | None = None, max_minutes: float | None = None,
-         on_estimate: Callable[[WorkEstimate], None] | None = None) -> BakeResult:
+         on_estimate: Callable[[WorkEstimate], None] | None = None,
+         match_progress: BakeProgress | None = None) -> BakeResult:
     """Bake `job` to USD (and its preview and frames, when asked). Refused (WorkTooLarge)
-    before any work when the run-time estimate exceeds `max_minutes`."""
+    before any work when the run-time estimate exceeds `max_minutes`. match_progress(runs,
+    at most): while a fitted material is matched to the bake's grid, before the frames."""
     got = resolve_bake_inputs(job)
     splats = load_splats(got.scene, device=job.settings.device)
     cam = None
@@ -183,4 +185,4 @@ def bake(job: BakeJob, *, progress: BakeProgress | None = None, max_minutes: flo
         return run_bake(splats, job.out, force=job.force, material=got.material, material_file=got.material_file,
                         prepare_options=got.prepare, settings=job.settings, preview=job.preview,
                         frames_dir=job.frames_out, camera=cam, inputs={"--material": got.material_path},
-                        progress=progress)
+                        progress=progress, match_progress=match_progress)

@@ -291,11 +291,13 @@ class Baker:
         frames_dir: str | Path | None = None,
         camera: Camera | None = None,
         inputs: Mapping[str, str | Path | None] | None = None,
+        match_progress: Callable[[int, int], None] | None = None,
     ) -> None:
         self.t_start = time.perf_counter()
         self.scene, self.out, self.force = scene, Path(out), force
         self.settings = settings or BakeSettings()
         self.progress, self.preview, self.frames_dir = progress, preview, frames_dir
+        self.match_progress = match_progress  # (runs done, at most) while a fitted E is matched
         self.rendering = preview is not None or frames_dir is not None
         self.frame = 0  # the next frame step() writes
         self.simulated = 0
@@ -403,17 +405,25 @@ class Baker:
         fit = self.fit_sim
         if fit is None or self.follows_fit or not self.settings.match_fit:
             return False
-        cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else self.cfl_safety
         return (max(p.grid_dims) != fit["grid_res"] or not np.isclose(ratio, fit["driver_ratio"])
-                or not np.isclose(self.cfl_safety, cfl))
+                or not np.isclose(self.cfl_safety, self._fit_cfl()))
+
+    def _fit_cfl(self) -> float:
+        """The fit's CFL safety; a material file that does not record it was fitted at the
+        bake's."""
+        cfl = self.fit_sim["cfl_safety"]
+        return float(cfl) if cfl is not None else self.cfl_safety
+
+    def _match_window(self) -> int:
+        """Frames each of the match's runs simulates (pd_tool.bake.transfer.window_frames)."""
+        return window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
 
     def _match_frames(self, p: PreparedScene, ratio: float) -> int:
         """Frames the match adds to the bake's work: its runs on this discretisation and
         one on the fit's (an upper bound; the fit's grid is coarser); none once it is made."""
         if self.match is not None or not self._matches(p, ratio):
             return 0
-        frames = window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
-        return (MAX_RUNS + 1) * frames
+        return (MAX_RUNS + 1) * self._match_window()
 
     def _new_solver(self, prep: PreparedScene, drivers, E: np.ndarray, cfl_safety: float) -> tuple[MPMSolver, np.ndarray]:
         """A solver for `drivers` of `prep` with per-driver E [Q] (Pa), the bake's force on its
@@ -455,11 +465,10 @@ class Baker:
         fit_prep = prepare_scene(self.scene, self.opts.updated(grid_res=int(fit["grid_res"])))
         fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]))
         fit_E = material_file.E_at(fit_prep.transform.to_scene(fit_drivers.positions.double().cpu().numpy()))
-        fit_cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else self.cfl_safety
-        frames = window_frames(self.settings.seconds, self.force.start + self.force.duration, self.settings.fps)
-        self.match = match_fit_motion(self._discretisation_of(fit_prep, fit_drivers, fit_E, fit_cfl),
+        frames = self._match_window()
+        self.match = match_fit_motion(self._discretisation_of(fit_prep, fit_drivers, fit_E, self._fit_cfl()),
                                       self._discretisation_of(self.prep, self.drivers, E, self.cfl_safety),
-                                      frames, window_s=frames / self.settings.fps)
+                                      frames, window_s=frames / self.settings.fps, progress=self.match_progress)
         self.sim_note = self.match.line(int(fit["grid_res"]), max(self.prep.grid_dims))
         return self.match.E
 
@@ -654,13 +663,16 @@ def bake(
     frames_dir: str | Path | None = None,
     camera: Camera | None = None,
     inputs: Mapping[str, str | Path | None] | None = None,
+    match_progress: Callable[[int, int], None] | None = None,
 ) -> BakeResult:
     """Simulate `scene` under `force` and write the animation to `out` (atomic): the USD
     file and the splat formats of settings.fmt / settings.splat_formats
     (pd_tool.io.formats names the outputs beside `out`).
 
     Give either a homogeneous `material` (a preset) or a fitted `material_file`
-    (pd_tool.materials.file.MaterialFile). `progress(done, total)` is called once per frame.
+    (pd_tool.materials.file.MaterialFile). `progress(done, total)` is called once per frame;
+    `match_progress(runs, at most)` once per run while a fitted E is matched to the bake's
+    discretisation (pd_tool.bake.transfer), before the first frame.
     preview: also render the animation to this .mp4/.gif; frames_dir: also write the
     rendered frames with their camera.json as a reference-video folder (what `pdtool fit`
     reads); camera: the pd_tool.core.cameras.Camera for both (default: an automatic view).
@@ -670,7 +682,7 @@ def bake(
     """
     with Baker(scene, out, force=force, material=material, material_file=material_file,
                prepare_options=prepare_options, settings=settings, progress=progress, preview=preview,
-               frames_dir=frames_dir, camera=camera, inputs=inputs) as baker:
+               frames_dir=frames_dir, camera=camera, inputs=inputs, match_progress=match_progress) as baker:
         while not baker.done:
             baker.step()
         return baker.finish()

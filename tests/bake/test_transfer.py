@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pd_tool.bake.transfer import (MAX_FACTOR, MAX_STEP, TOLERANCE, Discretisation, amplitude, match_fit_motion,
-                                   next_log_factor, window_frames)
+from pd_tool.bake.transfer import (MAX_FACTOR, MAX_RUNS, MAX_STEP, TOLERANCE, Discretisation, amplitude,
+                                   match_fit_motion, next_log_factor, window_frames)
 
 
 def _analytic(stiffer: float, exponent: float, q: int = 50, frames: int = 6) -> tuple[Discretisation, Discretisation]:
@@ -111,13 +111,24 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
     force = ForceSpec(accel=(4.0, 0.0, 0.0), at="top", radius_fraction=0.3, duration=0.1, units="size")
     peaks = {}
     for name, quality, match in (("fitted", None, True), ("plain", "draft", False), ("matched", "draft", True)):
+        calls: list[tuple[str, int, int]] = []
         r = bake(scene, tmp_path / f"{name}.usd", force=force, material_file=mf, prepare_options=opts,
                  settings=BakeSettings(seconds=0.6, fps=30, quality=quality, fmt="instancer", match_fit=match,
-                                       stop_at_rest=False))
+                                       stop_at_rest=False),
+                 progress=lambda d, t: calls.append(("frame", d, t)),
+                 match_progress=lambda d, t: calls.append(("match", d, t)))
         peaks[name] = r.peak_displacement / r.object_size
+        runs = [c for c in calls if c[0] == "match"]
         if name == "matched":
             line = next(x for x in r.report if x.startswith("fitted material matched to this grid: E x"))
             assert float(line.split("E x")[1].split(",")[0]) > 1.5, line  # the finer grid is softer here
+            # one call for the fit's run, then one per run on draft's grid, all before the frames
+            n_runs = int(line.split("(")[1].split(" runs")[0])
+            assert [c[1] for c in runs] == list(range(1, n_runs + 2)) and {c[2] for c in runs} == {MAX_RUNS + 1}
+            assert calls[: len(runs)] == runs
+        else:
+            assert runs == []  # nothing to match
+        assert calls[-1][0] == "frame" and calls[-1][1] == calls[-1][2]
     assert peaks["fitted"] > 0.02, peaks  # the poke moves it
     # draft's bound, as for a preset against a converged reference: within 25%. The match
     # is on the drivers' mass-weighted swing, this check on the farthest Gaussian; one

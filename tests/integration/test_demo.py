@@ -92,7 +92,8 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
         res = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--device", "cpu", "again.usd"],
                                  catch_exceptions=False)
         coarse = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
-                                           "--device", "cpu", "coarse.usd"], catch_exceptions=False)
+                                           "--device", "cpu", "coarse.usd"], catch_exceptions=False,
+                                    env={"PDTOOL_PROGRESS": "1"})
         plain = CliRunner().invoke(main, ["bake", "--force", "0,0,1", "--frames", "4", "--quality", "draft",
                                           "--no-match-fit", "--device", "cpu", "plain.usd"], catch_exceptions=False)
     finally:
@@ -110,5 +111,7 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     # the match it says that the fitted E moves differently there
     assert coarse.exit_code == 0, coarse.output
     assert "fitted material matched to this grid: E x" in coarse.output, coarse.output
+    # the match has its own bar, before the frames' (PDTOOL_PROGRESS=1: bars on a pipe)
+    assert 0 <= coarse.output.index("matching the fitted E to this grid") < coarse.output.index("bake"), coarse.output
     assert plain.exit_code == 0, plain.output
     assert "moves differently" in plain.output and "matched" not in plain.output
