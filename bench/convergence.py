@@ -147,7 +147,9 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
               drivers=int(len(d_rest)),
               per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)),
               extra={"particles_per_cell": prep.n_particles / prep.occupied_cells(),
-                     "drivers_per_occupied_cell": len(d_rest) / prep.occupied_cells()})
+                     "drivers_per_occupied_cell": len(d_rest) / prep.occupied_cells(),
+                     # a scanned surface weighs a cell thick, so the mass moves with the grid
+                     "mass_kg": float(prep.masses.sum())})
     return x, moving, run
 
 
