@@ -594,7 +594,8 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
                                         if grid_res is None else
                                         f"--grid-res {grid_res} instead of the {stage_grid}-cell grid on which {as_run}"))
     _echo_report(prep.report)
-    click.echo(f"wrote {out}" + (f" and {png}" if png else "") + " (red: left out, blue: static)")
+    loose = ", orange: loose parts" if prep.detached().any() else ""
+    click.echo(f"wrote {out}" + (f" and {png}" if png else "") + f" (red: left out, blue: static{loose})")
 
 
 @main.command()

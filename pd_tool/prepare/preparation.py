@@ -209,12 +209,12 @@ class PreparedScene:
         """Grid cells (of edge `dx` m, default this grid's) that hold a simulated particle."""
         return int(len(unique_cells(np.floor(self.positions_sim / (dx or self.dx)))[0]))
 
-    def detached_share(self, dx: float | None = None) -> float:
-        """The share of the moving particles that a grid of cell `dx` m (default this grid's)
-        holds apart from the static ones: in groups of touching occupied cells with no
-        static particle (without static particles, outside the group holding the most).
-        MPM particles a whole empty cell apart hardly interact, so such a part flies off
-        under a push."""
+    def detached(self, dx: float | None = None) -> np.ndarray:
+        """Which simulated particles [P] a grid of cell `dx` m (default this grid's) holds
+        apart from the static ones: moving particles in groups of touching occupied cells
+        with no static particle (without static particles, outside the group holding the
+        most). MPM particles a whole empty cell apart hardly interact, so such a part flies
+        off under a push."""
         cells, inverse, _ = unique_cells(np.floor(self.positions_sim / (dx or self.dx)))
         group = cell_components(cells)[inverse]
         static = np.asarray(self.static, bool)
@@ -222,8 +222,12 @@ class PreparedScene:
             anchored = np.isin(group, np.unique(group[static]))
         else:
             anchored = group == np.bincount(group).argmax()
-        moving = ~static
-        return float((~anchored & moving).sum() / max(int(moving.sum()), 1))
+        return ~anchored & ~static
+
+    def detached_share(self, dx: float | None = None) -> float:
+        """The share of the moving particles that `detached(dx)` holds apart."""
+        moving = int((~np.asarray(self.static, bool)).sum())
+        return float(self.detached(dx).sum() / max(moving, 1))
 
     def connected_ratio(self, ratio: float) -> float:
         """`ratio`, raised where needed so that the drivers number at least

@@ -193,6 +193,14 @@ def test_a_finer_grid_that_would_tear_a_part_off_is_not_taken() -> None:
     assert torn.detached_share() == pytest.approx(share * len(moving) / moving.sum(), abs=0.02)  # the flower
     line = [r for r in torn.report if r.startswith("loose parts:")]
     assert len(line) == 1 and f"{torn.detached_share():.0%}" in line[0] and "--foreground-box" in line[0]
+    # `pdtool select` paints the loose flower orange, and only it
+    from pd_tool.io.synthetic import REGIONS
+    from pd_tool.prepare.selection import LOOSE_RGB, selection_scene
+
+    rgb = selection_scene(torn).colors.numpy()
+    orange = np.abs(rgb - np.asarray(LOOSE_RGB)).max(axis=1) < 1e-3
+    flower = scene.labels == REGIONS.index("flower")
+    assert orange[flower].mean() > 0.98 and not orange[~flower].any()
 
 
 def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
