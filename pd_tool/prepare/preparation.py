@@ -496,7 +496,7 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
     # and one whose cells open gaps between parts that the quality's grid holds together
     # would let those parts fly off
     longest = float(np.ptp(prep.positions_sim[: prep.count], axis=0).max())
-    detached = prep.detached_share()
+    most_apart = prep.detached_share() + MAX_MORE_DETACHED
     stop, apart, finer = "", 0.0, None  # stop: why the last grid tried was refused
     while target > grid:
         dx = cell_size(longest, prep.options.padding, target)[0]
@@ -504,12 +504,12 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
             stop = "sparse"
         else:
             stop, apart = "apart", prep.detached_share(dx)  # on cells of dx, not yet the finer box's
-        if stop == "apart" and apart <= detached + MAX_MORE_DETACHED:
-            finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
-            apart = finer.detached_share()  # where its own cells fall
-            if apart <= detached + MAX_MORE_DETACHED:
-                break
-            finer = None
+            if apart <= most_apart:
+                finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target))
+                apart = finer.detached_share()  # where its own cells fall
+                if apart <= most_apart:
+                    break
+                finer = None
         target -= 16
     if finer is None:
         if stop == "sparse":
