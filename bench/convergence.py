@@ -114,7 +114,7 @@ def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
 
 
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
-             thin_grid: int | None = None) -> tuple[np.ndarray, np.ndarray, Run]:
+             thin_grid: int | None = None, fill: str = "auto") -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it."""
@@ -126,7 +126,7 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     lo, hi = float(height.min()), float(height.max())
     static_below = 1e-6 if case.name == "strip" else lo + 0.1 * (hi - lo)
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
-                                               density_kg_m3=case.density))
+                                               density_kg_m3=case.density, fill=fill))
     finer = refine_for_thin(prep, thin_grid) if thin_grid else None
     if finer is not None:  # as a bake does: the finer grid, and drivers enough for its cells
         prep, ratio = finer, finer.connected_ratio(ratio)
@@ -148,8 +148,8 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
               per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)),
               extra={"particles_per_cell": prep.n_particles / prep.occupied_cells(),
                      "drivers_per_occupied_cell": len(d_rest) / prep.occupied_cells(),
-                     # a scanned surface weighs a cell thick, so the mass moves with the grid
-                     "mass_kg": float(prep.masses.sum())})
+                     "mass_kg": float(prep.masses.sum()),
+                     "filled_m3": float(prep.volumes[prep.count:].sum())})
     return x, moving, run
 
 
@@ -231,6 +231,8 @@ def main() -> None:
     ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
     ap.add_argument("--no-refine-thin", action="store_true",
                     help="the presets' rows on their own grids, as `pdtool bake --no-refine-thin` bakes")
+    ap.add_argument("--fill", default="auto", choices=["auto", "on", "off"],
+                    help="interior filling for every run, as `pdtool bake --fill`")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--data", type=Path, default=DATA, help="folder of the real captures")
     ap.add_argument("--json", type=Path)
@@ -271,16 +273,18 @@ def main() -> None:
         for q in QUALITIES:
             s = settings[q]
             runs[q] = simulate(scene, case, int(s["grid_res"]), float(s["cfl_safety"]), float(s["driver_ratio"]),
-                               args.device, thin_grid=None if args.no_refine_thin else s.get("thin_grid_res"))
+                               args.device, thin_grid=None if args.no_refine_thin else s.get("thin_grid_res"),
+                               fill=args.fill)
         d = settings["default"]
         for item in filter(None, args.sweep.split(",")):
             g, _, r = item.partition(":")
             ratio = float(r) if r else float(d["driver_ratio"])
             runs[f"grid {g}" + (f" r{r}" if r else "")] = simulate(scene, case, int(g), float(d["cfl_safety"]), ratio,
-                                                                   args.device)
-        runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device)
+                                                                   args.device, fill=args.fill)
+        runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device, fill=args.fill)
         if args.check_grid:
-            runs["check"] = simulate(scene, case, args.check_grid, args.reference_cfl, 1.0, args.device)
+            runs["check"] = simulate(scene, case, args.check_grid, args.reference_cfl, 1.0, args.device,
+                                     fill=args.fill)
         for run in compare(runs, case):
             if name == "strip":
                 run.extra["f1_theory"] = clamped_strip_frequency(case.E, case.nu, case.density, STRIP["length"],

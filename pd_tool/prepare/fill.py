@@ -27,8 +27,9 @@ Pipeline (all on a voxel grid, numpy / torch on the CPU, memory and time bounded
 6. sources: the nearest original Gaussian of each new particle, by jump flooding on a
    coarse grid followed by a local refinement (no O(N * M) search).
 
-Volumes and masses are not set here: the preparation step gives every particle (filled
-ones included) the volume cell^3 / (particles in its cell) and a mass density * volume.
+Volumes and masses are not set here: the preparation step shares `interior_volume` equally
+among the filled particles (each stands for one lattice cell) and gives each a mass density
+* volume.
 Filled particles take part in K-Means driver selection like the Gaussians' centres.
 """
 from __future__ import annotations
@@ -52,6 +53,7 @@ SIGMA_MAX_CELLS = 1.0  # largest std-dev, in simulation cells or two voxels if l
 VOTE_CANDIDATE = 0.5  # line vote over which a voxel counts as enclosed at all (for closedness)
 VOTE_INTERIOR = 11 / 13  # line vote over which a voxel is filled (2 of 13 lines may be open)
 AUTO_CLOSEDNESS = 0.9  # auto fills when the mean vote over the enclosed voxels reaches this
+PARTICLES_PER_CELL_AXIS = 2  # filled particles per cell along each axis: 8 per cell
 MIN_INTERIOR_CELLS = 1.0  # auto skips interiors smaller than this many simulation cells
 VOXEL_MIN_SCALES = 1.0  # analysis voxel at least this many median largest Gaussian std-devs
 MAX_VOXELS = 1 << 22  # analysis grid cap (about 160^3); coarser voxels beyond it
@@ -117,7 +119,7 @@ def fill_interior(
     *,
     cell: float,
     mode: str = "auto",
-    particles_per_cell_axis: int = 2,
+    particles_per_cell_axis: int = PARTICLES_PER_CELL_AXIS,
     time_budget_s: float = 30.0,
     grid_origin: Sequence[float] | np.ndarray | None = None,
 ) -> FillResult:
@@ -167,6 +169,34 @@ def fill_interior(
         if mode == "on":
             raise FillError(msg) from None
         return _empty(positions, float("nan"), f"not filled: {msg}", 0.0)
+
+
+def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing: float,
+                  lattice: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The filled particles `points` [M, 3] m (sources [M]; on a lattice of `spacing` m,
+    filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so that the interior is found once
+    and sampled at any simulation grid's density. Onto a coarser lattice, the points in
+    each of its cells merge into one at their centroid that carries their volume and the
+    first one's source; onto a finer one, each point splits into k^3 (k = the ratio,
+    rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
+    volumes [Q] m^3, which sum to `volume`."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    source = np.asarray(source, np.int64)
+    m = len(points)
+    if m == 0:
+        return points, source, np.zeros(0)
+    share = volume / m
+    if lattice >= spacing * (1 - 1e-9):
+        keys = np.floor(points / lattice).astype(np.int64)
+        _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True,
+                                              return_counts=True)
+        inverse = inverse.reshape(-1)
+        centroid = np.stack([np.bincount(inverse, points[:, a]) for a in range(3)], 1) / counts[:, None]
+        return centroid, source[first], counts * share
+    k = int(math.ceil(spacing / lattice - 1e-9))
+    offsets = (np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / k - 0.5
+    split = (points[:, None, :] + offsets[None] * spacing).reshape(-1, 3)
+    return split, np.repeat(source, k ** 3), np.full(m * k ** 3, share / k ** 3)
 
 
 # ----------------------------------------------------------------------------- pipeline

@@ -19,7 +19,7 @@ from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
 from pd_tool.prepare.cells import cell_components, unique_cells
-from pd_tool.prepare.fill import fill_interior
+from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
 from pd_tool.prepare.thickness import describe_refinement, thin_parts
@@ -390,10 +390,58 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
     return SimTransform(tuple(map(tuple, R.tolist())), float(mpu), tuple(shift.tolist())), float(dx), dims
 
 
-def particle_volumes(positions_sim: np.ndarray, dx: float) -> np.ndarray:
-    """Per-particle volume [N] m^3: a grid cell's volume divided by the particles in it."""
-    _, inverse, counts = unique_cells(np.floor(positions_sim / dx))
-    return (dx ** 3) / counts[inverse].astype(np.float64)
+# Scanned Gaussians stand for a surface: each weighs its share of a shell SHELL_GRID-th of
+# the object's longest side thick, whatever the simulation grid (192: the convergence
+# benchmark's reference grid, where the shell is about a cell thick). Shared out per grid
+# cell instead, a scan weighs one cell thick, so its mass and stiffness move with the grid
+# (the tree: 36 kg at 64 cells, 21 kg at 192) and coarse grids miss the reference by 17-25%.
+SHELL_GRID = 192
+# The shell's area is counted on cells (a^2 per occupied cell) coarse enough that all but
+# SPARSE_SHARE of the scanned Gaussians share their cell with SURFACE_PER_CELL - 1 others, so
+# that a patch's mass follows its area rather than how densely the capture sampled it. An
+# average instead would let a crowded patch pick cells so fine that a sparse one leaves
+# holes between its samples, and lose their area (a sheet 8x as dense in one corner: 7%).
+SURFACE_PER_CELL = 4
+SPARSE_SHARE = 0.1
+AREA_CELL_STEP = 1.25  # the area cell grows by this factor until it is coarse enough
+
+
+def surface_volumes(positions: np.ndarray) -> np.ndarray:
+    """Per-Gaussian volume [N] m^3 of scanned Gaussians at `positions` [N, 3] m: a shell of
+    thickness t = longest side / SHELL_GRID over the area their cells of edge a cover, a^2
+    per occupied cell, shared among the Gaussians in it (t a^2 / count); a >= t is the
+    finest that SURFACE_PER_CELL and SPARSE_SHARE allow. The cells sit on
+    the Gaussians' own bounding box, so the volumes do not depend on the simulation grid."""
+    x = np.asarray(positions, np.float64)
+    if len(x) == 0:
+        return np.zeros(0)
+    x = x - x.min(axis=0)
+    longest = float(x.max())
+    if not longest > 0.0:  # a single point: nothing to spread over
+        return np.full(len(x), 1.0 / len(x))
+    t = a = longest / SHELL_GRID
+    while True:
+        _, inverse, counts = unique_cells(np.floor(x / a))
+        if np.quantile(counts[inverse], SPARSE_SHARE) >= SURFACE_PER_CELL or a >= longest:
+            break
+        a *= AREA_CELL_STEP
+    return t * a * a / counts[inverse].astype(np.float64)
+
+
+def particle_volumes(positions_sim: np.ndarray, scanned: int, filled: np.ndarray | None = None) -> np.ndarray:
+    """Per-particle volume [P] m^3 of `positions_sim` [P, 3] m: the first `scanned` are
+    Gaussians (surface_volumes); the rest are interior particles with the volumes `filled`
+    [P - scanned] m^3 that the fill gave them."""
+    vol = np.empty(len(positions_sim))
+    vol[:scanned] = surface_volumes(positions_sim[:scanned])
+    vol[scanned:] = np.zeros(0) if filled is None else filled
+    return vol
+
+
+# The interior of a closed scan is found on the cells of a grid this fine, whatever the
+# simulation's grid: found on the simulation's own cells, the tree was hollow at 32 and 48
+# cells and filled from 64, and its filled volume moved by a quarter between grids.
+FILL_GRID = 128
 
 
 def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -> PreparedScene:
@@ -418,21 +466,29 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None) -
     report += static_report
     transform, dx, dims = fit_transform(pos_scene, options)
     pos_sim = transform.to_sim(pos_scene)
-    fill_source = None
+    fill_source, filled = None, np.zeros(0)
     if options.fill not in ("auto", "on", "off"):
         raise PreparationError(f"--fill {options.fill!r} must be auto, on or off")
     if options.fill != "off":
 
         fg_t = torch.as_tensor(fg, device=scene.device)
+        # found on FILL_GRID's cells, set on the object's own corner, whatever this grid;
+        # then sampled at this grid's density
+        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
         res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
                             scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
-                            scene.opacities[fg_t].detach().cpu().numpy(), cell=dx, mode=options.fill)
-        report.append(f"fill ({options.fill}): {res.reason}")
+                            scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
+                            grid_origin=pos_sim.min(axis=0))
         if res.decision and len(res.points):
-            fill_source = np.asarray(res.source, np.int64)
-            pos_sim = np.concatenate([pos_sim, np.asarray(res.points, np.float64)])
+            points, fill_source, filled = resample_fill(res.points, res.source, res.interior_volume,
+                                                        cell / PARTICLES_PER_CELL_AXIS, dx / PARTICLES_PER_CELL_AXIS)
+            pos_sim = np.concatenate([pos_sim, points])
             static = np.concatenate([static, static[fill_source]])
-    volumes = particle_volumes(pos_sim, dx)
+            report.append(f"fill ({options.fill}): filled {len(points):,} interior particles "
+                          f"({res.interior_volume:.3g} m^3): {res.reason.partition('): ')[2]}")
+        else:
+            report.append(f"fill ({options.fill}): {res.reason}")
+    volumes = particle_volumes(pos_sim, len(fg), filled)
     report.append(
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
         f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"

@@ -12,7 +12,7 @@ import torch
 from pd_tool.core.quaternion import quat_to_matrix_np
 from pd_tool.prepare import fill as fl
 from pd_tool.core.errors import PreparationError
-from pd_tool.prepare.fill import AUTO_CLOSEDNESS, FillError, fill_interior
+from pd_tool.prepare.fill import AUTO_CLOSEDNESS, FillError, fill_interior, resample_fill
 
 CELL = 0.05  # m; a 0.5 m sphere spans 20 cells, like an object in a 64^3 box
 VOLUME_RTOL = 0.05  # bound on the filled volume of a closed sphere
@@ -318,3 +318,23 @@ def test_flood_matches_bfs():
                     want[y] = True
                     todo.append(y)
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("lattice", [0.05, 0.04, 0.013, 0.01], ids=["coarser", "coarser-odd", "finer-odd", "finer"])
+def test_resample_fill_keeps_the_volume_and_the_region(lattice):
+    p, q, s, o = sphere_shell()
+    r = fill_interior(p, q, s, o, cell=CELL, mode="on")
+    spacing = CELL / 2
+    pts, src, vol = resample_fill(r.points, r.source, r.interior_volume, spacing, lattice)
+    assert vol.sum() == pytest.approx(r.interior_volume, rel=1e-9)
+    assert len(pts) == len(src) == len(vol) and (vol > 0).all()
+    # nothing moves out of the filled region: every new point is within one input lattice
+    # cell of an input point, and the sources are the inputs' sources
+    assert np.linalg.norm(pts - 1.0, axis=1).max() <= np.linalg.norm(r.points - 1.0, axis=1).max() + spacing
+    assert set(np.unique(src)) <= set(np.unique(r.source))
+    # about one point per output lattice cell where the input was denser, and at least one
+    # per input point where it was sparser
+    if lattice >= spacing:
+        assert len(pts) == len(np.unique(np.floor(r.points / lattice), axis=0))
+    else:
+        assert len(pts) >= len(r.points) * (spacing / lattice) ** 3 * 0.99

@@ -6,9 +6,10 @@ import pytest
 import torch
 
 from pd_tool.core.errors import PreparationError
+from pd_tool.core.scene import GaussianScene
 from pd_tool.prepare.preparation import (
-    WALL_CELLS, Box, PrepareOptions, SimTransform, fit_transform, particle_volumes,
-    prepare_scene, up_rotation,
+    AREA_CELL_STEP, SHELL_GRID, SPARSE_SHARE, SURFACE_PER_CELL, WALL_CELLS, Box, PrepareOptions, SimTransform,
+    fit_transform, particle_volumes, prepare_scene, surface_volumes, up_rotation,
 )
 from pd_tool.prepare.outliers import select_outliers
 from pd_tool.io.synthetic import POT_TOP, REGIONS, make_plant
@@ -51,16 +52,65 @@ def test_transform_round_trip_and_box(up: str) -> None:
     np.testing.assert_array_equal(again.to_sim(pts), sim)
 
 
-def test_particle_volumes_sum_to_occupied_cells() -> None:
+def test_surface_volumes_are_a_shell_over_the_area() -> None:
+    # a 1 m x 1 m sheet, densely sampled: a shell of 1/SHELL_GRID m over 1 m^2, however the
+    # samples crowd, and every sample in a cell gets the same share
     rng = np.random.default_rng(1)
-    pts = rng.uniform(0, 1, size=(3000, 3))
-    dx = 0.1
-    vol = particle_volumes(pts, dx)
-    occupied = len(np.unique(np.floor(pts / dx), axis=0))
-    assert np.isclose(vol.sum(), occupied * dx ** 3)
-    # four points in one cell share it equally
-    four = np.array([[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [0.05, 0.05, 0.05], [0.09, 0.01, 0.03]])
-    np.testing.assert_allclose(particle_volumes(four, dx), dx ** 3 / 4)
+    sheet = np.c_[rng.uniform(0, 1, (40000, 2)), np.zeros(40000)]
+    sheet[:2] = [[0, 0, 0], [1, 1, 0]]  # the longest side is exactly 1 m
+    vol = surface_volumes(sheet)
+    assert np.isclose(vol.sum(), 1.0 / SHELL_GRID, rtol=0.03)
+    crowded = np.r_[sheet, rng.uniform(0, 0.25, (30000, 3)) * [1, 1, 0]]  # a corner sampled 8x as densely
+    assert np.isclose(surface_volumes(crowded).sum(), 1.0 / SHELL_GRID, rtol=0.03)
+    # the share per Gaussian, cell by cell, against a plain loop
+    few = rng.uniform(0, 1, (300, 3))
+    v = surface_volumes(few)
+    x = few - few.min(0)
+    a = t = x.max() / SHELL_GRID
+    while True:
+        cells = [tuple(c) for c in np.floor(x / a).astype(int)]
+        shared = sorted(cells.count(c) for c in cells)
+        if np.quantile(shared, SPARSE_SHARE) >= SURFACE_PER_CELL:
+            break
+        a *= AREA_CELL_STEP
+    want = [t * a * a / cells.count(c) for c in cells]
+    np.testing.assert_allclose(v, want, rtol=1e-12)
+
+
+def test_particle_volumes_do_not_move_with_the_grid() -> None:
+    # the same scan, moved as another grid's box moves it: the same volumes
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(5000, 3)) * [0.3, 0.1, 0.05]
+    np.testing.assert_allclose(particle_volumes(pts + 0.137, 5000), particle_volumes(pts, 5000), rtol=1e-9)
+    # filled particles keep the volumes the fill gave them
+    inside = rng.uniform(-0.01, 0.01, (80, 3))
+    given = rng.uniform(1e-6, 2e-6, 80)
+    vol = particle_volumes(np.r_[pts, inside], 5000, given)
+    np.testing.assert_array_equal(vol[5000:], given)
+    np.testing.assert_allclose(vol[:5000], surface_volumes(pts))
+
+
+def test_prepared_mass_is_the_same_on_every_grid() -> None:
+    scene = make_plant(4000, seed=3, thin=True)
+    masses = [float(prepare_scene(scene, PrepareOptions(grid_res=g, fill="off")).masses.sum()) for g in (24, 48, 96)]
+    np.testing.assert_allclose(masses, masses[0], rtol=1e-9)
+    # a closed scan: its interior is found once, so it is filled, and weighs the same, on every grid
+    n = 6000
+    k = np.arange(n) + 0.5
+    z, phi = 1 - 2 * k / n, np.pi * (1 + 5 ** 0.5) * k
+    d = np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z]
+    spacing = 0.5 * np.sqrt(4 * np.pi / n)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    ball = GaussianScene(positions=t(0.5 * d), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))),
+                         scales=t(np.tile([0.7 * spacing, 0.7 * spacing, 0.7 * spacing], (n, 1))),
+                         opacities=t(np.full(n, 0.8)), sh=torch.zeros(n, 1, 3))
+    preps = [prepare_scene(ball, PrepareOptions(grid_res=g, fill="auto")) for g in (24, 48, 96)]
+    assert all(pr.n_filled > 0 for pr in preps)
+    np.testing.assert_allclose([pr.masses.sum() for pr in preps], preps[0].masses.sum(), rtol=1e-9)
+    # sampled at each grid's density: about 8 filled particles a cell
+    for pr in preps:
+        cells = pr.occupied_cells() - len(np.unique(np.floor(pr.positions_sim[: pr.count] / pr.dx), axis=0))
+        assert pr.n_filled > 2 * max(cells, 1)
 
 
 def test_outliers_found() -> None:
