@@ -110,7 +110,8 @@ def rod_scan(x_start: float, x_end: float, cy: float, cz: float, radius: float, 
 
 
 def particle_volumes(x: np.ndarray, dx: float) -> np.ndarray:
-    """The preparation step's rule: a cell's volume divided by the particles in it."""
+    """A cell's volume divided by the particles in it: a scanned wall weighs one cell thick
+    (this benchmark's model of a hollow scan; preparation weighs a fixed shell instead)."""
     keys = np.floor(x / dx).astype(np.int64)
     _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     return dx**3 / counts[inv.reshape(-1)]
