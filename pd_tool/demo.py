@@ -68,9 +68,8 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     paths: dict[str, Path] = {}
 
     # 1. the scene, as a user would have it on disk
-    # 2 cm leaves: on the demo's 32-cell fit grid a 3 mm leaf barely shows its E in the
-    # video (fitted 22x off its truth, against 13x for 2 cm leaves; docs/fitting.md)
-    paths["scene"] = save_splats(make_plant(n_gauss, seed=0, thin=False), out / "plant.ply")
+    # 3 mm leaves and petals, far thinner than a cell, as a real plant has
+    paths["scene"] = save_splats(make_plant(n_gauss, seed=0, thin=True), out / "plant.ply")
     scene = load_splats(paths["scene"], device=device)
     say(f"scene      {paths['scene']} ({scene.count:,} Gaussians)")
 
