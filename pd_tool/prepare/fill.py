@@ -27,9 +27,9 @@ Pipeline (all on a voxel grid, numpy / torch on the CPU, memory and time bounded
 6. sources: the nearest original Gaussian of each new particle, by jump flooding on a
    coarse grid followed by a local refinement (no O(N * M) search).
 
-Volumes and masses are not set here: the preparation step shares `interior_volume` equally
-among the filled particles (each stands for one lattice cell) and gives each a mass density
-* volume.
+Volumes and masses are not set here: the preparation step moves the points onto its grid's
+lattice with `resample_fill`, which gives each its share of `interior_volume`, and gives
+each a mass density * volume.
 Filled particles take part in K-Means driver selection like the Gaussians' centres.
 """
 from __future__ import annotations
@@ -174,8 +174,8 @@ def fill_interior(
 def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing: float,
                   lattice: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The filled particles `points` [M, 3] m (sources [M]; on a lattice of `spacing` m,
-    filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so that the interior is found once
-    and sampled at any simulation grid's density. Onto a coarser lattice, the points in
+    filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so
+    that the interior is found once and sampled at any simulation grid's density. Onto a coarser lattice, the points in
     each of its cells merge into one at their centroid that carries their volume and the
     first one's source; onto a finer one, each point splits into k^3 (k = the ratio,
     rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
