@@ -175,9 +175,9 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
                   lattice: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The filled particles `points` [M, 3] m (sources [M]; on a lattice of `spacing` m,
     filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so
-    that the interior is found once and sampled at any simulation grid's density. Onto a coarser lattice, the points in
-    each of its cells merge into one at their centroid that carries their volume and the
-    first one's source; onto a finer one, each point splits into k^3 (k = the ratio,
+    that the interior is found once and sampled at any simulation grid's density. Onto a
+    coarser lattice, the points in each of its cells merge into one at their centroid that
+    carries their volume and the first one's source; onto a finer one, each point splits into k^3 (k = the ratio,
     rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
     volumes [Q] m^3, which sum to `volume`."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -187,10 +187,7 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
         return points, source, np.zeros(0)
     share = volume / m
     if lattice >= spacing * (1 - 1e-9):
-        keys = np.floor(points / lattice).astype(np.int64)
-        _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True,
-                                              return_counts=True)
-        inverse = inverse.reshape(-1)
+        _, inverse, counts, first = unique_cells(np.floor(points / lattice), index=True)
         centroid = np.stack([np.bincount(inverse, points[:, a]) for a in range(3)], 1) / counts[:, None]
         return centroid, source[first], counts * share
     k = int(math.ceil(spacing / lattice - 1e-9))

@@ -23,10 +23,9 @@ report: a ball ten cells wide).
 
 Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is reported,
 and every one moves 36-84% too little; from 32 cells up udon, the donut and the tree are
-not reported, and udon moves within 8% of the reference (the tree swings 17-45% too far up
-to 128 cells, for a reason other than thin parts); the plant with 3 mm leaves is reported
-at 16-96 cells (4-50% short) and not at 128, where it moves within 3% of a 192-cell
-reference. A bake raises its grid to ThinParts.grid_needed
+not reported, and they move within 10% of the reference from 32 cells (udon and the tree)
+or 48 (the donut); the plant with 3 mm leaves is reported at 16-96 cells (3-47% short) and
+not at 128, where it moves within 1% of a 192-cell reference. A bake raises its grid to ThinParts.grid_needed
 (pd_tool.prepare.preparation.refine_for_thin).
 """
 from __future__ import annotations
