@@ -95,15 +95,11 @@ def test_prepared_mass_is_the_same_on_every_grid() -> None:
     masses = [float(prepare_scene(scene, PrepareOptions(grid_res=g, fill="off")).masses.sum()) for g in (24, 48, 96)]
     np.testing.assert_allclose(masses, masses[0], rtol=1e-9)
     # a closed scan: its interior is found once, so it is filled, and weighs the same, on every grid
-    n = 6000
-    k = np.arange(n) + 0.5
-    z, phi = 1 - 2 * k / n, np.pi * (1 + 5 ** 0.5) * k
-    d = np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z]
-    spacing = 0.5 * np.sqrt(4 * np.pi / n)
+    from tests.prepare.test_fill import sphere_shell
+
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
-    ball = GaussianScene(positions=t(0.5 * d), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))),
-                         scales=t(np.tile([0.7 * spacing, 0.7 * spacing, 0.7 * spacing], (n, 1))),
-                         opacities=t(np.full(n, 0.8)), sh=torch.zeros(n, 1, 3))
+    p, q, sc, o = sphere_shell()
+    ball = GaussianScene(positions=t(p), quats=t(q), scales=t(sc), opacities=t(o), sh=torch.zeros(len(p), 1, 3))
     preps = [prepare_scene(ball, PrepareOptions(grid_res=g, fill="auto")) for g in (24, 48, 96)]
     assert all(pr.n_filled > 0 for pr in preps)
     np.testing.assert_allclose([pr.masses.sum() for pr in preps], preps[0].masses.sum(), rtol=1e-9)
