@@ -337,7 +337,7 @@ def grid_adjoint(
     nodes all get mass, except where a B-spline factor and its derivative are both 0).
     Most nodes are empty and the stored grids are cold in the cache, so this cut the kernel
     from 20.2 to 11.3 us at 100k / 64^3 and from 163 to 36 us at 300k / 128^3 (H200,
-    docs/runs/vec4_reduction_{100k,300k}_h200.json)."""
+    docs/gpu-runs/vec4_reduction_{100k,300k}_h200.json)."""
     i, j, k = wp.tid()
     nodes = step.nodes
     pad = step.pad

@@ -49,7 +49,7 @@ RUNS_PER_PASS = 16384
 # for f32; warp's atomic_add on a vec4 issues one atomic per component. H200, 100k
 # particles / 64^3: the cell sums take 14.4 us instead of 26.7, the adjoint's cotangent
 # scatter 14.1 instead of 22.3 (bench/try_vec4_red.py at 72a21c2,
-# docs/runs/vec4_reduction_100k_h200.json). The address is converted to a global one
+# docs/gpu-runs/vec4_reduction_100k_h200.json). The address is converted to a global one
 # because vector `red` exists only for the global space. Older GPUs and the CPU add per
 # component. No adjoint: only untaped kernels use it.
 _RED_ADD_VEC4 = """

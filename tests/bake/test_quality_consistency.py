@@ -33,7 +33,7 @@ def test_thin_leaves_move_the_same_at_draft_and_default_with_the_grid_raised() -
     as far as the particles fill it, with drivers enough for its cells, and then agree.
     On the GPU at 100k Gaussians against a 192-cell reference, draft and default read 1.08
     and 1.00 on their raised grids, against 0.64 on draft's own 32 cells
-    (docs/runs/convergence_plant100k_h200.json); at this scale the particles fill only 64-80
+    (docs/gpu-runs/convergence_plant100k_h200.json); at this scale the particles fill only 64-80
     cells, too few to resolve the leaves, so this checks agreement and that nothing breaks
     (too few drivers on a raised grid made a side poke fly 9x too far)."""
     from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, MIN_PARTICLES_PER_CELL
