@@ -113,6 +113,23 @@ def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
     return scene
 
 
+def even_strip_weights() -> None:
+    """Make the strip's Gaussians (those above its block) share its volume evenly, for every
+    later preparation in this process: the volume rule's part in the strip's frequency."""
+    from pd_tool.prepare import preparation
+
+    shell = preparation.surface_volumes
+
+    def even(positions):
+        vol = shell(positions)
+        x = np.asarray(positions, np.float64) - np.asarray(positions, np.float64).min(axis=0)
+        strip = x[:, 2] > STRIP["base"] + 1e-9 * STRIP["length"]
+        vol[strip] = STRIP["length"] * STRIP["width"] * STRIP["thickness"] / max(int(strip.sum()), 1)
+        return vol
+
+    preparation.surface_volumes = even
+
+
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
              thin_grid: int | None = None, fill: str = "auto") -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
@@ -229,6 +246,9 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
     ap.add_argument("--reference-cfl", type=float, default=0.25)
     ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
+    ap.add_argument("--strip-even-weights", action="store_true",
+                    help="the strip's Gaussians share its volume evenly instead of the shell rule's weights "
+                         "(a diagnostic of the volume rule; the product has no such option)")
     ap.add_argument("--no-refine-thin", action="store_true",
                     help="the presets' rows on their own grids, as `pdtool bake --no-refine-thin` bakes")
     ap.add_argument("--fill", default="auto", choices=["auto", "on", "off"],
@@ -254,6 +274,8 @@ def main() -> None:
     from pd_tool.io.synthetic import clamped_strip_frequency
 
     init_warp_quietly()
+    if args.strip_even_weights:
+        even_strip_weights()
     settings = {q: load_preset("quality", q) for q in QUALITIES}
     result = {"device": args.device, "gaussians": args.gaussians, "reference": args.reference,
               "reference_cfl": args.reference_cfl, "check_grid": args.check_grid, "runs": []}

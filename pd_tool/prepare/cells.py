@@ -21,6 +21,51 @@ def unique_cells(cells: np.ndarray, *, index: bool = False):
     return out + (first,) if index else out
 
 
+_ALL27 = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.int64)
+
+
+def neighbourhood_sums(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """For each distinct integer cell [M, 3] (unique rows), the sum of `values` [M, ...]
+    over the occupied cells of its 3x3x3 block, itself included: [M, ...]."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 3)
+    values = np.asarray(values)
+    m = len(cells)
+    out = np.zeros_like(values, dtype=np.float64)
+    if m == 0:
+        return out
+    lo = cells.min(axis=0) - 1  # a margin, so that a neighbour's key never wraps
+    span = cells.max(axis=0) - lo + 2
+    c = cells - lo
+
+    def key(a):
+        return (a[:, 0] * span[1] + a[:, 1]) * span[2] + a[:, 2]
+
+    order = np.argsort(key(c))
+    ks = key(c)[order]
+    for off in _ALL27:
+        nk = key(c + off)
+        at = np.minimum(np.searchsorted(ks, nk), m - 1)
+        hit = ks[at] == nk
+        out[hit] += values[order[at[hit]]]
+    return out
+
+
+def neighbourhood_sums_ref(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """neighbourhood_sums over a dict of cells (tests)."""
+    cells = [tuple(int(x) for x in r) for r in np.asarray(cells, np.int64).reshape(-1, 3)]
+    where = {c: i for i, c in enumerate(cells)}
+    values = np.asarray(values, np.float64)
+    out = np.zeros_like(values)
+    for i, (x, y, z) in enumerate(cells):
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    j = where.get((x + dx, y + dy, z + dz))
+                    if j is not None:
+                        out[i] += values[j]
+    return out
+
+
 # the 13 neighbour offsets of a cell's 26 with a positive first non-zero component: each
 # touching pair of cells is found once
 _HALF = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)

@@ -18,7 +18,7 @@ import torch
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
-from pd_tool.prepare.cells import cell_components, unique_cells
+from pd_tool.prepare.cells import cell_components, neighbourhood_sums, unique_cells
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
@@ -409,9 +409,11 @@ AREA_CELL_STEP = 1.25  # the area cell grows by this factor until it is coarse e
 def surface_volumes(positions: np.ndarray) -> np.ndarray:
     """Per-Gaussian volume [N] m^3 of scanned Gaussians at `positions` [N, 3] m: a shell of
     thickness t = longest side / SHELL_GRID over the area their cells of edge a cover, a^2
-    per occupied cell, shared among the Gaussians in it (t a^2 / count); a >= t is the
-    finest that SURFACE_PER_CELL and SPARSE_SHARE allow. The cells sit on
-    the Gaussians' own bounding box, so the volumes do not depend on the simulation grid."""
+    per occupied cell; a >= t is the finest that SURFACE_PER_CELL and SPARSE_SHARE allow.
+    Each Gaussian weighs t a^2 times its cell's 3x3x3 block's occupied cells over the
+    Gaussians in that block, so a partly full cell at a part's edge or face weighs its
+    Gaussians like its neighbours do. The cells sit on the Gaussians' own bounding box, so
+    the volumes do not depend on the simulation grid."""
     x = np.asarray(positions, np.float64)
     if len(x) == 0:
         return np.zeros(0)
@@ -421,11 +423,12 @@ def surface_volumes(positions: np.ndarray) -> np.ndarray:
         return np.full(len(x), 1.0 / len(x))
     t = a = longest / SHELL_GRID
     while True:
-        _, inverse, counts = unique_cells(np.floor(x / a))
+        cells, inverse, counts = unique_cells(np.floor(x / a))
         if np.quantile(counts[inverse], SPARSE_SHARE) >= SURFACE_PER_CELL or a >= longest:
             break
         a *= AREA_CELL_STEP
-    return t * a * a / counts[inverse].astype(np.float64)
+    block = neighbourhood_sums(cells, np.stack([np.ones(len(counts)), counts.astype(np.float64)], axis=1))
+    return t * a * a * (block[:, 0] / block[:, 1])[inverse]
 
 
 def particle_volumes(positions_sim: np.ndarray, scanned: int, filled: np.ndarray | None = None) -> np.ndarray:

@@ -41,3 +41,19 @@ def test_cell_components_join_corners_and_split_gaps():
     stem = np.stack([np.zeros(3000, int), np.zeros(3000, int), np.arange(3000)], 1)[::-1]
     assert (cell_components(stem) == 0).all()  # one group, rooted at its smallest index
     assert len(cell_components(np.zeros((0, 3)))) == 0
+
+
+def test_neighbourhood_sums_match_a_dict_of_cells():
+    from pd_tool.prepare.cells import neighbourhood_sums, neighbourhood_sums_ref
+
+    rng = np.random.default_rng(2)
+    for trial in range(20):
+        n = int(rng.integers(1, 500))
+        cells = unique_cells(rng.integers(-5, int(rng.integers(2, 12)), (n, 3)))[0]
+        values = rng.uniform(0, 3, (len(cells), 2))
+        np.testing.assert_allclose(neighbourhood_sums(cells, values), neighbourhood_sums_ref(cells, values),
+                                   rtol=1e-12, err_msg=str(trial))
+    # a lone cell sums only itself; a full 3x3x3 block's centre sums all 27
+    block = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)] + [[9, 9, 9]])
+    sums = neighbourhood_sums(block, np.ones(len(block)))
+    assert sums[13] == 27 and sums[-1] == 1 and sums[0] == 8
