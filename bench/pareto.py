@@ -122,8 +122,8 @@ def score(case: BakeCase, pos: np.ndarray, ref: np.ndarray, size: float) -> None
 def reference_positions(scene, args, folder: Path) -> tuple[dict, np.ndarray]:
     """The reference run, from --reference-cache when it holds one with the same settings
     (another process may be computing it: wait for it), else computed (and cached)."""
-    key = {"gaussians": args.gaussians, "seconds": args.seconds, "fps": args.fps, "accel": args.accel,
-           "grid": args.reference_grid,
+    key = {"gaussians": args.gaussians, "thin": args.thin, "seconds": args.seconds, "fps": args.fps,
+           "accel": args.accel, "grid": args.reference_grid,
            "cfl": args.reference_cfl, "ratio": args.reference_ratio}
     cache = args.reference_cache
     if cache is not None:
@@ -185,7 +185,7 @@ def fit_sweep(args) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        scene_path = save_splats(make_plant(args.fit_gaussians, seed=0, thin=False), tmp / "plant.ply")
+        scene_path = save_splats(make_plant(args.fit_gaussians, seed=0, thin=args.thin), tmp / "plant.ply")
         scene = load_splats(scene_path, device=args.device)
         cam = scene_camera(scene, width=args.fit_size, height=args.fit_size)
         video, _, _ = plant_reference_for_fit(tmp / "video", scene, cam, args.fit_quality, n_frames=args.fit_frames,
@@ -214,6 +214,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--gaussians", type=int, default=3000)
+    ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--accel", type=float, default=2.0, help="poke strength, scene units/s^2 along x")
     ap.add_argument("--fps", type=float, default=30.0)
@@ -262,7 +263,7 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(out, indent=2))
         return
-    scene = make_plant(args.gaussians, seed=0, device=args.device, thin=False)
+    scene = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin)
     size = float(np.ptp(scene.positions.cpu().numpy(), axis=0).max())
     grids = [int(g) for g in args.grids.split(",")]
     cases: dict[tuple, BakeCase] = {}
@@ -314,8 +315,8 @@ def main() -> None:
         "device": args.device,
         "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "cpu": _cpu_name(), "torch_threads": args.threads, "precision": "float32 (no mixed-precision path)",
-        "gaussians": args.gaussians, "seconds": args.seconds, "fps": args.fps, "object_size": size,
-        "force": f"poke preset x ({args.accel}, 0, 0), material flower",
+        "gaussians": args.gaussians, "thin": args.thin, "seconds": args.seconds, "fps": args.fps,
+        "object_size": size, "force": f"poke preset x ({args.accel}, 0, 0), material flower",
         "reference": ref_info, "clock": args.clock,
         "reference_peak_motion_of_size": _peak_motion(ref) / size,
         "cases": [vars(r) for r in rows], "front": front, "presets": presets,

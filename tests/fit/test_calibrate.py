@@ -94,8 +94,11 @@ def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
     torch.set_num_threads(1)
     try:
         # 2 cm leaves: 500 Gaussians of 3 mm leaves on a 24-cell grid make the loss rough
-        # at this scale (central differences from h = 0.05 to 0.005 scatter by 60%)
-        _, pb, _ = tiny_plant_problem(tmp_path, 500, seed=3, size=24, thin=False)
+        # at this scale (central differences from h = 0.05 to 0.005 scatter by 60%). Where
+        # the loss is nearly flat in the level, its roughness swamps the slope (a plant
+        # with |slope| 4e-5 scatters from 0.01 to 1.1 of the gradient over those h), so the
+        # problem is one where E clearly moves the frames (slope 1.8e-4, steady to 5%)
+        _, pb, _ = tiny_plant_problem(tmp_path, 500, seed=2, size=24, thin=False)
         pb.s.stage1_level = True
         with torch.no_grad():  # a push along x, so that E changes the frames
             pb.velocities[0].net.last_layer.bias.copy_(torch.tensor([0.4, 0.0, 0.0]))
@@ -106,11 +109,11 @@ def test_stage1_level_gradient_matches_finite_differences(tmp_path) -> None:
         pb.substeps = lambda E, v0: sub
         velocity_iteration(pb)
         grad = float(pb.log_e_level.grad)
-        h = 0.05
+        h = 0.02
         fd = (_stage1_loss(pb, 0.2 + h) - _stage1_loss(pb, 0.2 - h)) / (2 * h)
     finally:
         torch.set_num_threads(threads)
-    assert abs(fd) > 1e-5  # E is visible in the first frames
+    assert abs(fd) > 1e-4  # E is visible in the first frames
     assert grad == pytest.approx(fd, rel=0.05)
 
 

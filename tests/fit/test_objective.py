@@ -1,7 +1,9 @@
 """The fit's objective (pd_tool.fit.problem.sequence_loss) on the synthetic plant: with the video's true
 initial velocity, the loss is lowest at the true E, so a fit that ends elsewhere is an
-optimisation shortfall, not a biased objective; and from the fit's uniform start the
-stage-2 gradient points the stiff stem stiffer and the soft leaves softer."""
+optimisation shortfall, not a biased objective; from the fit's uniform start the stage-2
+gradient points the stiff stem stiffer, and once the stem is right, the soft leaves softer.
+From the uniform start itself the leaves' pull is about 1/200 of the stem's and its sign
+moves with how the particles are weighed: the stem sets the frames until it is fitted."""
 from __future__ import annotations
 
 import pytest
@@ -43,9 +45,26 @@ def test_gradient_from_the_uniform_start_points_towards_the_truth(plant_problem)
     pb, v0, region, truth = plant_problem
     start = pb.s.init_E
     assert REGION_TRUTH_E["stem"] > start > REGION_TRUTH_E["leaf"]
-    log_scale = torch.zeros(len(REGIONS), requires_grad=True)
-    E = torch.full_like(truth, start) * torch.exp(log_scale[region])
-    sequence_loss(pb, E, [v0], None).backward()
-    g = log_scale.grad
+    leaf = region == REGIONS.index("leaf")
+
+    def grad(E0):
+        log_scale = torch.zeros(len(REGIONS), requires_grad=True)
+        sequence_loss(pb, E0 * torch.exp(log_scale[region]), [v0], None).backward()
+        return log_scale.grad
+
+    g = grad(torch.full_like(truth, start))
     assert g[REGIONS.index("stem")] < 0, g  # a larger stem E lowers the loss
-    assert g[REGIONS.index("leaf")] > 0, g  # a smaller leaf E lowers the loss
+    g = grad(torch.where(leaf, torch.full_like(truth, start), truth))
+    assert g[REGIONS.index("leaf")] > 0, g  # with the stem right, a smaller leaf E lowers the loss
+
+
+def test_loss_is_lowest_at_the_true_leaf_E(plant_problem) -> None:
+    from pd_tool.fit.problem import sequence_loss
+    from pd_tool.io.synthetic import REGIONS
+
+    pb, v0, region, truth = plant_problem
+    leaf = region == REGIONS.index("leaf")
+    with torch.no_grad():
+        loss = {s: float(sequence_loss(pb, torch.where(leaf, truth * s, truth), [v0], None)) for s in (0.3, 1.0, 3.0)}
+    assert loss[1.0] < 0.5 * loss[0.3], loss
+    assert loss[1.0] < 0.5 * loss[3.0], loss
