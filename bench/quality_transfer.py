@@ -143,17 +143,18 @@ def main() -> None:
             up = SCENES[name]
             scene = load_scene(name, args.gaussians, args.data).to(args.device)
             mf = material_file(scene, up, load_preset("quality", "default"))
-            runs = {"as fitted": bake_positions(scene, up, mf, None, True, args.seconds, args.device,
-                                                Path(tmp) / "ref.usd")}
-            for q in args.qualities.split(","):
-                for match in (True, False):
-                    key = q if match else f"{q} no match"
-                    runs[key] = bake_positions(scene, up, mf, q, match, args.seconds, args.device,
-                                               Path(tmp) / f"{q}{match}.usd")
-            x_ref, moving, _ = runs["as fitted"]
+            x_ref, moving, ref_row = bake_positions(scene, up, mf, None, True, args.seconds, args.device,
+                                                    Path(tmp) / "ref.usd")
             size = float(np.ptp(x_ref[0, moving], axis=0).max())
             peak_ref = peak_of(x_ref, moving, size)
-            for key, (x, _, row) in runs.items():
+            settings = [("as fitted", None, True)] + [(q if match else f"{q} no match", q, match)
+                                                      for q in args.qualities.split(",") for match in (True, False)]
+            for key, q, match in settings:  # each row as its bake ends, so a run cut short shows its rows
+                if q is None:
+                    x, row = x_ref, ref_row
+                else:
+                    x, _, row = bake_positions(scene, up, mf, q, match, args.seconds, args.device,
+                                               Path(tmp) / f"{q}{match}.usd")
                 row.scene, row.setting = name, key
                 row.peak = peak_of(x, moving, size)
                 row.peak_ratio = row.peak / peak_ref
@@ -163,8 +164,8 @@ def main() -> None:
                 print(f"{name:6} {key:18} {row.grid:4d} {row.drivers:7d} {row.peak:7.2%} {row.peak_ratio:8.3f} "
                       f"{row.rms:6.1%} {row.factor:6.3g} {row.match_runs:4d} {row.match_seconds:7.1f} "
                       f"{row.seconds:7.1f}", flush=True)
-            if args.json:  # after every scene, so a run cut short keeps what it measured
-                args.json.write_text(json.dumps(result, indent=2))
+                if args.json:  # after every row, so a run cut short keeps what it measured
+                    args.json.write_text(json.dumps(result, indent=2))
 
 
 if __name__ == "__main__":
