@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Every speed benchmark on a CUDA machine; JSON and logs into $OUT (the device tool's
-# output folder). Run from the project root after the gpu-wheels install:
-#   export PYTHONPATH=/tmp/site:$PWD; bash bench/gpu_suite.sh [part]
+# The GPU benchmarks on a CUDA machine, speed (parts a, b) and accuracy (c-f); JSON and logs
+# into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
+# install:
+#   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
 set -u
 OUT=${OUT:-/tmp/gpu-out}
 mkdir -p "$OUT"
@@ -24,4 +25,26 @@ if [ "$part" = b ]; then
   run usd_write 120 bench/usd_write.py --device cuda --points 300000 --frames 30 --fmt instancer,splat,both
   run physics 120 bench/physics.py --quick --device cuda
   run fit_speed 300 bench/fit_speed.py --device cuda --gaussians 100000 --width 1024 --height 576
+fi
+# accuracy against converged references (docs/benchmarks.md, "Convergence against a fine
+# reference" and "Fitted materials at another quality"); each part fits one 10-minute call.
+# DATA: the folder holding udon.ply, donut_fused.ply and tree_100k.splat
+DATA=${DATA:-../shared/data}
+CONV="bench/convergence.py --device cuda --data $DATA"
+if [ "$part" = c ]; then
+  run convergence_udon 120 $CONV --gaussians 100000 --reference 192 --check-grid 256 --sweep 32,48,96,128 --scenes udon
+  run convergence_donut 200 $CONV --gaussians 100000 --reference 128 --check-grid 192 --sweep 32,48,96 --scenes donut
+  run convergence_tree 280 $CONV --gaussians 100000 --reference 192 --check-grid 256 --sweep 32,48,96,128 --scenes tree
+fi
+if [ "$part" = d ]; then
+  run convergence_strip_1cm 560 $CONV --gaussians 300000 --reference 128 --check-grid 256 --scenes strip
+fi
+if [ "$part" = e ]; then
+  run convergence_plant 300 $CONV --gaussians 300000 --reference 192 --check-grid 256 --sweep 32,48,64,96 --scenes plant
+  run convergence_plant100k 250 $CONV --gaussians 100000 --reference 192 --check-grid 256 --sweep 32,48,96,128 --scenes plant
+fi
+# one process at a time (three at once did not finish a scene in 8 minutes)
+if [ "$part" = f ]; then
+  run quality_transfer_plant 280 bench/quality_transfer.py --device cuda --gaussians 100000 --scenes plant
+  run quality_transfer_real 300 bench/quality_transfer.py --device cuda --gaussians 100000 --scenes tree,donut,udon --data $DATA
 fi
