@@ -55,3 +55,24 @@ def test_a_tiny_strip_through_the_benchmark_compares_with_itself() -> None:
     assert ref.peak_ratio == pytest.approx(1.0) and ref.rms == 0.0
     assert ref.peak > 0 and other.peak > 0 and other.rms > 0
     assert a[0].shape == (int(round(0.25 * conv.FPS)) + 1, 800, 3)
+
+
+def test_even_strip_weights_share_the_strip_volume_evenly(monkeypatch) -> None:
+    from pd_tool.prepare import preparation
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+
+    monkeypatch.setattr(preparation, "surface_volumes", preparation.surface_volumes)  # restored after
+    monkeypatch.setitem(conv.STRIP, "thickness", 0.012)
+    scene = conv.load_scene("strip", 4000)
+    options = PrepareOptions(grid_res=24, up_axis="+z", static_below=1e-6, fill="off")
+    shell = prepare_scene(scene, options)
+    conv.even_strip_weights()
+    even = prepare_scene(scene, options)
+    strip = np.asarray(scene.labels) == 1
+    vol = even.volumes[: even.count][strip[even.foreground]]
+    s = conv.STRIP
+    assert np.allclose(vol, vol[0]) and vol.sum() == pytest.approx(s["length"] * s["width"] * s["thickness"], rel=1e-9)
+    # the block keeps the shell's weights
+    block = ~strip[even.foreground]
+    np.testing.assert_allclose(even.volumes[: even.count][block], shell.volumes[: shell.count][block])
+    assert not np.allclose(shell.volumes[: shell.count][~block], vol[0])
