@@ -22,17 +22,16 @@ def unique_cells(cells: np.ndarray, *, index: bool = False):
 
 
 _ALL27 = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.int64)
+# the 13 neighbour offsets of a cell's 26 with a positive first non-zero component: each
+# touching pair of cells is found once
+_HALF = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                  if (a, b, c) > (0, 0, 0)], np.int64)
 
 
-def neighbourhood_sums(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """For each distinct integer cell [M, 3] (unique rows), the sum of `values` [M, ...]
-    over the occupied cells of its 3x3x3 block, itself included: [M, ...]."""
-    cells = np.asarray(cells, np.int64).reshape(-1, 3)
-    values = np.asarray(values)
-    m = len(cells)
-    out = np.zeros_like(values, dtype=np.float64)
-    if m == 0:
-        return out
+def _neighbours(cells: np.ndarray, offsets: np.ndarray):
+    """For each offset, the occupied neighbours of distinct integer cells [M, 3] (M > 0) at
+    that offset: (indices [K] of the cells that have one, indices [K] of those neighbours),
+    looked up by a sorted int64 key."""
     lo = cells.min(axis=0) - 1  # a margin, so that a neighbour's key never wraps
     span = cells.max(axis=0) - lo + 2
     c = cells - lo
@@ -40,13 +39,26 @@ def neighbourhood_sums(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
     def key(a):
         return (a[:, 0] * span[1] + a[:, 1]) * span[2] + a[:, 2]
 
-    order = np.argsort(key(c))
-    ks = key(c)[order]
-    for off in _ALL27:
+    k = key(c)
+    order = np.argsort(k)
+    ks = k[order]
+    for off in offsets:
         nk = key(c + off)
-        at = np.minimum(np.searchsorted(ks, nk), m - 1)
+        at = np.minimum(np.searchsorted(ks, nk), len(cells) - 1)
         hit = ks[at] == nk
-        out[hit] += values[order[at[hit]]]
+        yield np.nonzero(hit)[0], order[at[hit]]
+
+
+def neighbourhood_sums(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """For each distinct integer cell [M, 3] (unique rows), the sum of `values` [M, ...]
+    over the occupied cells of its 3x3x3 block, itself included: [M, ...]."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 3)
+    values = np.asarray(values)
+    out = np.zeros_like(values, dtype=np.float64)
+    if len(cells) == 0:
+        return out
+    for i, j in _neighbours(cells, _ALL27):
+        out[i] += values[j]
     return out
 
 
@@ -66,12 +78,6 @@ def neighbourhood_sums_ref(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
     return out
 
 
-# the 13 neighbour offsets of a cell's 26 with a positive first non-zero component: each
-# touching pair of cells is found once
-_HALF = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
-                  if (a, b, c) > (0, 0, 0)], np.int64)
-
-
 def cell_components(cells: np.ndarray) -> np.ndarray:
     """Connected groups of distinct integer cells [M, 3] (unique rows), cells touching at a
     face, edge or corner counting as connected: one label [M] per cell, the smallest cell
@@ -84,23 +90,7 @@ def cell_components(cells: np.ndarray) -> np.ndarray:
     m = len(cells)
     if m == 0:
         return np.zeros(0, np.int64)
-    lo = cells.min(axis=0) - 1  # a margin, so that a neighbour's key never wraps
-    span = cells.max(axis=0) - lo + 2
-    c = cells - lo
-
-    def key(a):
-        return (a[:, 0] * span[1] + a[:, 1]) * span[2] + a[:, 2]
-
-    k = key(c)
-    order = np.argsort(k)
-    ks = k[order]
-    us, vs = [], []
-    for off in _HALF:
-        nk = key(c + off)
-        at = np.minimum(np.searchsorted(ks, nk), m - 1)
-        hit = ks[at] == nk
-        us.append(np.nonzero(hit)[0])
-        vs.append(order[at[hit]])
+    us, vs = zip(*_neighbours(cells, _HALF))
     u, v = np.concatenate(us), np.concatenate(vs)
     parent = np.arange(m)
     while True:

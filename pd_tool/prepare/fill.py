@@ -177,8 +177,8 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
     filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so
     that the interior is found once and sampled at any simulation grid's density. Onto a
     coarser lattice, the points in each of its cells merge into one at their centroid that
-    carries their volume and the first one's source; onto a finer one, each point splits into k^3 (k = the ratio,
-    rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
+    carries their volume and the first one's source; onto a finer one, each point splits
+    into k^3 (k = the ratio, rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
     volumes [Q] m^3, which sum to `volume`."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     source = np.asarray(source, np.int64)

@@ -25,8 +25,8 @@ Against bench/convergence.py (docs/benchmarks.md): at 16 cells every scene is re
 and every one moves 36-84% too little; from 32 cells up udon, the donut and the tree are
 not reported, and they move within 10% of the reference from 32 cells (udon and the tree)
 or 48 (the donut); the plant with 3 mm leaves is reported at 16-96 cells (3-47% short) and
-not at 128, where it moves within 2% of a 192-cell reference. A bake raises its grid to ThinParts.grid_needed
-(pd_tool.prepare.preparation.refine_for_thin).
+not at 128, where it moves within 2% of a 192-cell reference. A bake raises its grid to
+ThinParts.grid_needed (pd_tool.prepare.preparation.refine_for_thin).
 """
 from __future__ import annotations
 
@@ -44,9 +44,11 @@ MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenv
 # covariance of a few points reads low: windows of about 10 in a solid stem read a third of a cell)
 # A part is resolved when it is at least this many cells thick. The convergence benchmark's
 # plant with 3 mm leaves moves within 2% of a converged simulation at 128 cells (0.29 of a
-# cell) and 3-7% too little at 96 and 64 (0.2, 0.13); in a 2D MLS-MPM a strip of two particle layers was about
-# 20% too stiff at a quarter cell (../shared/docs/thin-parts.md). One 3D thin scene so far:
-# recheck this figure as more are measured.
+# cell) and 3-7% too little at 96 and 64 (0.2, 0.13); in a 2D MLS-MPM a strip of two
+# particle layers was about 20% too stiff at a quarter cell (../shared/docs/thin-parts.md).
+# The figure comes from that plant; the benchmark's 1.2 cm strip, 0.46 of a cell thick at
+# default and not raised, reads 0.76 of its reference's peak, so recheck it as more thin
+# scenes are measured.
 RESOLVED_CELLS = 0.25
 THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
 MAX_GRID = 256  # the largest grid the CLI accepts

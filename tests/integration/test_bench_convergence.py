@@ -72,7 +72,7 @@ def test_even_strip_weights_share_the_strip_volume_evenly(monkeypatch) -> None:
     vol = even.volumes[: even.count][strip[even.foreground]]
     s = conv.STRIP
     assert np.allclose(vol, vol[0]) and vol.sum() == pytest.approx(s["length"] * s["width"] * s["thickness"], rel=1e-9)
-    # the block keeps the shell's weights
+    # the base keeps the shell rule's weights
     block = ~strip[even.foreground]
     np.testing.assert_allclose(even.volumes[: even.count][block], shell.volumes[: shell.count][block])
     assert not np.allclose(shell.volumes[: shell.count][~block], vol[0])
