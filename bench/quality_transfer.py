@@ -59,6 +59,7 @@ class Row:
     peak_ratio: float = float("nan")
     rms: float = float("nan")  # of the reference's peak
     factor: float = float("nan")  # the match's E factor
+    match_ratio: float = float("nan")  # the motion over the fit's that the match ended on
     match_runs: int = 0
     match_seconds: float = float("nan")
     seconds: float = float("nan")  # the whole bake, wall
@@ -111,7 +112,7 @@ def bake_positions(scene, up: str, mf, quality: str | None, match: bool, seconds
     moving[b.prep.foreground[~b.prep.static[: b.prep.count]]] = True
     m = b.match
     row = Row(scene="", setting="", grid=max(b.prep.grid_dims), drivers=b.n_drivers, seconds=time.perf_counter() - t0,
-              factor=m.factor if m else float("nan"), match_runs=m.runs if m else 0,
+              factor=m.factor if m else float("nan"), match_ratio=m.ratio if m else float("nan"), match_runs=m.runs if m else 0,
               match_seconds=m.seconds if m else float("nan"))
     return np.stack(frames), moving, row
 

@@ -40,6 +40,11 @@ from pd_tool.sim import MPMSolver, SimConfig
 from pd_tool.sim.guard import check_force
 from pd_tool.video.folder import write_video_folder
 
+# The fitted-material match measures at most this many of the moving Gaussians, each moved by
+# its drivers as the bake moves it: a seeded sample, the same Gaussians on both
+# discretisations, so that the interpolation stays a small part of each run on a large scene.
+MATCH_GAUSSIANS = 20_000
+
 # usd_export is imported where it is used: pxr takes seconds to load, and pd_tool.app imports
 # this module for fits too, which never write USD.
 
@@ -442,21 +447,44 @@ class Baker:
         solver.add_force(mask, force.accel_sim(prep), force.start, force.start + force.duration)
         return solver, mask
 
-    def _discretisation_of(self, prep: PreparedScene, drivers, E: np.ndarray, cfl_safety: float) -> Discretisation:
-        """`prep`'s drivers as pd_tool.bake.transfer sees them."""
+    def _discretisation_of(self, prep: PreparedScene, drivers, E: np.ndarray, cfl_safety: float,
+                           sample: np.ndarray) -> Discretisation:
+        """`prep`'s drivers as pd_tool.bake.transfer sees them: its runs measure the scene's
+        Gaussians `sample` [P] (scene indices, moving in `prep`), each moved by its drivers
+        as the bake moves it (rigidly, pd_tool.drivers.DriverInterpolator)."""
+        from pd_tool.drivers import DriverInterpolator
+
+        local = np.full(self.scene.count, -1, np.int64)
+        local[prep.foreground] = np.arange(prep.count)
+        idx = torch.as_tensor(local[sample], device=self.dev)
+        rest = torch.as_tensor(prep.positions_sim[local[sample]], dtype=torch.float32, device=self.dev)
+        identity = torch.zeros((len(sample), 4), dtype=torch.float32, device=self.dev)
+        identity[:, 0] = 1.0
+        interp = DriverInterpolator(rest, identity, drivers.positions.to(self.dev, torch.float32),
+                                    drivers.neighbors.to(self.dev)[idx])
+
         def run(E_run: np.ndarray, frames: int) -> np.ndarray:
             solver, _ = self._new_solver(prep, drivers, E_run, cfl_safety)
-            sq = np.empty((frames, solver.n), np.float32)
+            sq = np.empty((frames, len(sample)), np.float32)
             for f in range(frames):
                 solver.step_frame(self.frame_dt)
-                sq[f] = (solver.displacements() ** 2).sum(-1)
+                now = interp(torch.as_tensor(solver.positions(), device=self.dev))[0]
+                sq[f] = ((now - rest) ** 2).sum(-1).cpu().numpy()
             return sq
 
-        # the Gaussians each driver carries: each Gaussian shared among its K drivers
-        nb = drivers.neighbors[:prep.count].cpu().numpy()
-        weight = np.bincount(nb.ravel(), minlength=len(E)) / max(nb.shape[1], 1)
-        return Discretisation(static=drivers.static.cpu().numpy().astype(bool), weight=weight, E=E, run=run,
+        return Discretisation(static=np.zeros(len(sample), bool), weight=np.ones(len(sample)), E=E, run=run,
                               scale=float(prep.transform.scale))
+
+    def _match_sample(self, fit_prep: PreparedScene) -> np.ndarray:
+        """Scene indices [P] of the Gaussians the match measures: at most MATCH_GAUSSIANS,
+        seeded, of those that move in both the fit's preparation and the bake's."""
+        def moving(p: PreparedScene) -> np.ndarray:
+            return np.asarray(p.foreground)[~np.asarray(p.static[:p.count], bool)]
+
+        both = np.intersect1d(moving(fit_prep), moving(self.prep))
+        if len(both) > MATCH_GAUSSIANS:
+            both = np.sort(np.random.default_rng(0).choice(both, MATCH_GAUSSIANS, replace=False))
+        return both
 
     def _match_fit(self, material_file: MaterialFile, E: np.ndarray) -> np.ndarray:
         """E [Q] for this bake's drivers that moves as the fit's discretisation moved the
@@ -466,8 +494,9 @@ class Baker:
         fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]))
         fit_E = material_file.E_at(fit_prep.transform.to_scene(fit_drivers.positions.double().cpu().numpy()))
         frames = self._match_window()
-        self.match = match_fit_motion(self._discretisation_of(fit_prep, fit_drivers, fit_E, self._fit_cfl()),
-                                      self._discretisation_of(self.prep, self.drivers, E, self.cfl_safety),
+        sample = self._match_sample(fit_prep)
+        self.match = match_fit_motion(self._discretisation_of(fit_prep, fit_drivers, fit_E, self._fit_cfl(), sample),
+                                      self._discretisation_of(self.prep, self.drivers, E, self.cfl_safety, sample),
                                       frames, window_s=frames / self.settings.fps, progress=self.match_progress)
         self.sim_note = self.match.line(int(fit["grid_res"]), max(self.prep.grid_dims))
         return self.match.E
