@@ -24,6 +24,10 @@ from pd_tool.render.views import render_image, scene_camera
 from pd_tool.sim import MPMSolver, SimConfig
 from pd_tool.video.folder import write_video_folder
 
+# simulate_positions' push without a radius: on the free drivers within this fraction of the
+# object's longest side of its point
+PUSH_RADIUS_FRACTION = 0.3
+
 
 @dataclass
 class ReferenceTruth:
@@ -197,7 +201,8 @@ def simulate_positions(scene: GaussianScene, prep: PreparedScene, drivers, drive
     d_static = drivers.static.cpu().numpy().astype(bool)
     solver = MPMSolver(d_rest, drivers.volume.cpu().numpy(), drivers.mass.cpu().numpy(), driver_E, d_static, cfg,
                        device=device)
-    spec = ForceSpec(accel=accel, at=at, radius=radius, radius_fraction=0.3, start=0.0, duration=duration)
+    spec = ForceSpec(accel=accel, at=at, radius=radius, radius_fraction=PUSH_RADIUS_FRACTION, start=0.0,
+                     duration=duration)
     solver.add_force(force_mask(prep, d_rest, d_static, spec), prep.transform.vector_to_sim(np.asarray(accel)), 0.0,
                      duration)
     anim = GaussianAnimator(scene, prep, drivers, device=scene.device)

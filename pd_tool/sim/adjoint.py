@@ -116,17 +116,17 @@ def g2p_adjoint_particle(
     lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """Adjoint of G2P for particle p from state s (its u, F) to s_next (its v, C, read
-    back): adj holds the cotangents of the substep's output state and its u, F are
-    overwritten with the partial cotangents of the input u and F (the P2G adjoint adds the
-    rest). The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the
+    """Adjoint of G2P for particle p from state s (its u, G) to s_next (its v, C, read
+    back): adj holds the cotangents of the substep's output state and its u, G are
+    overwritten with the partial cotangents of the input u and G (the P2G adjoint adds the
+    rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the
     cell lists (binned != 0, summed by scatter_runs) or straight to adj_grid_v."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
     gu = adj.u[p]
-    gFn = adj.F[p]
-    adj.F[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
+    gFn = adj.G[p]
+    adj.G[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
     if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
@@ -135,7 +135,7 @@ def g2p_adjoint_particle(
     else:
         inv_dx = 1.0 / dx
         gvel = adj.v[p] + dt * gu
-        Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(s.F[p]))
+        Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(wp.identity(n=3, dtype=float) + s.G[p]))
         x = ptcl.base[p] + s.u[p]
         b = K.stencil_base(x, inv_dx, nodes)
         fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
@@ -175,14 +175,14 @@ def p2g_adjoint_particle(
     adj_E: wp.array(dtype=float),
 ):
     """Adjoint of P2G for particle p (state s), a gather of its 27 nodes' cotangents: sets
-    adj.v and adj.C, adds to adj.u, adj.F (partials from the G2P adjoint) and adj_E (summed
+    adj.v and adj.C, adds to adj.u, adj.G (partials from the G2P adjoint) and adj_E (summed
     over substeps)."""
     dx = step.dx
     dt = step.dt
     nu = step.nu
     inv_dx = 1.0 / dx
     x = ptcl.base[p] + s.u[p]
-    Fp = s.F[p]
+    Fp = wp.identity(n=3, dtype=float) + s.G[p]
     Ep = ptcl.E[p]
     m = ptcl.mass[p]
     kv = 4.0 * inv_dx * inv_dx * dt * ptcl.volume[p]
@@ -215,7 +215,7 @@ def p2g_adjoint_particle(
     adj.v[p] = m * g_mv
     adj.C[p] = m * gA
     gF, gE = stress_vjp(Fp, R, Ep, nu, -kv * gA)
-    adj.F[p] = adj.F[p] + gF
+    adj.G[p] = adj.G[p] + gF
     adj_E[p] = adj_E[p] + gE
     adj.u[p] = adj.u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
 

@@ -240,14 +240,14 @@ class DiffSim:
             bufs = self._bufs = {
                 "base": z(wp.vec3), "E": z(float),
                 "gu": z(wp.vec3), "gv": z(wp.vec3), "gC": z(wp.mat33), "gF": z(wp.mat33),
-                "fu": z(wp.vec3), "fv": z(wp.vec3), "fC": z(wp.mat33), "fF": z(wp.mat33),
+                "fu": z(wp.vec3), "fv": z(wp.vec3), "fC": z(wp.mat33), "fG": z(wp.mat33),
                 "adj_u": z(wp.vec3), "adj_E": z(float),
                 "volume": z(float), "mass": z(float), "static": z(wp.int32), "fixed": z(int, self.geo.nodes),
                 "mask": z(float, (n_force_rows, n)), "accel": z(wp.vec3, n_force_rows),
                 "window": z(wp.vec2, n_force_rows), "t_frame": z(float, 1), "stats": z(float, K.N_STATS)}
             # the frame state and the cotangents as ParticleStates, whose kernel structs are
             # then built once per buffer set rather than per frame
-            bufs["state"] = ParticleState(bufs["fu"], bufs["fv"], bufs["fC"], bufs["fF"])
+            bufs["state"] = ParticleState(bufs["fu"], bufs["fv"], bufs["fC"], bufs["fG"])
             bufs["adj"] = ParticleState(bufs["adj_u"], bufs["gv"], bufs["gC"], bufs["gF"])
             self._graphs = {}
         return bufs
@@ -284,16 +284,17 @@ def _gather_state(
     F: wp.array(dtype=wp.mat33), E: wp.array(dtype=float), volume: wp.array(dtype=float),
     mass: wp.array(dtype=float), is_static: wp.array(dtype=wp.int32),
     xs: wp.array(dtype=wp.vec3), vs: wp.array(dtype=wp.vec3), Cs: wp.array(dtype=wp.mat33),
-    Fs: wp.array(dtype=wp.mat33), Es: wp.array(dtype=float), volumes: wp.array(dtype=float),
+    Gs: wp.array(dtype=wp.mat33), Es: wp.array(dtype=float), volumes: wp.array(dtype=float),
     masses: wp.array(dtype=float), is_static_s: wp.array(dtype=wp.int32), us: wp.array(dtype=wp.vec3),
 ):
-    """A frame's start state and materials in sorted order (one launch instead of eight), u = 0."""
+    """A frame's start state and materials in sorted order (one launch instead of eight), u = 0,
+    G = F - I."""
     t = wp.tid()
     p = order[t]
     xs[t] = x[p]
     vs[t] = v[p]
     Cs[t] = C[p]
-    Fs[t] = F[p]
+    Gs[t] = F[p] - wp.identity(n=3, dtype=float)
     Es[t] = E[p]
     volumes[t] = volume[p]
     masses[t] = mass[p]
@@ -341,20 +342,27 @@ def _scatter_gradients(
 
 
 @wp.kernel(enable_backward=False)
+def _less_identity(F: wp.array(dtype=wp.mat33), G: wp.array(dtype=wp.mat33)):
+    """G = F - I, the state's form of the deformation gradient."""
+    p = wp.tid()
+    G[p] = F[p] - wp.identity(n=3, dtype=float)
+
+
+@wp.kernel(enable_backward=False)
 def _scatter_state(
     order: wp.array(dtype=int),
     base: wp.array(dtype=wp.vec3), u: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33), F: wp.array(dtype=wp.mat33),
+    C: wp.array(dtype=wp.mat33), G: wp.array(dtype=wp.mat33),
     x_out: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3), C_out: wp.array(dtype=wp.mat33),
     F_out: wp.array(dtype=wp.mat33),
 ):
-    """The end state back in input order, x = base + u."""
+    """The end state back in input order, x = base + u, F = I + G."""
     t = wp.tid()
     p = order[t]
     x_out[p] = base[t] + u[t]
     v_out[p] = v[t]
     C_out[p] = C[t]
-    F_out[p] = F[t]
+    F_out[p] = wp.identity(n=3, dtype=float) + G[t]
 
 
 @wp.kernel(enable_backward=False)
@@ -387,7 +395,7 @@ class _SortedFrame:
         b, sim = self.buffers, self.sim
         wp.launch(_gather_state, dim=sim.n, device=sim.device, inputs=[
             self.order, x, v, C, F, E, sim.volume, sim.mass, sim.static,
-            b["base"], st.v, st.C, st.F, b["E"], b["volume"], b["mass"], b["static"], st.u])
+            b["base"], st.v, st.C, st.G, b["E"], b["volume"], b["mass"], b["static"], st.u])
         return b["base"], b["E"]
 
     def context(self, base: wp.array, E: wp.array, t0: float) -> SubstepContext:
@@ -457,7 +465,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     else:
         sim.run_untaped(sctx, substeps, dt, st)
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
-        fr.order, base, st.u, st.v, st.C, st.F, x_out, v_out, C_out, F_out])
+        fr.order, base, st.u, st.v, st.C, st.G, x_out, v_out, C_out, F_out])
     return sctx.stats
 
 
@@ -477,10 +485,10 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     return backward_frame_adjoint(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF)
 
 
-def _checkpoints(sim: DiffSim, sctx: SubstepContext, v: wp.array, C: wp.array, F: wp.array,
+def _checkpoints(sim: DiffSim, sctx: SubstepContext, v: wp.array, C: wp.array, G: wp.array,
                  t0: float, dt: float, substeps: int, seg: int) -> tuple[list[int], dict]:
-    # Recompute the frame without a tape, keeping the state at every segment start.
-    st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=sim.device), wp.clone(v), wp.clone(C), wp.clone(F))
+    # Recompute the frame without a tape, keeping the state (G = F - I) at every segment start.
+    st = ParticleState(wp.zeros(sim.n, dtype=wp.vec3, device=sim.device), wp.clone(v), wp.clone(C), wp.clone(G))
     starts = list(range(0, substeps, seg))
     ckpts = {}
     for k0 in starts:
@@ -514,10 +522,10 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     lists = sim._lists(binned)
     starts, ckpts = [0], {}
     if not single:
-        starts, ckpts = _checkpoints(sim, sctx, st0.v, st0.C, st0.F, t0, dt, substeps, seg)
+        starts, ckpts = _checkpoints(sim, sctx, st0.v, st0.C, st0.G, t0, dt, substeps, seg)
     gu_sorted = buf["gu"]
     adj_st = buf["adj"]
-    adj = (adj_st.u, adj_st.v, adj_st.C, adj_st.F, buf["adj_E"])
+    adj = (adj_st.u, adj_st.v, adj_st.C, adj_st.G, buf["adj_E"])
     wp.launch(_gather_cotangents, dim=n, device=dev, inputs=[fr.order, gu, gv, gC, gF, gu_sorted, *adj])
     # A frame's launches depend only on the segment's start, length and dt (every array is a
     # kept buffer), so on CUDA each segment replays one captured graph: the host issues one
@@ -528,7 +536,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         if not single:
             ck = ckpts.pop(k0)
             first = states[0]
-            for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
+            for dst, src in zip((first.u, first.v, first.C, first.G), (ck.u, ck.v, ck.C, ck.G)):
                 wp.copy(dst, src)
             del ck
 
@@ -565,7 +573,9 @@ def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F:
     order, fixed = sim._order_fixed(base)
     sctx = sim._context(base, E_w, order, fixed, forces, t0)
     # 1. recompute without a tape, keeping a checkpoint at every segment start
-    starts, ckpts = _checkpoints(sim, sctx, v, C, F, t0, dt, substeps, seg)
+    G = wp.empty_like(F)
+    wp.launch(_less_identity, dim=sim.n, device=sim.device, inputs=[F, G])
+    starts, ckpts = _checkpoints(sim, sctx, v, C, G, t0, dt, substeps, seg)
     # 2. replay the segments in reverse under a tape, one array set per substep (a pool
     #    reused by every segment and frame: allocating it per segment costs more than the
     #    adjoint kernels on the CPU)
@@ -579,15 +589,15 @@ def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F:
             a.grad.zero_()
         first = states[0]
         ck = ckpts.pop(k0)
-        for dst, src in zip((first.u, first.v, first.C, first.F), (ck.u, ck.v, ck.C, ck.F)):
+        for dst, src in zip((first.u, first.v, first.C, first.G), (ck.u, ck.v, ck.C, ck.G)):
             wp.copy(dst, src)
         tape = wp.Tape()
         with tape:
             for i in range(k1 - k0):
                 launch_substep(sctx, dt, (k0 + i) * dt, states[i], states[i + 1], grids[i])
         last = states[-1]
-        tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.F: adj[3]})
-        adj = [wp.clone(first.u.grad), wp.clone(first.v.grad), wp.clone(first.C.grad), wp.clone(first.F.grad)]
+        tape.backward(grads={last.u: adj[0], last.v: adj[1], last.C: adj[2], last.G: adj[3]})
+        adj = [wp.clone(first.u.grad), wp.clone(first.v.grad), wp.clone(first.C.grad), wp.clone(first.G.grad)]
         # no tape.reset(): it would zero base.grad and E.grad, which accumulate over segments
         del tape
     return base.grad, adj[1], adj[2], adj[3], E_w.grad
@@ -595,7 +605,7 @@ def backward_frame_taped(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F:
 
 def _arrays(states: list[ParticleState], grids: list[GridArrays]):
     for st in states:
-        yield from (st.u, st.v, st.C, st.F)
+        yield from (st.u, st.v, st.C, st.G)
     for g in grids:
         yield from (g.mmv, g.v)
 

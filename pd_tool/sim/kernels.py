@@ -10,6 +10,11 @@ Conventions shared by every kernel:
   the fast path, frame-start position in the differentiable path) and `u` the displacement
   from it. Keeping the small displacement as state avoids the float32 rounding of
   x += dt * v when a substep moves a point by less than one ulp of x (design.md).
+- The deformation gradient is kept as G = F - I, for the same reason: a stiff part takes
+  thousands of substeps a frame, and a substep's strain increment (1e-8 to 1e-6) is below
+  float32's spacing at 1 (1.2e-7). F stored near I rounds each increment away, or to the
+  same wrong value every substep, so a clamped strip's bending strain drifts or vanishes;
+  G keeps it to float32's relative precision. Kernels use F = I + G where they need F.
 - `order[t]` is the particle handled by thread t (particles sorted by cell, so that
   neighbouring threads touch neighbouring grid nodes). Any permutation gives the same result.
 - Grid nodes (i, j, k) sit at (i, j, k) * dx; arrays have shape (nx + 1, ny + 1, nz + 1).
@@ -54,12 +59,13 @@ class Particles:
 @wp.struct
 class ParticleVars:
     """One particle state (or its cotangents): u [N] vec3 displacement from base (m),
-    v [N] vec3 (m/s), C [N] mat33 affine velocity (1/s), F [N] mat33 deformation gradient."""
+    v [N] vec3 (m/s), C [N] mat33 affine velocity (1/s), G [N] mat33 the deformation
+    gradient less the identity, F - I (see the module docstring)."""
 
     u: wp.array(dtype=wp.vec3)
     v: wp.array(dtype=wp.vec3)
     C: wp.array(dtype=wp.mat33)
-    F: wp.array(dtype=wp.mat33)
+    G: wp.array(dtype=wp.mat33)
 
 
 @wp.struct
@@ -311,8 +317,8 @@ def p2g(
     """
     p = ptcl.order[wp.tid()]
     a_ext = external_accel(p, t_offset, forces)
-    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
-                ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], wp.identity(n=3, dtype=float) + state.G[p],
+                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
 @wp.func
@@ -386,14 +392,14 @@ def g2p_gather(
     s_out: ParticleVars,
     stats: wp.array(dtype=float),
 ):
-    """Grid to particle p: v, C from the grid; F <- (I + dt C) F; u <- u + dt v; guard.
-    Reads u, F of s_in and writes u, v, C, F of s_out."""
+    """Grid to particle p: v, C from the grid; F <- (I + dt C) F, as G <- G + dt C (I + G);
+    u <- u + dt v; guard. Reads u, G of s_in and writes u, v, C, G of s_out."""
     dx = step.dx
     dt = step.dt
     inv_dx = 1.0 / dx
     up = s_in.u[p]
     x = ptcl.base[p] + up
-    Fp = s_in.F[p]
+    Gp = s_in.G[p]
     b = stencil_base(x, inv_dx, step.nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
     vel = wp.vec3(0.0)
@@ -414,15 +420,15 @@ def g2p_gather(
         # Static particles stay where they are, undeformed (they still lend mass to P2G).
         vel = wp.vec3(0.0)
         Cn = wp.mat33(0.0)
-    Fn = (wp.identity(n=3, dtype=float) + dt * Cn) * Fp
+    Gn = Gp + (dt * Cn) * (wp.identity(n=3, dtype=float) + Gp)
     un = up + dt * vel
     s_out.u[p] = un
     s_out.v[p] = vel
     s_out.C[p] = Cn
-    s_out.F[p] = Fn
+    s_out.G[p] = Gn
 
     xn = ptcl.base[p] + un
-    J = wp.determinant(Fn)
+    J = wp.determinant(wp.identity(n=3, dtype=float) + Gn)
     if not (wp.isfinite(xn) and wp.isfinite(vel) and wp.isfinite(J)):
         wp.atomic_add(stats, STAT_NONFINITE, 1.0)
     else:
@@ -469,8 +475,8 @@ def g2p_p2g(
     p = ptcl.order[wp.tid()]
     g2p_gather(p, ptcl, state, step, grid_v, state, stats)
     a_ext = external_accel(p, t_offset_next, forces)
-    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], state.F[p], ptcl.E[p], ptcl.volume[p],
-                ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], wp.identity(n=3, dtype=float) + state.G[p],
+                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
 @wp.kernel(enable_backward=False)

@@ -192,12 +192,13 @@ class GridArrays:
 
 @dataclass
 class ParticleState:
-    """u: displacement from `base` [N] vec3 (m); v [N] vec3 (m/s); C, F [N] mat33."""
+    """u: displacement from `base` [N] vec3 (m); v [N] vec3 (m/s); C [N] mat33 (1/s); G [N]
+    mat33 the deformation gradient less the identity, F - I (kernels.py says why)."""
 
     u: wp.array
     v: wp.array
     C: wp.array
-    F: wp.array
+    G: wp.array
     _struct: K.ParticleVars | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
@@ -207,7 +208,7 @@ class ParticleState:
 
     def clone(self, requires_grad: bool = False) -> "ParticleState":
         out = []
-        for a in (self.u, self.v, self.C, self.F):
+        for a in (self.u, self.v, self.C, self.G):
             c = wp.empty_like(a, requires_grad=requires_grad)
             wp.copy(c, a)
             out.append(c)
@@ -218,14 +219,14 @@ class ParticleState:
         """The four arrays as the kernels' ParticleVars, built on first use: states live in
         buffers reused for every substep, so launches never rebuild it."""
         if self._struct is None:
-            self._struct = particle_vars(self.u, self.v, self.C, self.F)
+            self._struct = particle_vars(self.u, self.v, self.C, self.G)
         return self._struct
 
 
-def particle_vars(u: wp.array, v: wp.array, C: wp.array, F: wp.array) -> K.ParticleVars:
-    """K.ParticleVars over u, v [N] vec3 and C, F [N] mat33 (a state or its cotangents)."""
+def particle_vars(u: wp.array, v: wp.array, C: wp.array, G: wp.array) -> K.ParticleVars:
+    """K.ParticleVars over u, v [N] vec3 and C, G [N] mat33 (a state or its cotangents)."""
     s = K.ParticleVars()
-    s.u, s.v, s.C, s.F = u, v, C, F
+    s.u, s.v, s.C, s.G = u, v, C, G
     return s
 
 
@@ -455,8 +456,7 @@ class MPMSolver:
             E=wp.array(E[pm], dtype=float, device=d), volume=wp.array(volume[pm], dtype=float, device=d),
             mass=wp.array(mass[pm], dtype=float, device=d),
             static=wp.array(static[pm].astype(np.int32), dtype=int, device=d))
-        self.state = ParticleState.zeros(self.n, d)
-        self.state.F.fill_(wp.mat33(np.eye(3, dtype=np.float32)))
+        self.state = ParticleState.zeros(self.n, d)  # at rest: u = 0, v = 0, C = 0, G = 0 (F = I)
         self.grid = GridArrays.alloc(self.geo, d)
         self._order = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=d)
         self._x = wp.zeros(self.n, dtype=wp.vec3, device=d)
@@ -578,12 +578,13 @@ class MPMSolver:
 
     def deformation_gradients(self) -> np.ndarray:
         """[N, 3, 3] float32 deformation gradients F (rest = identity)."""
-        return self.state.F.numpy()[self._inv]
+        return self.state.G.numpy()[self._inv] + np.eye(3, dtype=np.float32)
 
     def rotations(self) -> np.ndarray:
         """[N, 3, 3] float32 rotation R of each particle's F = R S (polar decomposition)."""
         R = wp.empty(self.n, dtype=wp.mat33, device=self.device)
-        wp.launch(K.polar_kernel, dim=self.n, device=self.device, inputs=[self.state.F, R])
+        F = wp.array(self.state.G.numpy() + np.eye(3, dtype=np.float32), dtype=wp.mat33, device=self.device)
+        wp.launch(K.polar_kernel, dim=self.n, device=self.device, inputs=[F, R])
         return R.numpy()[self._inv]
 
     def kinetic_energy(self) -> float:

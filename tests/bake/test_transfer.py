@@ -69,18 +69,24 @@ def test_next_log_factor_brackets_and_limits() -> None:
 
 
 def test_amplitude_against_a_direct_computation() -> None:
-    # the 99th percentile over Gaussians of the largest displacement: each driver stands
-    # for its weight in Gaussians; expand them and take the percentile directly
+    # the largest over frames of the 99th percentile over Gaussians of the displacement:
+    # each point stands for its weight in Gaussians; expand them and take it directly
     rng = np.random.default_rng(1)
-    disp = rng.normal(size=(7, 40, 3))
-    moving = rng.random(40) > 0.3
-    weight = rng.integers(1, 30, 40).astype(float)
+    disp = rng.normal(size=(7, 400, 3))
+    moving = rng.random(400) > 0.3
+    weight = rng.integers(1, 5, 400).astype(float)
     sq = (disp ** 2).sum(-1)
-    peaks = np.sqrt(sq.max(axis=0))
-    expanded = np.sort(np.repeat(peaks[moving], weight[moving].astype(int)))
-    direct = expanded[int(np.ceil(0.99 * len(expanded))) - 1]
+    direct = 0.0
+    for frame in np.sqrt(sq):
+        expanded = np.sort(np.repeat(frame[moving], weight[moving].astype(int)))
+        direct = max(direct, expanded[int(np.ceil(0.99 * len(expanded))) - 1])
     assert amplitude(sq, moving, weight, 2.0) == pytest.approx(direct / 2.0)
-    assert amplitude(sq, np.zeros(40, bool), weight, 2.0) == 0.0
+    # not the percentile of each point's own largest displacement
+    peaks = np.sort(np.repeat(np.sqrt(sq.max(axis=0))[moving], weight[moving].astype(int)))
+    assert amplitude(sq, moving, weight, 2.0) != pytest.approx(peaks[int(np.ceil(0.99 * len(peaks))) - 1] / 2.0)
+    assert amplitude(sq, np.zeros(400, bool), weight, 2.0) == 0.0
+    # one point: its largest displacement
+    assert amplitude(sq[:, :1], np.ones(1, bool), np.ones(1), 1.0) == pytest.approx(np.sqrt(sq[:, 0].max()))
 
 
 def test_window_frames() -> None:

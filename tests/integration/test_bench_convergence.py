@@ -76,3 +76,19 @@ def test_even_strip_weights_share_the_strip_volume_evenly(monkeypatch) -> None:
     block = ~strip[even.foreground]
     np.testing.assert_allclose(even.volumes[: even.count][block], shell.volumes[: shell.count][block])
     assert not np.allclose(shell.volumes[: shell.count][~block], vol[0])
+
+
+def test_strip_beam_peak_is_a_tap_on_the_first_mode() -> None:
+    """A short tap on the whole strip: the first swing is the first mode's impulse
+    response, tip amplitude a tau gamma1 phi1(L) / omega1 (gamma1 = 0.7830 and phi1(L) = 2
+    for modes with int phi^2 = L), with the higher modes adding at most about 9%; it
+    scales with the push, and a push on the top alone moves the strip less."""
+    E, rho, L, w, t = 1e8, 700.0, 0.9, 0.25, 0.012
+    tau, a = 0.005, 6.0
+    peak, end = conv.strip_beam_peak(E, rho, L, w, t, a, tau, 0.0, 10.0)
+    f1 = 1.8751 ** 2 / (2 * np.pi * L ** 2) * np.sqrt(E * t ** 2 / (12 * rho))
+    assert end == pytest.approx(tau + 0.5 / f1)
+    tap = a * tau * 0.7830 * 2.0 / (2 * np.pi * f1) / L
+    assert peak == pytest.approx(tap, rel=0.1)
+    assert conv.strip_beam_peak(E, rho, L, w, t, 2 * a, tau, 0.0, 10.0)[0] == pytest.approx(2 * peak, rel=1e-9)
+    assert conv.strip_beam_peak(E, rho, L, w, t, a, tau, 0.0, 0.3)[0] < 0.9 * peak

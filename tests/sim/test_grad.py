@@ -115,7 +115,7 @@ def test_inplace_update_under_tape_gives_wrong_gradient():
         s0 = ParticleState(wp.zeros(n, dtype=wp.vec3, requires_grad=True),
                            wp.array(v.numpy(), dtype=wp.vec3, requires_grad=True),
                            wp.array(C.numpy(), dtype=wp.mat33, requires_grad=True),
-                           wp.array(F.numpy(), dtype=wp.mat33, requires_grad=True))
+                           wp.array(F.numpy() - np.eye(3, dtype=np.float32), dtype=wp.mat33, requires_grad=True))
         states = [s0] + [s0 if inplace else ParticleState.zeros(n, "cpu", requires_grad=True) for _ in range(steps)]
         tape = wp.Tape()
         with tape:
