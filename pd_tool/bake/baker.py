@@ -457,12 +457,12 @@ class Baker:
 
         local = np.full(self.scene.count, -1, np.int64)
         local[prep.foreground] = np.arange(prep.count)
-        idx = torch.as_tensor(local[sample], device=self.dev)
-        rest = torch.as_tensor(prep.positions_sim[local[sample]], dtype=torch.float32, device=self.dev)
+        idx = local[sample]
+        rest = torch.as_tensor(prep.positions_sim[idx], dtype=torch.float32, device=self.dev)
         identity = torch.zeros((len(sample), 4), dtype=torch.float32, device=self.dev)
-        identity[:, 0] = 1.0
+        identity[:, 0] = 1.0  # positions are all the match reads
         interp = DriverInterpolator(rest, identity, drivers.positions.to(self.dev, torch.float32),
-                                    drivers.neighbors.to(self.dev)[idx])
+                                    drivers.neighbors[torch.as_tensor(idx)].to(self.dev))
 
         def run(E_run: np.ndarray, frames: int) -> np.ndarray:
             solver, _ = self._new_solver(prep, drivers, E_run, cfl_safety)

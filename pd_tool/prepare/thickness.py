@@ -47,8 +47,8 @@ MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenv
 # cell) and 3-7% too little at 96 and 64 (0.2, 0.13); in a 2D MLS-MPM a strip of two
 # particle layers was about 20% too stiff at a quarter cell (../shared/docs/thin-parts.md).
 # The figure comes from that plant; the benchmark's 1.2 cm strip, 0.46 of a cell thick at
-# default and not raised, reads 0.76 of its reference's peak, so recheck it as more thin
-# scenes are measured.
+# default and not raised, reads 0.96 of its reference's peak and 0.95 of beam theory's
+# first swing. Recheck it as more thin scenes are measured.
 RESOLVED_CELLS = 0.25
 THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
 MAX_GRID = 256  # the largest grid the CLI accepts

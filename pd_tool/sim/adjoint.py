@@ -119,8 +119,9 @@ def g2p_adjoint_particle(
     """Adjoint of G2P for particle p from state s (its u, G) to s_next (its v, C, read
     back): adj holds the cotangents of the substep's output state and its u, G are
     overwritten with the partial cotangents of the input u and G (the P2G adjoint adds the
-    rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the
-    cell lists (binned != 0, summed by scatter_runs) or straight to adj_grid_v."""
+    rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity
+    cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the cell lists (binned != 0,
+    summed by scatter_runs) or straight to adj_grid_v."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
@@ -135,7 +136,7 @@ def g2p_adjoint_particle(
     else:
         inv_dx = 1.0 / dx
         gvel = adj.v[p] + dt * gu
-        Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(wp.identity(n=3, dtype=float) + s.G[p]))
+        Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(K.deformation_gradient(s.G[p])))
         x = ptcl.base[p] + s.u[p]
         b = K.stencil_base(x, inv_dx, nodes)
         fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
@@ -182,7 +183,7 @@ def p2g_adjoint_particle(
     nu = step.nu
     inv_dx = 1.0 / dx
     x = ptcl.base[p] + s.u[p]
-    Fp = wp.identity(n=3, dtype=float) + s.G[p]
+    Fp = K.deformation_gradient(s.G[p])
     Ep = ptcl.E[p]
     m = ptcl.mass[p]
     kv = 4.0 * inv_dx * inv_dx * dt * ptcl.volume[p]

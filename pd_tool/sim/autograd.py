@@ -362,7 +362,7 @@ def _scatter_state(
     x_out[p] = base[t] + u[t]
     v_out[p] = v[t]
     C_out[p] = C[t]
-    F_out[p] = wp.identity(n=3, dtype=float) + G[t]
+    F_out[p] = K.deformation_gradient(G[t])
 
 
 @wp.kernel(enable_backward=False)

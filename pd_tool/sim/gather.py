@@ -166,7 +166,7 @@ def g2p_bin(
     if do_g2p != 0:
         K.g2p_gather(p, ptcl, s_in, step, grid_v, state, stats)
     a_ext = K.external_accel(p, t_offset_next, forces)
-    bin_particle(p, ptcl.base[p] + state.u[p], state.v[p], state.C[p], wp.identity(n=3, dtype=float) + state.G[p],
+    bin_particle(p, ptcl.base[p] + state.u[p], state.v[p], state.C[p], K.deformation_gradient(state.G[p]),
                  ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, lists)
 
 

@@ -264,6 +264,12 @@ def mark_fixed_nodes(
 
 
 @wp.func
+def deformation_gradient(G: wp.mat33) -> wp.mat33:
+    """F = I + G from the state's G (the module docstring says why G is kept)."""
+    return wp.identity(n=3, dtype=float) + G
+
+
+@wp.func
 def p2g_scatter(
     x: wp.vec3,
     v: wp.vec3,
@@ -317,7 +323,7 @@ def p2g(
     """
     p = ptcl.order[wp.tid()]
     a_ext = external_accel(p, t_offset, forces)
-    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], wp.identity(n=3, dtype=float) + state.G[p],
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], deformation_gradient(state.G[p]),
                 ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
@@ -420,7 +426,7 @@ def g2p_gather(
         # Static particles stay where they are, undeformed (they still lend mass to P2G).
         vel = wp.vec3(0.0)
         Cn = wp.mat33(0.0)
-    Gn = Gp + (dt * Cn) * (wp.identity(n=3, dtype=float) + Gp)
+    Gn = Gp + (dt * Cn) * deformation_gradient(Gp)
     un = up + dt * vel
     s_out.u[p] = un
     s_out.v[p] = vel
@@ -428,7 +434,7 @@ def g2p_gather(
     s_out.G[p] = Gn
 
     xn = ptcl.base[p] + un
-    J = wp.determinant(wp.identity(n=3, dtype=float) + Gn)
+    J = wp.determinant(deformation_gradient(Gn))
     if not (wp.isfinite(xn) and wp.isfinite(vel) and wp.isfinite(J)):
         wp.atomic_add(stats, STAT_NONFINITE, 1.0)
     else:
@@ -475,7 +481,7 @@ def g2p_p2g(
     p = ptcl.order[wp.tid()]
     g2p_gather(p, ptcl, state, step, grid_v, state, stats)
     a_ext = external_accel(p, t_offset_next, forces)
-    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], wp.identity(n=3, dtype=float) + state.G[p],
+    p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], deformation_gradient(state.G[p]),
                 ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
 
 
