@@ -754,9 +754,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                               match_progress=match_runs)
     for line in result.report:
         click.echo(line)
-    if estimates:
-        click.echo(f"work estimate up to {estimates[-1].describe()} on {estimates[-1].device} "
-                   f"(--max-minutes {max_minutes:g})")
+    est = result.work_estimate or (estimates[-1] if estimates else None)
+    if est is not None:
+        click.echo(f"work estimate up to {est.describe()} on {est.device} (--max-minutes {max_minutes:g})")
     first = next(iter(result.outputs))
     click.echo(
         f"wrote {result.out}{'/' if first.endswith('-seq') else ''}: {result.frames} frames "

@@ -54,7 +54,7 @@ def main() -> int:
 
     out = Path(a.out or tempfile.mkdtemp(prefix="pdtool-e2e-"))
     out.mkdir(parents=True, exist_ok=True)
-    scene_path = save_splats(make_plant(a.gaussians, seed=0, thin=False), out / "plant.ply")
+    scene_path = save_splats(make_plant(a.gaussians, seed=0), out / "plant.ply")
     scene = load_splats(scene_path, device=a.device)
     h = reference_height(a.size)
     t0 = time.perf_counter()

@@ -60,7 +60,7 @@ def main() -> None:
     for name in a.scenes.split(","):
         path = work / "plant.ply" if SCENES[name] is None else a.data / SCENES[name]
         if SCENES[name] is None:
-            save_splats(make_plant(a.gaussians, seed=0, thin=False), path)
+            save_splats(make_plant(a.gaussians, seed=0), path)
         scene = load_splats(path)
         up = guess_up(scene.positions.double().numpy(), scene.scales.double().numpy(),
                       scene.opacities.double().numpy()).axis

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -171,6 +171,15 @@ class BakeResult:
     outputs: dict[str, Path] = field(default_factory=dict)  # format ('usd', 'ply-seq', ...) -> path
     output_bytes: dict[str, int] = field(default_factory=dict)  # format -> bytes written
     output_seconds: dict[str, float] = field(default_factory=dict)  # format -> seconds spent writing it
+    work_estimate: work.WorkEstimate | None = None  # the whole run's, the match's runs included
+
+
+def _with_match(before: work.WorkEstimate, after: work.WorkEstimate, frames: int,
+                match_frames: int) -> work.WorkEstimate:
+    """The whole bake's estimate: the match's runs as estimated before it (at the fitted E,
+    their share of `before`'s simulated frames), then the frames at the matched E (`after`)."""
+    match_s = before.terms.get("simulate", 0.0) * match_frames / max(frames + match_frames - 1, 1)
+    return replace(after, seconds=after.seconds + match_s, terms={**after.terms, "match": match_s})
 
 
 def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np.ndarray, spec: ForceSpec) -> np.ndarray:
@@ -362,6 +371,7 @@ class Baker:
         self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
         self.push_s = min(self.force.duration, max(s.seconds - self.force.start, 0.0))
         self.match: MotionMatch | None = None  # the fitted material's match, once made
+        self.work_estimate: work.WorkEstimate | None = None  # the chosen discretisation's, once checked
 
     def _choose_grid(self) -> None:
         """Raise the grid for thin parts unless the finer run would not fit in memory or
@@ -390,7 +400,8 @@ class Baker:
     def _check_cost(self, p: PreparedScene, ratio: float) -> None:
         """Refuse before drivers and simulator a run that cannot fit in memory or would take
         longer than allowed (substeps from the CFL rule at the stiffest material and the
-        speed the force can give). Raises InsufficientMemory / WorkTooLarge."""
+        speed the force can give); keep the estimate as `work_estimate`. Raises
+        InsufficientMemory / WorkTooLarge."""
         s, scene, dev = self.settings, self.scene, self.dev
         check_memory(estimate_bake_memory(
             n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
@@ -400,7 +411,7 @@ class Baker:
                        f"{'the fit (a coarser --quality overrides it)' if self.follows_fit else '--quality'}")
         speed = float(np.linalg.norm(self.force.accel_sim(p))) * self.push_s
         # through the module, so that a test can stand in for the estimate
-        work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
+        self.work_estimate = work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
                              frames=self.n_frames + self._match_frames(p, ratio), frame_dt=self.frame_dt, E_max=self.E_top,
                              density=self.opts.density_kg_m3, nu=self.nu, speed=speed, cfl_safety=self.cfl_safety,
                              substeps=s.substeps, preview_pixels=self.preview_pixels, device=dev)
@@ -511,9 +522,11 @@ class Baker:
         if material_file is not None:
             E = material_file.E_at(prep.transform.to_scene(d_rest))
             if self._matches(prep, self.ratio):
+                before, match_frames = self.work_estimate, self._match_frames(prep, self.ratio)
                 E = self._match_fit(material_file, E)
                 self.E_top = float(E.max())
                 self._check_cost(prep, self.ratio)  # a stiffer E takes more substeps
+                self.work_estimate = _with_match(before, self.work_estimate, self.n_frames, match_frames)
         else:
             E = np.full(len(d_rest), material.E, np.float64)
         self.solver, mask = self._new_solver(prep, self.drivers, E, self.cfl_safety)
@@ -654,6 +667,7 @@ class Baker:
             peak_displacement=max(self.disp), object_size=self.prep.object_size_m / float(self.prep.transform.scale),
             displacement_per_frame=self.disp, report=self._report(), timings=self.timings, outputs=paths,
             output_bytes=sizes, output_seconds=dict(self.outputs.seconds),
+            work_estimate=self.work_estimate,
         )
         if self.preview is not None:
             write_preview(self.preview_images, self.preview, self.settings.fps)

@@ -104,6 +104,7 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
     from pd_tool.io.synthetic import make_plant
     from pd_tool.materials.file import MaterialFile
     from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.prepare.work import WorkEstimate, work_policy
 
     scene = make_plant(3000, seed=0, thin=True)
     pos = scene.positions.double().numpy()
@@ -118,11 +119,13 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
     peaks = {}
     for name, quality, match in (("fitted", None, True), ("plain", "draft", False), ("matched", "draft", True)):
         calls: list[tuple[str, int, int]] = []
-        r = bake(scene, tmp_path / f"{name}.usd", force=force, material_file=mf, prepare_options=opts,
-                 settings=BakeSettings(seconds=0.6, fps=30, quality=quality, fmt="instancer", match_fit=match,
-                                       stop_at_rest=False),
-                 progress=lambda d, t: calls.append(("frame", d, t)),
-                 match_progress=lambda d, t: calls.append(("match", d, t)))
+        estimates: list[WorkEstimate] = []
+        with work_policy(None, estimates.append):
+            r = bake(scene, tmp_path / f"{name}.usd", force=force, material_file=mf, prepare_options=opts,
+                     settings=BakeSettings(seconds=0.6, fps=30, quality=quality, fmt="instancer", match_fit=match,
+                                           stop_at_rest=False),
+                     progress=lambda d, t: calls.append(("frame", d, t)),
+                     match_progress=lambda d, t: calls.append(("match", d, t)))
         peaks[name] = r.peak_displacement / r.object_size
         runs = [c for c in calls if c[0] == "match"]
         if name == "matched":
@@ -132,6 +135,13 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
             n_runs = int(line.split("(")[1].split(" runs")[0])
             assert [c[1] for c in runs] == list(range(1, n_runs + 2)) and {c[2] for c in runs} == {MAX_RUNS + 1}
             assert calls[: len(runs)] == runs
+            # the run's estimate adds the match's runs, as estimated before it, to the frames
+            # at the matched E (estimated after it)
+            before, after = estimates[-2:]
+            n = r.frames
+            share = (MAX_RUNS + 1) * window_frames(0.6, 0.1, 30) / (n + (MAX_RUNS + 1) * window_frames(0.6, 0.1, 30) - 1)
+            assert r.work_estimate.seconds == pytest.approx(after.seconds + share * before.terms["simulate"])
+            assert r.work_estimate.seconds > after.seconds
         else:
             assert runs == []  # nothing to match
         assert calls[-1][0] == "frame" and calls[-1][1] == calls[-1][2]
