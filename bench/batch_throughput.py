@@ -71,7 +71,7 @@ def main() -> None:
 
     root = a.keep or Path(tempfile.mkdtemp(prefix="pdtool-batch-bench-"))
     root.mkdir(parents=True, exist_ok=True)
-    save_splats(make_plant(a.gaussians, seed=0, thin=False), root / "plant.ply")
+    save_splats(make_plant(a.gaussians, seed=0), root / "plant.ply")
     runs = [("ray", 0)] if a.ray else [("local", int(w)) for w in a.workers.split(",")]
     rows = []
     for kind, w in runs:

@@ -59,7 +59,7 @@ def child(kind: str, n: int, quality: str, device: str, workdir: str, preview: b
     wd = Path(workdir)
     q = load_preset("quality", quality)
     if kind == "bake":
-        scene = make_plant(n, seed=0, thin=False).to(device)
+        scene = make_plant(n, seed=0).to(device)
     else:
         scene = load_splats(wd / "plant.ply", device=device)
         refs = [load_reference_video(wd / "video", working_size=FIT_SIZE, device=device)]

@@ -59,7 +59,7 @@ def scenes(args) -> dict:
     from pd_tool.io import load_splats
     from pd_tool.io.synthetic import POT_TOP, make_plant
 
-    out = {"plant": (make_plant(args.gaussians, seed=0, device=args.device, thin=False), {"static_below": POT_TOP},
+    out = {"plant": (make_plant(args.gaussians, seed=0, device=args.device), {"static_below": POT_TOP},
                      "flower", (20.0, 0.0, 0.0), "poke")}
     donut = SHARED / "donut_fused.ply"
     if donut.is_file() and not args.no_donut:

@@ -50,7 +50,7 @@ def main() -> None:
     print(f"{'scene':6} {'Gaussians':>9} {'frames':>6} " + " ".join(f"{f + ' MB/frame':>17} {'s/frame':>8}"
                                                                    for f in FORMATS))
     for name in args.scenes.split(","):
-        scene = make_plant(30000, seed=0, thin=False) if SCENES[name] is None else load_splats(args.data / SCENES[name])
+        scene = make_plant(30000, seed=0) if SCENES[name] is None else load_splats(args.data / SCENES[name])
         scene = scene.to(args.device)
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()

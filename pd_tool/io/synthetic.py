@@ -122,7 +122,7 @@ def make_plant(n: int = 4000, seed: int = 0, sh_degree: int = 0, device: str | t
 
     thin: leaves and petals THIN_THICKNESS thick (a real plant's), far below a cell at the
     draft and default grids: the hard case, and the default; False: 2 and 4 cm, which MPM
-    nearly resolves (the demo, and the benchmarks whose figures were measured on it).
+    nearly resolves (the speed benchmarks, and fits judged on their own discretisation).
     Returns a GaussianScene whose `labels` [n] index REGIONS and whose `label_names` is
     REGIONS. Scene units are metres, +z is up, the pot is below z = POT_TOP.
     """
