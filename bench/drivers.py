@@ -138,7 +138,7 @@ def bench_accuracy(args) -> dict:
     from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 
     dev = args.device
-    scene = make_plant(args.gaussians, seed=0, thin=False)
+    scene = make_plant(args.gaussians, seed=0)
     prep = prepare_scene(scene, PrepareOptions(static_below=POT_TOP, grid_res=args.grid_res))
     x = prep.positions_sim
     size = prep.object_size_m
