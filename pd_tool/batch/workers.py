@@ -304,19 +304,22 @@ class LocalBackend:
             # Stop the running jobs now rather than wait for them; each unwinds and removes
             # its temporaries. Queued jobs never start: a stopped worker exits.
             stop_processes([proc for p in pools for proc in list((getattr(p, "_processes", None) or {}).values())])
+        # shutdown() drops the pools' references to their manager threads and wake-up pipes,
+        # so they are taken first
+        managers = [(getattr(p, "_executor_manager_thread", None), getattr(p, "_executor_manager_thread_wakeup", None))
+                    for p in pools]
         for p in pools:
             p.shutdown(wait=not cancel, cancel_futures=cancel)
         if cancel:
             # Let each pool's manager thread finish closing its wake-up pipe now: at exit,
             # Python 3.11's concurrent.futures wakes it without a lock and can hit the pipe
             # while the thread closes it ("OSError: Bad file descriptor" on stderr). On a
-            # busy machine the thread can outlast the wait, so that late wake-up, which
-            # shutdown() has already made, is also told to ignore a pipe closed under it.
-            for p in pools:
-                thread = getattr(p, "_executor_manager_thread", None)
+            # busy machine the thread can outlast the wait, so that late wake-up is also
+            # told to ignore a pipe closed under it.
+            for thread, wakeup in managers:
+                _quiet_wakeup(wakeup)
                 if thread is not None:
                     thread.join(timeout=STOP_GRACE_S)
-                _quiet_wakeup(getattr(p, "_executor_manager_thread_wakeup", None))
 
 
 def _quiet_wakeup(wakeup: Any) -> None:

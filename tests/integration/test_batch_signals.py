@@ -191,3 +191,20 @@ def test_the_watchdog_ends_a_worker_whose_driver_died() -> None:
         if _alive(pid):
             os.kill(pid, signal.SIGKILL)
         proc.stdout.close()
+
+
+def test_a_cancelled_pool_wakes_quietly_at_exit() -> None:
+    """At exit Python 3.11's concurrent.futures wakes each pool's manager thread through a
+    pipe that the thread may be closing at that moment. After close(cancel=True) that late
+    wake-up ignores a pipe closed under it, instead of printing a traceback."""
+    from pd_tool.batch.workers import LocalBackend
+
+    backend = LocalBackend(workers=1, gpus=0)
+    assert backend.cpu.submit(os.getpid).result(timeout=300) != os.getpid()
+    wakeup = backend.cpu._executor_manager_thread_wakeup
+    backend.close(cancel=True)
+    # the race: the manager thread has closed the pipe, and the exit hook has already seen
+    # it open
+    wakeup._writer.close()
+    wakeup._closed = False
+    wakeup.wakeup()  # what the exit hook calls
