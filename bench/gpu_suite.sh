@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU benchmarks on a CUDA machine, speed (parts a, b) and accuracy (c-f); JSON and logs
+# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f) and the 3 mm plant's fit, CLI and Pareto (g, h); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -47,4 +47,16 @@ fi
 if [ "$part" = f ]; then
   run quality_transfer_plant 280 bench/quality_transfer.py --device cuda --gaussians 100000 --scenes plant
   run quality_transfer_real 300 bench/quality_transfer.py --device cuda --gaussians 100000 --scenes tree,donut,udon --data $DATA
+fi
+# the fit and the CLI on the plant with 3 mm leaves (docs/benchmarks.md, "Fit"), two seeds a call
+if [ "$part" = g ]; then
+  run end_to_end_thin 200 bench/end_to_end.py --device cuda --gaussians 100000 --size 1024
+  for s in 0 1; do
+    run fit_recovery_thin_seed$s 180 bench/fit_recovery.py --device cuda --gaussians 100000 --views 2 --thin --no-variants --set seed=$s
+  done
+fi
+# bake time against error on the plant with 3 mm leaves: 100k Gaussians, so that its 192-cell
+# reference is dense enough (at 20k, 128-cell runs disagree with each other by a third of the motion)
+if [ "$part" = h ]; then
+  run pareto_thin 560 bench/pareto.py --device cuda --thin --gaussians 100000 --grids 32,48,64,96,128 --reference-grid 192 --reference-cfl 0.25 --reference-ratio 1.0
 fi
