@@ -734,12 +734,10 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
         job = app.BakeJob(out, spec, settings, scene=scene, material=material, preset=preset,
                           prepare=prepare_changes(**prep_kw), preview=preview, frames_out=frames_out, camera=camera,
                           view=parse_view(view))
-        estimates = []
         with bars() as held:
             bar = held["bake"] = LazyBar("bake", "frame")
 
             def on_estimate(est) -> None:
-                estimates.append(est)
                 bar.note = f" (up to {est.describe()})"
 
             def frames_done(done: int, total: int) -> None:
@@ -754,7 +752,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                               match_progress=match_runs)
     for line in result.report:
         click.echo(line)
-    est = result.work_estimate or (estimates[-1] if estimates else None)
+    est = result.work_estimate  # the whole run's, a fitted material's match included
     if est is not None:
         click.echo(f"work estimate up to {est.describe()} on {est.device} (--max-minutes {max_minutes:g})")
     first = next(iter(result.outputs))

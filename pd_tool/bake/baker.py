@@ -526,8 +526,7 @@ class Baker:
                 E = self._match_fit(material_file, E)
                 self.E_top = float(E.max())
                 self._check_cost(prep, self.ratio)  # a stiffer E takes more substeps
-                if before is not None and self.work_estimate is not None:
-                    self.work_estimate = _with_match(before, self.work_estimate, self.n_frames, match_frames)
+                self.work_estimate = _with_match(before, self.work_estimate, self.n_frames, match_frames)
         else:
             E = np.full(len(d_rest), material.E, np.float64)
         self.solver, mask = self._new_solver(prep, self.drivers, E, self.cfl_safety)

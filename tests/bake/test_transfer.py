@@ -138,8 +138,8 @@ def test_thin_plant_baked_at_draft_moves_as_fitted(tmp_path) -> None:
             # the run's estimate adds the match's runs, as estimated before it, to the frames
             # at the matched E (estimated after it)
             before, after = estimates[-2:]
-            n = r.frames
-            share = (MAX_RUNS + 1) * window_frames(0.6, 0.1, 30) / (n + (MAX_RUNS + 1) * window_frames(0.6, 0.1, 30) - 1)
+            match_frames = (MAX_RUNS + 1) * window_frames(0.6, 0.1, 30)
+            share = match_frames / (r.frames + match_frames - 1)  # of the simulated frames (not frame 0)
             assert r.work_estimate.seconds == pytest.approx(after.seconds + share * before.terms["simulate"])
             assert r.work_estimate.seconds > after.seconds
         else:
