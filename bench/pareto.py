@@ -14,6 +14,8 @@ plus the three quality presets exactly. Error: RMS over every Gaussian and every
 setup + simulate + interpolate seconds (USD writing excluded: it is the same for every
 setting), the minimum over `--reps` runs. Precision: float32 everywhere (pdtool has no
 mixed-precision path), recorded as such.
+`--check-grid` adds a finer run scored against the reference the same way: the reference's
+own error.
 
 Fit (`--fit`): the synthetic plant's reference video (hidden E per region) fitted at
 several iteration counts; error = mean over regions of |log10(E_fit / E_true)|.
@@ -230,6 +232,9 @@ def main() -> None:
     ap.add_argument("--clock", default="wall", choices=["wall", "cpu"],
                     help="time = the bake's wall seconds (setup+simulate+interpolate), or this process's CPU "
                          "seconds for the whole bake call (robust on a shared CPU with --threads 1)")
+    ap.add_argument("--check-grid", type=int, default=0,
+                    help="also a finer run (this many cells, the reference's CFL and ratio), scored against "
+                         "the reference like the sweep: whether the reference has converged")
     ap.add_argument("--reference-cache", type=Path, help="npz holding the reference run (read, or written)")
     ap.add_argument("--reference-only", action="store_true", help="compute the reference into --reference-cache")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -298,6 +303,13 @@ def main() -> None:
                   f"{case.time_s:7.2f} s  substeps {case.substeps}  drivers {case.drivers}", flush=True)
         ref_info, ref = reference_positions(scene, args, tmp)
         print(f"reference {json.dumps(ref_info)}", flush=True)
+        check = None
+        if args.check_grid:
+            check, check_pos = run_case(scene, BakeCase(args.check_grid, args.reference_cfl, args.reference_ratio,
+                                                        tag="check"), argparse.Namespace(**{**vars(args), "reps": 1}), tmp)
+            score(check, check_pos, ref, size)
+            print(f"check grid {check.grid} against the reference: rms {check.error:.3e}  "
+                  f"of motion {check.error_of_motion:.3f}", flush=True)
     for case, pos in zip(rows, positions):
         score(case, pos, ref, size)
         print(f"grid {case.grid:4d} cfl {case.cfl:4.2f} ratio {case.ratio:5.3f} {case.tag:9s} {case.time_s:7.2f} s  "
@@ -317,7 +329,7 @@ def main() -> None:
         "cpu": _cpu_name(), "torch_threads": args.threads, "precision": "float32 (no mixed-precision path)",
         "gaussians": args.gaussians, "thin": args.thin, "seconds": args.seconds, "fps": args.fps,
         "object_size": size, "force": f"poke preset x ({args.accel}, 0, 0), material flower",
-        "reference": ref_info, "clock": args.clock,
+        "reference": ref_info, "check": vars(check) if check else None, "clock": args.clock,
         "reference_peak_motion_of_size": _peak_motion(ref) / size,
         "cases": [vars(r) for r in rows], "front": front, "presets": presets,
     }

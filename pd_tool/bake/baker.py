@@ -503,7 +503,8 @@ class Baker:
         fitted E under this force (pd_tool.bake.transfer)."""
         fit = self.fit_sim
         fit_prep = prepare_scene(self.scene, self.opts.updated(grid_res=int(fit["grid_res"])))
-        fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]))
+        fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]),
+                                             device=self.dev)
         fit_E = material_file.E_at(fit_prep.transform.to_scene(fit_drivers.positions.double().cpu().numpy()))
         frames = self._match_window()
         sample = self._match_sample(fit_prep)
@@ -516,7 +517,7 @@ class Baker:
     def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
         """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
         prep, s, force = self.prep, self.settings, self.force
-        self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed)
+        self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
         d_rest = self.drivers.positions.double().cpu().numpy()
         d_static = self.drivers.static.cpu().numpy().astype(bool)
         if material_file is not None:

@@ -59,7 +59,7 @@ class FitProblem:
             resolution=f"--working-size {settings.working_long_side}")
         # ... or when it would take longer than allowed
         check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety)
-        self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed)
+        self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed, device=self.device)
         self.animator = GaussianAnimator(self.scene, p, self.drivers, device=self.device)
         self.videos = videos
         fps = {round(v.fps, 6) for v in videos}

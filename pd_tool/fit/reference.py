@@ -120,7 +120,7 @@ def plant_reference_video(
     if scene.labels is None:
         raise ValueError("plant_reference_video needs a scene with region labels")
     prep = prepare_scene(scene, prepare_options)
-    drivers = prep.build_drivers(ratio=driver_ratio, seed=seed)
+    drivers = prep.build_drivers(ratio=driver_ratio, seed=seed, device=device)
     labels = scene.labels[prep.foreground]
 
     names = scene.label_names or REGIONS  # a plant read back from .ply keeps labels, not names
