@@ -182,7 +182,8 @@ def main() -> None:
                          "new-force runs), so that they share one count unless E rises above what N allows; "
                          "'truth': the CFL count of the reference under the true E. Default: each simulation "
                          "picks its own by CFL, as pdtool does")
-    ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
+    ap.add_argument("--thick", action="store_true",
+                    help="the plant with 2 cm leaves and petals (make_plant(thin=False)), a control; default: 3 mm")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--save-drivers", type=Path, metavar="NPZ",
                     help="also write each driver's rest position (simulation axes, m), region, static flag, "
@@ -193,6 +194,7 @@ def main() -> None:
                     help="diagnostic: report each region's per-driver stage-2 residual gradients "
                          "(JSON residual_gradients), to compare with Adam's eps (--set residual_eps=...)")
     args = ap.parse_args()
+    args.thin = not args.thick
     if args.quick:
         args.gaussians, args.size, args.quality = 3000, 192, "draft"
 

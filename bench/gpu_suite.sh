@@ -52,14 +52,14 @@ fi
 if [ "$part" = g ]; then
   run end_to_end_thin 200 bench/end_to_end.py --device cuda --gaussians 100000 --size 1024
   for s in 0 1; do
-    run fit_recovery_thin_seed$s 180 bench/fit_recovery.py --device cuda --gaussians 100000 --views 2 --thin --no-variants --set seed=$s
+    run fit_recovery_thin_seed$s 180 bench/fit_recovery.py --device cuda --gaussians 100000 --views 2 --no-variants --set seed=$s
   done
 fi
 # bake time against error on the plant with 3 mm leaves: 300k Gaussians, so that its 192-cell
 # reference is dense enough (at 100k, a 256-cell check moves unlike it); drivers built on the GPU,
 # the CPU's part of the setup on 16 threads
 if [ "$part" = h ]; then
-  run pareto_thin 560 bench/pareto.py --device cuda --thin --gaussians 300000 --threads 16 --grids 32,48,64,96,128 \
+  run pareto_thin 560 bench/pareto.py --device cuda --gaussians 300000 --threads 16 --grids 32,48,64,96,128 \
     --cfls 0.5 --ratios 0.05,0.1,0.5 --reference-grid 192 --reference-cfl 0.25 --reference-ratio 1.0 --check-grid 256 \
     --reference-cache /tmp/pareto_thin_ref.npz --png "$OUT/pareto_thin.png"
 fi

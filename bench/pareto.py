@@ -216,7 +216,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--gaussians", type=int, default=3000)
-    ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
+    ap.add_argument("--thick", action="store_true",
+                    help="the plant with 2 cm leaves and petals (make_plant(thin=False)), a control; default: 3 mm")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--accel", type=float, default=2.0, help="poke strength, scene units/s^2 along x")
     ap.add_argument("--fps", type=float, default=30.0)
@@ -249,6 +250,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--png", type=Path)
     args = ap.parse_args()
+    args.thin = not args.thick
     if args.quick:
         args.gaussians, args.seconds = 1500, 0.3
         args.grids, args.cfls, args.ratios, args.reference_grid = "16,24", "0.5", "0.25", 48
