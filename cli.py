@@ -900,9 +900,9 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 def demo(out_dir: Path, quality: str, device: str) -> None:
     """Run the whole pipeline on a built-in plant: no data or GPU needed.
 
-    Writes the plant (.ply), renders a reference video of it swaying with a hidden
-    stiffness per region (stem stiff, flower soft), fits the stiffness back from the
-    video, bakes a poke with the fitted material to USD, and writes previews and a
+    Writes the plant (.ply), renders reference videos of it swaying with a hidden
+    stiffness per region (stem stiff, flower soft; two videos pushed two ways and seen
+    from two sides, one at draft), fits the stiffness back from them, bakes a poke with the fitted material to USD, and writes previews and a
     picture of the fitted E field. It ends with the paths and how close the fit got.
 
     \b

@@ -1,6 +1,6 @@
 """`pdtool demo`: the whole pipeline on the built-in plant, with a known truth to compare.
 
-scene .ply -> reference video of a hidden E field pushed sideways (+ camera.json) ->
+scene .ply -> reference videos of a hidden E field pushed sideways (+ camera.json) ->
 fit -> bake a poke to USD -> previews and the E picture. Every step calls the same
 library functions as `pdtool render`, `pdtool fit` and `pdtool bake`.
 """
@@ -21,12 +21,18 @@ from pd_tool.fit.reference import plant_reference_for_fit
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 from pd_tool.prepare import PrepareOptions
+from pd_tool.core.cameras import auto_camera
 from pd_tool.render.views import scene_camera
 
-# Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), and
-# fit iterations (velocity, material). The default demo must finish within 10 minutes on a
-# 2-core CPU, so it runs fewer iterations than `pdtool fit --quality default` (60, 40).
-DEMO_SIZES = {"draft": (2000, 10, 128, 20, 15), "default": (3000, 12, 144, 30, 20)}
+# Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), fit
+# iterations (velocity, material) and reference videos. The default demo must finish within
+# 10 minutes on a 2-core CPU. Its second video, pushed the other way and seen from another
+# side, is what separates the thin leaves' E from the stem's: with one video the leaves came
+# out 8.4x too stiff (docs/fitting.md, tried).
+DEMO_SIZES = {"draft": (2000, 10, 128, 20, 15, 1), "default": (3000, 12, 144, 60, 40, 2)}
+# video k: pushed along x (k even) or y (k odd), seen from the scene camera (k = 0) or from
+# 45 + 90 k degrees azimuth
+DEMO_PUSHES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 
 
 DEMO_MARK = "pdtool demo"  # the `what` of the demo folder's manifest
@@ -62,7 +68,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     """Run the demo into out_dir (created); returns what it wrote and the comparison."""
     if quality not in DEMO_SIZES:
         raise ValueError(f"demo quality must be one of {', '.join(DEMO_SIZES)}")
-    n_gauss, n_frames, size, velocity_iters, material_iters = DEMO_SIZES[quality]
+    n_gauss, n_frames, size, velocity_iters, material_iters, n_videos = DEMO_SIZES[quality]
     out = Path(out_dir)
     _claim_folder(out)
     paths: dict[str, Path] = {}
@@ -73,20 +79,25 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     scene = load_splats(paths["scene"], device=device)
     say(f"scene      {paths['scene']} ({scene.count:,} Gaussians)")
 
-    # 2. a reference video of the hidden truth: E per region, pushed sideways at t = 0
+    # 2. reference videos of the hidden truth: E per region, pushed sideways at t = 0
     t0 = time.perf_counter()
-    cam = scene_camera(scene, width=size, height=size)
-    video, truth, _ = plant_reference_for_fit(out / "video", scene, cam, quality, n_frames=n_frames, device=device)
-    paths["video"] = video
+    videos = []
+    for k in range(n_videos):
+        cam = scene_camera(scene, width=size, height=size) if k == 0 else auto_camera(
+            scene.positions.detach().cpu().numpy(), size, size, azimuth_deg=45.0 + 90.0 * k)
+        video, truth, _ = plant_reference_for_fit(out / ("video" if k == 0 else f"video{k + 1}"), scene, cam, quality,
+                                                  n_frames=n_frames, push_direction=DEMO_PUSHES[k % 2], device=device)
+        videos.append(video)
+        paths["video" if k == 0 else f"video{k + 1}"] = video
+        say(f"video      {video}/ ({n_frames} frames of a hidden stiffness field, camera.json)")
     video_s = time.perf_counter() - t0
-    say(f"video      {video}/ ({n_frames} frames of a hidden stiffness field, camera.json)")
 
-    # 3. fit, exactly as `pdtool fit plant.ply video/ --static-below 0.2`
+    # 3. fit, exactly as `pdtool fit plant.ply video/ [video2/] --static-below 0.2`
     t0 = time.perf_counter()
     settings = FitSettings(quality=quality, device=device, working_long_side=size, velocity_iters=velocity_iters,
                            material_iters=material_iters)
     mat_path = out / "plant.pdmat"
-    done = app.fit(app.FitJob(paths["scene"], [video], mat_path, settings, PrepareOptions(static_below=POT_TOP),
+    done = app.fit(app.FitJob(paths["scene"], videos, mat_path, settings, PrepareOptions(static_below=POT_TOP),
                               record_dir=out), progress=fit_progress)
     result = done.result
     fit_s = time.perf_counter() - t0

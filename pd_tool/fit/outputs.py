@@ -228,6 +228,7 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
     ran = result.settings or settings.resolved()
     report = {
         "material": str(result.material_path),
+        "videos": [str(v.folder) for v in videos],  # what it was fitted to, in the fit's order
         "losses": L,
         "seconds": result.seconds,
         "drivers": int(len(result.driver_E)),

@@ -115,3 +115,19 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     assert 0 <= coarse.output.index("matching the fitted E to this grid") < coarse.output.index("bake"), coarse.output
     assert plain.exit_code == 0, plain.output
     assert "moves differently" in plain.output and "matched" not in plain.output
+
+
+def test_default_demo_fits_two_videos_pushed_two_ways(tmp_path: Path, monkeypatch) -> None:
+    """The default demo's second video, seen from another side, reaches the fit. Run at a
+    tiny size: the path, not the accuracy."""
+    from pd_tool import demo
+
+    _, _, _, _, _, videos = demo.DEMO_SIZES["default"]
+    assert videos == 2
+    monkeypatch.setitem(demo.DEMO_SIZES, "default", (500, 4, 48, 1, 1, videos))
+    res = demo.run_demo(tmp_path / "d", quality="default", say=lambda _: None)
+    assert {"video", "video2"} <= set(res.paths)
+    report = json.loads((res.out_dir / "plant.report.json").read_text())
+    assert [Path(v).name for v in report["videos"]] == ["video", "video2"]
+    cams = [json.loads((res.paths[k] / "camera.json").read_text()) for k in ("video", "video2")]
+    assert cams[0] != cams[1]  # seen from two sides
