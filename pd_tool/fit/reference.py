@@ -123,7 +123,7 @@ def plant_reference_video(
     drivers = prep.build_drivers(ratio=driver_ratio, seed=seed, device=device)
     labels = scene.labels[prep.foreground]
 
-    names = scene.label_names or REGIONS  # a plant read back from .ply keeps labels, not names
+    names = scene.label_names or REGIONS
     table = np.array([region_E[name] for name in names], np.float64)
     gaussian_E = table[labels]
     member = drivers.labels.cpu().numpy()[: prep.count]  # Gaussians only; filled particles follow

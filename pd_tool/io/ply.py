@@ -19,6 +19,9 @@ from pd_tool.core.scene import REQUIRED_PLY_PROPERTIES, GaussianScene, sh_coeff_
 
 NORMAL_PROPERTIES = ("nx", "ny", "nz")
 LABEL_PROPERTY = "region"  # optional integer region label (pdtool's synthetic scenes write it)
+# the labels' names, in a header comment: "pdtool region_names pot,stem,leaf,flower"
+REGION_NAMES_COMMENT = "pdtool region_names "
+_REGION_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _REST_RE = re.compile(r"^f_rest_(\d+)$")
 _VALID_REST_COUNTS = {3 * (sh_coeff_count(d) - 1): d for d in range(4)}  # 0, 9, 24, 45
 F32_MAX = float(np.finfo(np.float32).max)  # the scene holds float32: larger values would become inf
@@ -170,6 +173,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
     # integer labels only: casting a float or list 'region' would warn or fail (it stays in raw)
     has_labels = LABEL_PROPERTY in names and data.dtype[LABEL_PROPERTY].kind in "iu"
     labels = np.asarray(data[LABEL_PROPERTY], np.int32) if has_labels else None
+    label_names = _region_names(ply.comments, labels)
 
     return GaussianScene(
         positions=t(xyz),
@@ -182,7 +186,22 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianSc
         source_format="ply-ascii" if ply.text else f"ply-binary-{'le' if ply.byte_order in ('<', '=') else 'be'}",
         extra=extra,
         labels=labels,
+        label_names=label_names,
     )
+
+
+def _region_names(comments: list[str], labels: np.ndarray | None) -> tuple[str, ...]:
+    """The labels' names from the header's region_names comment, or (): without labels, or
+    when the comment is missing, names fewer regions than the labels use, or holds anything
+    but short plain names (it is a file from anywhere: text, never code)."""
+    if labels is None or labels.min(initial=0) < 0:
+        return ()
+    for c in comments:
+        if c.startswith(REGION_NAMES_COMMENT):
+            names = tuple(c[len(REGION_NAMES_COMMENT):].strip().split(","))
+            ok = len(names) <= 256 and all(_REGION_NAME_RE.match(n) for n in names)
+            return names if ok and len(names) > labels.max(initial=-1) else ()
+    return ()
 
 
 def scene_to_records(scene: GaussianScene) -> np.ndarray:
@@ -226,7 +245,8 @@ def save_ply(scene: GaussianScene, path: str | Path, *, text: bool = False, byte
 
     A scene read by load_ply is written from its raw records, so a round trip is
     bit-identical in every value, extra properties included. The header carries the
-    comment "written by pdtool" (pd_tool.core.atomic's mark). own_only: replace an existing
+    comment "written by pdtool" (pd_tool.core.atomic's mark), and a labelled scene's region
+    names (REGION_NAMES_COMMENT). own_only: replace an existing
     file only when pdtool wrote it (a side output); `what` names it in that refusal.
     Raises OutputError when the file cannot be written.
     """
@@ -236,5 +256,8 @@ def save_ply(scene: GaussianScene, path: str | Path, *, text: bool = False, byte
     records = scene_to_records(scene)
     el = PlyElement.describe(records, "vertex")
     with atomic_output(path, own_only=own_only, what=what) as tmp:
-        PlyData([el], text=text, byte_order=byte_order, comments=[MARK_TEXT]).write(str(tmp))
+        comments = [MARK_TEXT]
+        if scene.labels is not None and scene.label_names:
+            comments.append(REGION_NAMES_COMMENT + ",".join(scene.label_names))
+        PlyData([el], text=text, byte_order=byte_order, comments=comments).write(str(tmp))
     return path

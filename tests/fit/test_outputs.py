@@ -237,7 +237,7 @@ def test_report_records_what_the_fit_ran_at(fit_dir: Path, tmp_path: Path) -> No
     assert mf.meta["simulation"]["grid_res"] == sim["grid_res"]
     assert mf.meta["prepare"] == prep
     labels = scene.labels[result.prep.foreground]
-    names = [f"region {i}" for i in range(len(REGIONS))]  # the PLY keeps the labels, not their names
+    names = list(REGIONS)  # the PLY keeps the labels and, in its header, their names
     assert list(report["E_region_median_pa"]) == names
     for i, name in enumerate(names):
         assert report["E_region_median_pa"][name] == pytest.approx(np.median(result.gaussian_E[labels == i]))

@@ -71,10 +71,29 @@ def test_synthetic_plant_round_trip(tmp_path: Path) -> None:
     for name in ACTIVATED:
         torch.testing.assert_close(getattr(first, name), getattr(plant, name), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(first.labels, plant.labels)
+    assert first.label_names == plant.label_names == ("pot", "stem", "leaf", "flower")
     # from then on the raw records make it exact
     second = load_splats(save_splats(first, tmp_path / "plant2.ply"))
     assert second.raw.tobytes() == first.raw.tobytes()
     assert_same_scene(first, second)
+    assert second.label_names == plant.label_names
+
+
+@pytest.mark.parametrize("comment, expect", [
+    ("pdtool region_names pot,stem,leaf,flower", ("pot", "stem", "leaf", "flower")),
+    ("pdtool region_names pot,stem", ()),  # fewer names than the labels use
+    ("pdtool region_names pot,st em,leaf,flower", ()),  # not a plain name
+    ("pdtool region_names " + ",".join(["x" * 65] * 4), ()),  # too long
+    ("something else", ()),
+])
+def test_region_names_come_from_a_checked_header_comment(tmp_path: Path, comment: str, expect: tuple) -> None:
+    from plyfile import PlyData
+
+    path = save_splats(make_plant(300, seed=0), tmp_path / "p.ply")
+    ply = PlyData.read(str(path))
+    ply.comments = [c for c in ply.comments if not c.startswith("pdtool region_names")] + [comment]
+    ply.write(str(tmp_path / "q.ply"))
+    assert load_ply(tmp_path / "q.ply").label_names == expect
 
 
 def test_extra_properties_kept(tmp_path: Path) -> None:
