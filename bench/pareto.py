@@ -121,6 +121,13 @@ def score(case: BakeCase, pos: np.ndarray, ref: np.ndarray, size: float) -> None
     case.error_of_motion = float(np.sqrt(np.mean(d ** 2)) / max(_peak_motion(ref), 1e-12))
 
 
+def reference_setting_run(scene, grid: int, tag: str, args, folder: Path) -> tuple[BakeCase, np.ndarray]:
+    """One run on `grid` cells at the reference's CFL safety and driver ratio (the reference
+    itself, or its finer check). Returns (case, positions)."""
+    return run_case(scene, BakeCase(grid, args.reference_cfl, args.reference_ratio, tag=tag),
+                    argparse.Namespace(**{**vars(args), "reps": 1}), folder)
+
+
 def reference_positions(scene, args, folder: Path) -> tuple[dict, np.ndarray]:
     """The reference run, from --reference-cache when it holds one with the same settings
     (another process may be computing it: wait for it), else computed (and cached)."""
@@ -139,8 +146,7 @@ def reference_positions(scene, args, folder: Path) -> tuple[dict, np.ndarray]:
                     return info, z["positions"]
         lock.touch()
     t0 = time.perf_counter()
-    c, pos = run_case(scene, BakeCase(args.reference_grid, args.reference_cfl, args.reference_ratio, tag="reference"),
-                      argparse.Namespace(**{**vars(args), "reps": 1}), folder)
+    c, pos = reference_setting_run(scene, args.reference_grid, "reference", args, folder)
     info = {**key, "time_s": c.time_s, "substeps": c.substeps, "drivers": c.drivers, "wall_s": time.perf_counter() - t0}
     if cache is not None:
         np.savez(cache, positions=pos, info=json.dumps(info))
@@ -307,8 +313,7 @@ def main() -> None:
         print(f"reference {json.dumps(ref_info)}", flush=True)
         check = None
         if args.check_grid:
-            check, check_pos = run_case(scene, BakeCase(args.check_grid, args.reference_cfl, args.reference_ratio,
-                                                        tag="check"), argparse.Namespace(**{**vars(args), "reps": 1}), tmp)
+            check, check_pos = reference_setting_run(scene, args.check_grid, "check", args, tmp)
             score(check, check_pos, ref, size)
             print(f"check grid {check.grid} against the reference: rms {check.error:.3e}  "
                   f"of motion {check.error_of_motion:.3f}", flush=True)

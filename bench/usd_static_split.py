@@ -23,6 +23,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 MIB = 2.0 ** 20
+FPS = 30.0  # the bake's and both rewrites'
 
 
 def read_poses(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -91,17 +92,19 @@ def main() -> None:
         out = tmp / "bake.usd"
         cmd = [sys.executable, str(REPO / "cli.py"), "bake", "--scene", str(scene), "--preset", args.preset,
                "--force", args.force, "--static-below", args.static_below, "--seconds", str(args.seconds),
-               "--quality", args.quality, "--format", "both", "--device", "cpu", str(out)]
+               "--fps", str(FPS), "--quality", args.quality, "--format", "both", "--device", "cpu"]
         if args.interaction:
-            cmd[5:5] = ["--interaction", args.interaction]
+            cmd += ["--interaction", args.interaction]
         if args.up:
-            cmd[5:5] = ["--up", args.up]
+            cmd += ["--up", args.up]
+        cmd.append(str(out))
         p = subprocess.run(cmd, cwd=tmp, capture_output=True, text=True)
         if p.returncode != 0:
-            sys.exit(f"usd_static_split: the bake failed: {p.stderr.strip().splitlines()[-1:]}")
+            last = (p.stderr.strip().splitlines() or ["no message"])[-1]
+            sys.exit(f"usd_static_split: the bake failed: {last}")
         static, pos, quat, sig, _ = read_poses(out)
-        split = rewrite(tmp / "split.usd", pos, quat, sig, static, fps=30.0)
-        one = rewrite(tmp / "one.usd", pos, quat, sig, None, fps=30.0)
+        split = rewrite(tmp / "split.usd", pos, quat, sig, static, fps=FPS)
+        one = rewrite(tmp / "one.usd", pos, quat, sig, None, fps=FPS)
         res = {"scene": str(args.scene or f"make_plant({args.gaussians})"), "gaussians": int(len(static)),
                "frames": int(len(pos)), "static_share": float(static.mean()), "bake_mib": out.stat().st_size / MIB,
                "rewrite_split_mib": split, "rewrite_one_prim_mib": one, "one_over_split": one / split,

@@ -16,12 +16,12 @@ import numpy as np
 from pd_tool import app
 from pd_tool.bake import BakeSettings, ForceSpec
 from pd_tool.core.atomic import check_replaceable_folder, folder_mark, mark_folder
+from pd_tool.core.cameras import auto_camera
 from pd_tool.fit.settings import FitSettings
 from pd_tool.fit.reference import plant_reference_for_fit
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 from pd_tool.prepare import PrepareOptions
-from pd_tool.core.cameras import auto_camera
 from pd_tool.render.views import scene_camera
 
 # Demo sizes per quality: Gaussians in the plant, reference frames, frame size (px), fit
@@ -85,10 +85,11 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
     for k in range(n_videos):
         cam = scene_camera(scene, width=size, height=size) if k == 0 else auto_camera(
             scene.positions.detach().cpu().numpy(), size, size, azimuth_deg=45.0 + 90.0 * k)
-        video, truth, _ = plant_reference_for_fit(out / ("video" if k == 0 else f"video{k + 1}"), scene, cam, quality,
-                                                  n_frames=n_frames, push_direction=DEMO_PUSHES[k % 2], device=device)
+        name = "video" if k == 0 else f"video{k + 1}"
+        video, truth, _ = plant_reference_for_fit(out / name, scene, cam, quality, n_frames=n_frames,
+                                                  push_direction=DEMO_PUSHES[k % 2], device=device)
         videos.append(video)
-        paths["video" if k == 0 else f"video{k + 1}"] = video
+        paths[name] = video
         say(f"video      {video}/ ({n_frames} frames of a hidden stiffness field, camera.json)")
     video_s = time.perf_counter() - t0
 

@@ -117,7 +117,7 @@ def test_bare_bake_uses_the_fit(demo_dir: Path) -> None:
     assert "moves differently" in plain.output and "matched" not in plain.output
 
 
-def test_default_demo_fits_two_videos_pushed_two_ways(tmp_path: Path, monkeypatch) -> None:
+def test_default_demo_fits_two_videos_seen_from_two_sides(tmp_path: Path, monkeypatch) -> None:
     """The default demo's second video, seen from another side, reaches the fit. Run at a
     tiny size: the path, not the accuracy."""
     from pd_tool import demo
