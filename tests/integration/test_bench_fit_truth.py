@@ -47,6 +47,35 @@ def test_degrade_darkens_blurs_and_adds_noise_of_the_stated_size() -> None:
     assert 40 < blurred[0, 10, 16, 0] < 0.9 * 255 * ft.EXPOSURE  # the step is no longer sharp
 
 
+def test_the_floor_material_holds_the_truths_geometric_mean_over_each_drivers_gaussians(tmp_path: Path) -> None:
+    from pd_tool.materials.file import MaterialFile
+
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(0, 1, (400, 3))
+    E_true = np.exp(rng.uniform(np.log(6e4), np.log(2e6), 400))
+    rest = np.array([[0.25, 0.25, 0.5], [0.75, 0.75, 0.5], [0.25, 0.75, 0.5], [5.0, 5.0, 5.0]])  # the last: no Gaussian
+    fitted = MaterialFile(np.full(4, 1e6), np.zeros((4, 3), np.float32), rest, {"nu": 0.3})
+    out = MaterialFile.load(ft.truth_material(fitted, pos, E_true, tmp_path / "truth.pdmat"))
+    nearest = np.argmin(((pos[:, None] - rest[None]) ** 2).sum(-1), axis=1)  # dense reference
+    for q in range(3):
+        assert out.driver_E[q] == pytest.approx(np.exp(np.log(E_true[nearest == q]).mean()), rel=1e-9)
+    far = np.argmin(((pos - rest[3]) ** 2).sum(-1))
+    assert out.driver_E[3] == pytest.approx(E_true[far], rel=1e-9)
+    assert np.array_equal(out.driver_rest, rest) and out.meta["nu"] == 0.3
+
+
+def test_set_gives_the_fits_settings_other_defaults_and_refuses_unknown_fields(monkeypatch) -> None:
+    import pd_tool.fit.settings as fs
+
+    monkeypatch.setattr(fs, "FitSettings", fs.FitSettings)  # restored after the test
+    ft.override_fit_defaults(["residual_diffusion=0.5", "stage1_level=false"])
+    s = fs.FitSettings(quality="draft")
+    assert s.residual_diffusion == 0.5 and s.stage1_level is False and s.quality == "draft"
+    assert fs.FitSettings(residual_diffusion=0.1).residual_diffusion == 0.1  # an explicit value still wins
+    with pytest.raises(SystemExit, match="no such field"):
+        ft.override_fit_defaults(["no_such_setting=1"])
+
+
 def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing_or_the_start(tmp_path: Path, shared_data) -> None:
     out = tmp_path / "ft.json"
     run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--quick", "--scenes", "udon",
@@ -59,3 +88,7 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing_or_the_start(tmp_
     assert err["fitted, as fit"] < 0.7 * err["still"], err
     assert err["fitted, as fit"] < err["uniform start"], err
     assert 0.5 < row["moving_share"] <= 1.0
+    # the floor and the E decomposition are there, and add up: |ln| >= |level| is a median's property
+    assert 0 < err["true E, as fit"] < err["still"], err
+    assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
+    assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
