@@ -29,8 +29,9 @@ def check_stats(stats: np.ndarray, frame: int, time_s: float, substeps: int) -> 
             f"(lower cfl_safety), lower the force or the Young's modulus")
     if collapsed:
         raise SimulationUnstable(
-            f"{where}: {collapsed} particles inverted or collapsed (det F too small); raise "
-            f"the substeps (lower cfl_safety) or lower the force")
+            f"{where}: {collapsed} particles inverted or collapsed (det F too small); lower the "
+            f"force first (a push that turns a soft material inside out does so at any substep "
+            f"count), then raise the substeps (lower cfl_safety)")
     if edge:
         raise SimulationUnstable(
             f"{where}: {edge} particles reached the edge of the simulation grid; lower the "
