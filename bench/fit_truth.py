@@ -18,10 +18,10 @@ For each scene and hidden E field:
      (the product's bake) and with the fitted E as it is (--no-match-fit); the uniform start E (the fit's
      --init-e) and the best uniform E (the truth's geometric mean over the moving
      Gaussians, an oracle a user could at best hand-tune to) baked at default;
-     The floor: the true E put on the fit's drivers (`true E`), baked as fitted and at
-     each bake quality as it is. No fitted E can be expected to beat it on that
-     discretisation: where it is not 3x below the uniform start, the target is out of
-     any fit's reach at that quality, and the bake's discretisation is what limits;
+     The true E put on the fit's drivers (`true E`), baked as fitted and at each bake
+     quality as it is: what an exact recovery of E would score on that discretisation.
+     Where even it is not far below the uniform start, the bake's discretisation limits,
+     not E. It is not a bound: a fitted E can absorb part of the discretisation's error;
   5. each bake's positions (read back from its USD) against the converged truth under the
      same force: RMS over frames and moving Gaussians, as a fraction of the object's size.
 The error is taken over the Gaussians that the new force moves more than 1% of the
@@ -366,8 +366,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     if sel.sum() > 2:
         row.baseline_abs_ln = {k: float(np.median(np.abs(np.log(e / E_true[sel]))))
                                for k, e in (("uniform start", E_uniform), ("best uniform", E_best))}
-    # the floor: the true E on the fit's drivers, baked as the fitted E is (as fit, and at
-    # each bake quality as it is): what no fitted E can beat on that discretisation
+    # the true E on the fit's drivers, baked as the fitted E is (as fit, and at each bake
+    # quality as it is): what an exact recovery of E would score on that discretisation
     truth = truth_material(MaterialFile.load(out), pos, E_true, folder / "truth.pdmat")
     bakes = {"fitted, as fit": (["--material", str(out)], []), "true E, as fit": (["--material", str(truth)], [])}
     for qname in args.bake_qualities:

@@ -47,7 +47,7 @@ def test_degrade_darkens_blurs_and_adds_noise_of_the_stated_size() -> None:
     assert 40 < blurred[0, 10, 16, 0] < 0.9 * 255 * ft.EXPOSURE  # the step is no longer sharp
 
 
-def test_the_floor_material_holds_the_truths_geometric_mean_over_each_drivers_gaussians(tmp_path: Path) -> None:
+def test_the_true_E_material_holds_the_truths_geometric_mean_over_each_drivers_gaussians(tmp_path: Path) -> None:
     from pd_tool.materials.file import MaterialFile
 
     rng = np.random.default_rng(0)
@@ -88,7 +88,7 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing_or_the_start(tmp_
     assert err["fitted, as fit"] < 0.7 * err["still"], err
     assert err["fitted, as fit"] < err["uniform start"], err
     assert 0.5 < row["moving_share"] <= 1.0
-    # the floor and the E decomposition are there, and add up: |ln| >= |level| is a median's property
+    # the true-E bake and the E decomposition are there, and add up: |ln| >= |level| is a median's property
     assert 0 < err["true E, as fit"] < err["still"], err
     assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
     assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
