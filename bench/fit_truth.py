@@ -17,8 +17,8 @@ For each scene and hidden E field:
      simulated (no --quality), and at default and at final, matched to the fit's motion
      (the product's bake) and with the fitted E as it is (--no-match-fit); the uniform start E (the fit's
      --init-e) and the best uniform E (the truth's geometric mean over the moving
-     Gaussians, an oracle a user could at best hand-tune to) baked at default;
-     The true E put on the fit's drivers (`true E`), baked as fitted and at each bake
+     Gaussians, an oracle a user could at best hand-tune to) baked at each quality; and
+     the true E put on the fit's drivers (`true E`), baked as fitted and at each bake
      quality as it is: what an exact recovery of E would score on that discretisation.
      Where even it is not far below the uniform start, the bake's discretisation limits,
      not E. It is not a bound: a fitted E can absorb part of the discretisation's error;
@@ -41,7 +41,7 @@ and 2x below the best uniform E; median |ln| at most 0.5. Figures: docs/benchmar
 "Fit against a converged truth".
 
     python bench/fit_truth.py --quick                    # CPU, CI scale (minutes)
-    python bench/fit_truth.py --device cuda --gaussians 30000 --json out.json
+    python bench/fit_truth.py --device cuda --gaussians 20000 --scenes udon --fields smooth --json out.json
 """
 from __future__ import annotations
 
