@@ -29,28 +29,21 @@ FPS = 30.0  # the bake's and both rewrites'
 def read_poses(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every instance of a baked file, ordered by id: static [N] bool, and per frame
     positions [F, N, 3], orientations [F, N, 4] (w, x, y, z) and sigmas [F, N, 3] (the
-    instancer's scales over the writer's scale factor), scene units."""
-    from pxr import Usd, UsdGeom
+    instancer's scales over the writer's scale factor), scene units; ids [N]."""
+    from pxr import Usd
 
+    from usd_export import instance_arrays
     from usd_export.writer import DEFAULT_SCALE_FACTOR
 
     stage = Usd.Stage.Open(str(path))
-    insts = [UsdGeom.PointInstancer(p) for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
-    frames = int(stage.GetEndTimeCode() - stage.GetStartTimeCode()) + 1
-    ids = np.concatenate([np.asarray(i.GetIdsAttr().Get(), np.int64) for i in insts])
-    static = np.concatenate([np.full(len(i.GetIdsAttr().Get()), "Static" in i.GetPath().name) for i in insts])
-    order = np.argsort(ids, kind="stable")
+    start = stage.GetStartTimeCode()
     pos, quat, sig = [], [], []
-    for f in range(frames):
-        t = stage.GetStartTimeCode() + f
-        p = np.concatenate([np.asarray(i.GetPositionsAttr().Get(t), np.float32) for i in insts])
-        # GfQuath's memory is (i, j, k, real)
-        q = np.concatenate([np.asarray(i.GetOrientationsAttr().Get(t), np.float32) for i in insts])
-        s = np.concatenate([np.asarray(i.GetScalesAttr().Get(t), np.float32) for i in insts])
-        pos.append(p[order])
-        quat.append(q[order][:, [3, 0, 1, 2]])
-        sig.append(s[order] / DEFAULT_SCALE_FACTOR)
-    return static[order], np.stack(pos), np.stack(quat), np.stack(sig), ids[order]
+    for f in range(int(stage.GetEndTimeCode() - start) + 1):
+        ids, static, a = instance_arrays(stage, start + f, ("positions", "orientations", "scales"))
+        pos.append(a["positions"])
+        quat.append(a["orientations"][:, [3, 0, 1, 2]])  # GfQuath's memory is (i, j, k, real)
+        sig.append(a["scales"] / DEFAULT_SCALE_FACTOR)
+    return static, np.stack(pos), np.stack(quat), np.stack(sig), ids
 
 
 def rewrite(path: Path, pos: np.ndarray, quat: np.ndarray, sig: np.ndarray, static: np.ndarray | None,

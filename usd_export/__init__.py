@@ -21,6 +21,9 @@ Public API (importing `usd_export` itself does not import pxr):
     instance_positions(stage, time) -> (ids, positions)
         Every instance's position at `time`, sorted by id, across the moving
         (/Root/Instancer) and static (/Root/StaticInstancer) prims.
+    instance_arrays(stage, time, names=("positions",)) -> (ids, static, {name: array})
+        The same for positions, orientations (x, y, z, w as stored) and scales,
+        with whether each instance sits in a static prim.
     UsdExportError   (pd_tool.core.errors; a PdToolError: the CLI exits 2)
 
 Scales: the PointInstancer's unit-sphere prototype is scaled by
@@ -51,17 +54,19 @@ from __future__ import annotations
 
 from pd_tool.core.errors import UsdExportError
 
-__all__ = ["UsdBakeWriter", "validate_usd", "instance_positions", "UsdExportError"]
+__all__ = ["UsdBakeWriter", "validate_usd", "instance_positions", "instance_arrays", "UsdExportError"]
 
 
 def __getattr__(name: str):
     # Lazy: pxr is a heavy import and only bake/export needs it.
-    if name in ("UsdBakeWriter", "validate_usd", "instance_positions"):
+    if name in ("UsdBakeWriter", "validate_usd", "instance_positions", "instance_arrays"):
         try:
             if name == "UsdBakeWriter":
                 from .writer import UsdBakeWriter as obj
             elif name == "validate_usd":
                 from .validate import validate_usd as obj
+            elif name == "instance_arrays":
+                from .validate import instance_arrays as obj
             else:
                 from .validate import instance_positions as obj
         except ImportError as e:

@@ -158,22 +158,40 @@ def _instancers(stage: Usd.Stage) -> list[UsdGeom.PointInstancer]:
     return [UsdGeom.PointInstancer(p) for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
 
 
-def instance_positions(stage: Usd.Stage, time=Usd.TimeCode.Default()) -> tuple[np.ndarray, np.ndarray]:
-    """(ids [N] int64 sorted, positions [N, 3] float32) of every instance of every
-    PointInstancer on the stage at `time`: the moving and the static prims together,
-    which is what a DCC shows at that frame."""
-    ids, pos = [], []
+_WIDTHS = {"positions": 3, "orientations": 4, "scales": 3}  # what instance_arrays reads
+
+
+def instance_arrays(stage: Usd.Stage, time=Usd.TimeCode.Default(),
+                    names: tuple[str, ...] = ("positions",)) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(ids [N] int64 sorted, static [N] bool, {name: [N, k] float32}) of every instance of
+    every PointInstancer on the stage at `time`: the moving and the static prims together,
+    which is what a DCC shows at that frame. `names` of positions [N, 3], orientations
+    [N, 4] (as stored: x, y, z, w) and scales [N, 3]; `static`: the instance sits in a
+    Static* prim, written once."""
+    ids, static, cols = [], [], {n: [] for n in names}
     for inst in _instancers(stage):
-        p = inst.GetPositionsAttr().Get(time)
+        prim = inst.GetPrim()
+        for n in names:
+            v = prim.GetAttribute(n).Get(time)
+            cols[n].append(np.zeros((0, _WIDTHS[n]), np.float32) if v is None
+                           else np.asarray(v, dtype=np.float32).reshape(-1, _WIDTHS[n]))
         i = inst.GetIdsAttr().Get()
-        p = np.zeros((0, 3), np.float32) if p is None else np.asarray(p, dtype=np.float32)
-        ids.append(np.arange(len(p), dtype=np.int64) if i is None else np.asarray(i, dtype=np.int64))
-        pos.append(p)
+        count = len(i) if i is not None else len(cols[names[0]][-1]) if names else 0
+        ids.append(np.arange(count, dtype=np.int64) if i is None else np.asarray(i, dtype=np.int64))
+        static.append(np.full(count, prim.GetName().startswith("Static")))
     if not ids:
-        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
-    ids_all, pos_all = np.concatenate(ids), np.concatenate(pos)
+        return (np.zeros(0, np.int64), np.zeros(0, bool),
+                {n: np.zeros((0, _WIDTHS[n]), np.float32) for n in names})
+    ids_all = np.concatenate(ids)
     order = np.argsort(ids_all, kind="stable")
-    return ids_all[order], pos_all[order]
+    return ids_all[order], np.concatenate(static)[order], {n: np.concatenate(c)[order] for n, c in cols.items()}
+
+
+def instance_positions(stage: Usd.Stage, time=Usd.TimeCode.Default()) -> tuple[np.ndarray, np.ndarray]:
+    """(ids [N] int64 sorted, positions [N, 3] float32) of every instance at `time`
+    (instance_arrays)."""
+    ids, _, cols = instance_arrays(stage, time)
+    return ids, cols["positions"]
 
 
 def check_instance_split(stage: Usd.Stage, every_sample: bool = True) -> list[str]:

@@ -509,6 +509,27 @@ def test_static_instances_are_written_once(tmp_path):
     validate_usd(path)
 
 
+def test_instance_arrays_read_back_every_instances_pose_and_where_it_sits(tmp_path):
+    from usd_export import instance_arrays
+    from usd_export.writer import DEFAULT_SCALE_FACTOR
+    data, static = pinned_bake()
+    pos, quats, sig, sh, opac = data
+    stage = Usd.Stage.Open(str(write(tmp_path / "s.usd", data, start=0, static=static)))
+    for f in (0, 3, 7):
+        ids, where, a = instance_arrays(stage, f, ("positions", "orientations", "scales"))
+        np.testing.assert_array_equal(ids, np.arange(len(static)))
+        np.testing.assert_array_equal(where, static)
+        np.testing.assert_allclose(a["positions"], pos[f], rtol=0, atol=1e-6)
+        # stored as half-precision (x, y, z, w); q and -q are one rotation
+        q = a["orientations"][:, [3, 0, 1, 2]]
+        sign = np.sign((q * quats[f]).sum(axis=1, keepdims=True))
+        np.testing.assert_allclose(q * sign, quats[f], rtol=0, atol=2e-3)
+        np.testing.assert_allclose(a["scales"], sig[f] * DEFAULT_SCALE_FACTOR, rtol=1e-6)
+    empty = Usd.Stage.CreateInMemory()
+    ids, where, a = instance_arrays(empty, 0, ("positions", "orientations"))
+    assert ids.shape == (0,) and where.shape == (0,) and a["orientations"].shape == (0, 4)
+
+
 def test_static_split_halves_the_per_frame_bytes_of_a_half_pinned_file(tmp_path):
     data, static = pinned_bake(n=4000, frames=40)
     full = write(tmp_path / "full.usd", data, start=0).stat().st_size
