@@ -903,7 +903,8 @@ def demo(out_dir: Path, quality: str, device: str) -> None:
     Writes the plant (.ply), renders reference videos of it swaying with a hidden
     stiffness per region (stem stiff, flower soft; two videos pushed two ways and seen
     from two sides, one at draft), fits the stiffness back from them, bakes a poke with
-    the fitted material to USD, and writes previews and a picture of the fitted E field. It ends with the paths and how close the fit got.
+    the fitted material to USD, and writes previews and a picture of the fitted E field.
+    It ends with the paths and how close the fit got.
 
     \b
     Example:

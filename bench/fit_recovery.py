@@ -159,6 +159,16 @@ def push_direction(k: int) -> tuple[float, float, float]:
     return (1.0, 0.0, 0.0) if k % 2 == 0 else (0.0, 1.0, 0.0)
 
 
+def setting_overrides(items: list[str]) -> dict:
+    """`--set FIELD=VALUE` items as {field: value}; each VALUE is JSON (true, false and null
+    in any case)."""
+    out = {}
+    for item in items:
+        key, _, text = item.partition("=")
+        out[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -214,10 +224,7 @@ def main() -> None:
     if args.device == "cpu":
         torch.set_num_threads(1)
     q = load_preset("quality", args.quality)
-    overrides = {}
-    for item in args.set:
-        key, _, text = item.partition("=")
-        overrides[key] = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
+    overrides = setting_overrides(args.set)
     grads = record_residual_gradients() if args.residual_gradients else None
     substeps = None
     if args.substeps is not None and args.substeps != "truth":

@@ -58,6 +58,7 @@ import numpy as np
 from usd_export import instance_positions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_recovery's --set parser
 
 SCENES = {"plant": "+z", "udon": "-y", "donut": "-y", "tree": "-y"}
 CAPTURES = {"udon": "udon.ply", "donut": "donut_fused.ply", "tree": "tree_100k.splat"}  # under --data
@@ -134,12 +135,15 @@ def particle_E(prep, gaussian_E: np.ndarray) -> np.ndarray:
     return e
 
 
+def group_log_mean(members: np.ndarray, E: np.ndarray, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean of ln E over each of q groups [q] (0 for an empty group), members per group [q])."""
+    count = np.bincount(members, minlength=q)
+    return np.bincount(members, np.log(E), q) / np.maximum(count, 1), count
+
+
 def driver_E(prep, drivers, gaussian_E: np.ndarray) -> np.ndarray:
     """Each driver's E [Q]: the geometric mean over its particles."""
-    members = drivers.labels.cpu().numpy()
-    log_e = np.log(particle_E(prep, gaussian_E))
-    q = len(drivers.positions)
-    return np.exp(np.bincount(members, log_e, q) / np.maximum(np.bincount(members, minlength=q), 1))
+    return np.exp(group_log_mean(drivers.labels.cpu().numpy(), particle_E(prep, gaussian_E), len(drivers.positions))[0])
 
 
 def degrade(frames: np.ndarray, rng) -> np.ndarray:
@@ -216,20 +220,20 @@ def override_fit_defaults(items: list[str]) -> None:
     subclass of FitSettings with these defaults."""
     import dataclasses
 
+    from fit_recovery import setting_overrides
+
     import pd_tool.fit.settings as fs
 
-    if not items:
+    overrides = setting_overrides(items)
+    if not overrides:
         return
     base = fs.FitSettings
     names = {f.name: f for f in dataclasses.fields(base)}
-    new = []
-    for item in items:
-        key, _, text = item.partition("=")
+    for key in overrides:
         if key not in names:
             raise SystemExit(f"--set {key}: FitSettings has no such field")
-        value = json.loads(text.lower() if text.lower() in ("true", "false", "null") else text)
-        new.append((key, names[key].type, dataclasses.field(default=value)))
-    fs.FitSettings = dataclasses.make_dataclass("FitSettings", new, bases=(base,))
+    fs.FitSettings = dataclasses.make_dataclass(
+        "FitSettings", [(k, names[k].type, dataclasses.field(default=v)) for k, v in overrides.items()], bases=(base,))
 
 
 def cli(args: list[str]) -> None:
@@ -274,8 +278,7 @@ def truth_material(fitted, pos: np.ndarray, E_true: np.ndarray, path: Path) -> P
     rest = fitted.driver_rest
     near = nearest_drivers(torch.as_tensor(pos, dtype=torch.float64), torch.as_tensor(rest, dtype=torch.float64),
                            k=1)[:, 0].numpy()
-    count = np.bincount(near, minlength=len(rest))
-    log_e = np.bincount(near, np.log(E_true), len(rest)) / np.maximum(count, 1)
+    log_e, count = group_log_mean(near, E_true, len(rest))
     # a driver no Gaussian is nearest to (a filled particle's) takes its nearest Gaussian's E
     empty = count == 0
     if empty.any():
@@ -402,7 +405,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         suffix = "" if qname == args.quality else f", {qname}"
         for label_e in ("uniform start", "best uniform"):
             for what in ("fitted", "true E"):
-                row.ratios[f"{label_e} / {what}, {qname}"] = row.errors[label_e + suffix] / row.errors[f"{what}, {qname}"]
+                ratio = row.errors[label_e + suffix] / row.errors[f"{what}, {qname}"]
+                row.ratios[f"{label_e} / {what}, {qname}"] = ratio
     row.errors["truth peak"] = float(np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1).max() / size)
     return row
 
