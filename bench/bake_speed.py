@@ -10,7 +10,10 @@ warp's mempool high-water mark where available.
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import json
+import pstats
 import resource
 import sys
 import tempfile
@@ -31,6 +34,8 @@ def main() -> None:
     ap.add_argument("--preset", default="flower")
     ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 3000 Gaussians, 0.2 s of animation, draft")
+    ap.add_argument("--profile", type=Path, help="also write cProfile's 60 costliest calls (cumulative) of the timed "
+                    "bake to this text file; set CUDA_LAUNCH_BLOCKING=1 so that GPU work is charged where it is launched")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -54,18 +59,27 @@ def main() -> None:
                                    device=args.device), **kw)
         if args.device == "cuda":
             torch.cuda.reset_peak_memory_stats()
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         t0 = time.perf_counter()
         res = bake(scene, Path(tmp) / "out.usd", prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=BakeSettings(seconds=args.seconds, fps=args.fps, quality=args.quality, fmt=args.fmt,
                                          device=args.device, stop_at_rest=False), **kw)
         wall = time.perf_counter() - t0
+        if profiler:
+            profiler.disable()
+            text = io.StringIO()
+            pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(60)
+            args.profile.write_text(text.getvalue())
         size = res.bytes_written
     out = {
         "device": args.device,
         "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "thin": args.thin, "report": res.report, "drivers": res.drivers, "frames": res.frames,
         "substeps_per_frame": res.substeps_per_frame, "quality": args.quality, "fmt": args.fmt,
-        "wall_s": wall, "timings_s": res.timings,
+        "wall_s": wall, "timings_s": res.timings, "setup_parts_s": res.setup_parts,
+        "output_seconds": res.output_seconds,
         "sim_plus_interp_s": res.timings["simulate"] + res.timings["interpolate"],
         "file_bytes": size, "bytes_per_frame": size / res.frames,
         "host_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

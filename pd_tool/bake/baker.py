@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -166,7 +167,13 @@ class BakeResult:
     peak_displacement: float  # scene units, over all Gaussians and frames
     object_size: float  # the simulated Gaussians' longest extent, scene units
     displacement_per_frame: list[float] = field(default_factory=list)  # max |x - x0| per frame, scene units
-    timings: dict[str, float] = field(default_factory=dict)  # seconds: setup, simulate, interpolate, write, total
+    # seconds: setup, simulate, interpolate, write (close included), close (the last save,
+    # the validation, the move into place), total
+    timings: dict[str, float] = field(default_factory=dict)
+    # seconds of setup by part: prepare (cleaning, volumes, the grid), grid (thin parts and
+    # the cost checks), match (a fitted E carried to this discretisation), drivers (K-Means
+    # and nearest drivers), solver, outputs (the animator and the writers)
+    setup_parts: dict[str, float] = field(default_factory=dict)
     report: list[str] = field(default_factory=list)
     outputs: dict[str, Path] = field(default_factory=dict)  # format ('usd', 'ply-seq', ...) -> path
     output_bytes: dict[str, int] = field(default_factory=dict)  # format -> bytes written
@@ -333,12 +340,26 @@ class Baker:
         read = {"--scene": getattr(self.scene, "source", None), **(inputs or {})}
         self.paths = check_bake_outputs(self.out, preview=self.preview, frames_dir=self.frames_dir, inputs=read,
                                         fmt=self.settings.fmt, splat_formats=self.settings.splat_formats)
-        self._prepare(material, material_file, prepare_options, camera)
-        self._choose_grid()
+        self.setup_parts: dict[str, float] = {}
+        with self._part("prepare"):
+            self._prepare(material, material_file, prepare_options, camera)
+        with self._part("grid"):
+            self._choose_grid()
         self._build_simulation(material, material_file)
-        self._open_outputs(camera)
+        with self._part("outputs"):
+            self._open_outputs(camera)
         self.timings = {"setup": time.perf_counter() - self.t_start, "simulate": 0.0, "interpolate": 0.0,
                         "write": 0.0}
+
+    @contextmanager
+    def _part(self, name: str):
+        """Add the block's seconds to setup_parts[name]; on CUDA the queued work is waited
+        for first, so that each part is charged its own kernels."""
+        t = time.perf_counter()
+        yield
+        if str(getattr(self, "dev", "cpu")).startswith("cuda"):
+            torch.cuda.synchronize()
+        self.setup_parts[name] = self.setup_parts.get(name, 0.0) + time.perf_counter() - t
 
     def _prepare(self, material: Material | None, material_file: MaterialFile | None,
                  prepare_options: PrepareOptions | None, camera: Camera | None) -> None:
@@ -517,14 +538,19 @@ class Baker:
     def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
         """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
         prep, s, force = self.prep, self.settings, self.force
-        self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
+        with self._part("drivers"):
+            self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
+        t_solver = time.perf_counter()
         d_rest = self.drivers.positions.double().cpu().numpy()
         d_static = self.drivers.static.cpu().numpy().astype(bool)
         if material_file is not None:
             E = material_file.E_at(prep.transform.to_scene(d_rest))
             if self._matches(prep, self.ratio):
                 before, match_frames = self.work_estimate, self._match_frames(prep, self.ratio)
-                E = self._match_fit(material_file, E)
+                t_match = time.perf_counter()
+                with self._part("match"):
+                    E = self._match_fit(material_file, E)
+                t_solver += time.perf_counter() - t_match
                 self.E_top = float(E.max())
                 self._check_cost(prep, self.ratio)  # a stiffer E takes more substeps
                 self.work_estimate = _with_match(before, self.work_estimate, self.n_frames, match_frames)
@@ -541,6 +567,9 @@ class Baker:
         self.force_end = force.start + force.duration
         self.n_drivers = len(d_rest)
         self.substeps = self.solver.substeps_per_frame(self.frame_dt)
+        if str(self.dev).startswith("cuda"):
+            torch.cuda.synchronize()
+        self.setup_parts["solver"] = time.perf_counter() - t_solver
 
     def _open_outputs(self, camera: Camera | None) -> None:
         """Every Gaussian follows its drivers; the writers are opened last, so that no
@@ -563,6 +592,7 @@ class Baker:
                 self.paths["usd"], n_points=scene.count, fps=self.settings.fps, start_frame=0, up_axis=up_axis,
                 meters_per_unit=float(prep.transform.scale), fmt=self.settings.fmt, colors=scene.colors.cpu().numpy(),
                 opacities=scene.opacities.cpu().numpy(), sh=scene.sh.cpu().numpy(), static=static,
+                threaded=True,  # USD work overlaps the next frame's simulation (GPU waits release the GIL)
             )
         try:
             splat = open_splat_writers(self.paths, scene.to("cpu"), static=static, up_axis=prep.options.up_axis,
@@ -657,7 +687,8 @@ class Baker:
         self._closed = True  # close() deletes its temporaries itself when it fails
         t = time.perf_counter()
         written = self.outputs.close()
-        self.timings["write"] += time.perf_counter() - t
+        self.timings["close"] = time.perf_counter() - t  # counted in write too
+        self.timings["write"] += self.timings["close"]
         self.timings["total"] = time.perf_counter() - self.t_start
         paths = {f: p for f, (p, _) in written.items()}
         sizes = {f: n for f, (_, n) in written.items()}
@@ -666,7 +697,8 @@ class Baker:
             substeps_per_frame=self.substeps, gaussians=self.scene.count, drivers=self.n_drivers,
             seconds_elapsed=time.perf_counter() - self.t_start, bytes_written=sum(sizes.values()),
             peak_displacement=max(self.disp), object_size=self.prep.object_size_m / float(self.prep.transform.scale),
-            displacement_per_frame=self.disp, report=self._report(), timings=self.timings, outputs=paths,
+            displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
+            setup_parts=dict(self.setup_parts), outputs=paths,
             output_bytes=sizes, output_seconds=dict(self.outputs.seconds),
             work_estimate=self.work_estimate,
         )

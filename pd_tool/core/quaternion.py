@@ -92,6 +92,13 @@ def _bilinear(a: Tensor, b: Tensor, name: str, B: Tensor) -> Tensor:
     return ab @ _basis(name, B, ab)
 
 
+def quat_left_matrix(q: np.ndarray) -> np.ndarray:
+    """[4, 4] L with q * p = L @ p for a wxyz quaternion q [4] and any p [4]: rotating many
+    quaternions by one is then a single matrix product, rows @ L.T."""
+    w, x, y, z = np.asarray(q, np.float64)
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+
+
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product a * b of wxyz quaternions [..., 4] (apply b, then a)."""
     a, b = torch.broadcast_tensors(a, b)

@@ -122,6 +122,7 @@ def fill_interior(
     particles_per_cell_axis: int = PARTICLES_PER_CELL_AXIS,
     time_budget_s: float = 30.0,
     grid_origin: Sequence[float] | np.ndarray | None = None,
+    device: str = "cpu",
 ) -> FillResult:
     """Find the inside of a Gaussian shell and place particles in it.
 
@@ -140,6 +141,7 @@ def fill_interior(
         grid_origin: [3] a corner of the simulation grid, metres; pass it so that the
             lattice aligns with the grid and each interior cell holds exactly p^3 particles.
             Default: the lattice is aligned to multiples of `cell`.
+        device: where the density splat runs (warp's "cpu" or "cuda:N"); the rest is numpy.
     Returns:
         FillResult; `points` are in the kind of `positions` (numpy, or torch on its device).
     Raises:
@@ -160,7 +162,7 @@ def fill_interior(
         return _empty(positions, float("nan"), "not filled: interior filling is off (--fill off)", 0.0)
     deadline = _Deadline(float(time_budget_s))
     try:
-        return _fill(pos, quat, scl, opa, positions, float(cell), mode, ppc, grid_origin, deadline)
+        return _fill(pos, quat, scl, opa, positions, float(cell), mode, ppc, grid_origin, deadline, device)
     except _OverBudget as e:
         msg = (
             f"interior filling ran past its {time_budget_s:g} s time budget while {e.stage}; "
@@ -199,7 +201,7 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
 # ----------------------------------------------------------------------------- pipeline
 
 
-def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline) -> FillResult:
+def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, device="cpu") -> FillResult:
     keep = np.isfinite(pos).all(1) & np.isfinite(opa) & (opa > 0)
     if keep.sum() < 4:
         return _empty(like, 0.0, "not filled: fewer than 4 usable Gaussians", 0.0)
@@ -251,7 +253,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline) -> 
     k, h, i0, shape, sig, radius = grid
     corner = origin + i0 * h  # metres, low corner of voxel (0, 0, 0)
 
-    dens = _splat_density((pos - corner) / h, rot, sig / h, opa, radius, shape, deadline)
+    dens = _splat_density((pos - corner) / h, rot, sig / h, opa, radius, shape, deadline, device)
     shell = dens >= SHELL_THRESHOLD
     shell = _close(shell)
     deadline.check("closing the shell")

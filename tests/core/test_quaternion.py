@@ -79,3 +79,12 @@ def test_warp_functions_match_torch() -> None:
     assert torch.allclose(mats, quat_to_matrix(a), atol=1e-5)
     assert torch.allclose(prods, quat_multiply(a, b), atol=1e-5)
     assert torch.allclose(tops, rotation_from_cross_covariance(S), atol=1e-4)
+
+
+def test_left_matrix_is_the_hamilton_product() -> None:
+    from pd_tool.core.quaternion import quat_left_matrix
+
+    a, b = _random_quats(1, seed=3)[0], _random_quats(500, seed=4)
+    want = quat_multiply(a.expand(500, 4), b)
+    got = b.numpy() @ quat_left_matrix(a.numpy()).T
+    assert abs(got - want.numpy()).max() < 1e-14

@@ -181,6 +181,31 @@ def test_fill_adds_simulated_particles_after_the_gaussians() -> None:
     assert selection_scene(filled).count == plant.count
 
 
+def test_a_finer_grid_takes_the_fill_over_as_found_again(monkeypatch) -> None:
+    # The interior is found on FILL_GRID's cells whatever the grid, so a preparation on
+    # another grid may move the found fill along instead of finding it again: the result
+    # must be the one a fresh preparation gives, and fill_interior must not run.
+    from pd_tool.prepare import preparation as pp
+
+    plant = make_plant(1500, seed=0)
+    coarse = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=32))
+    fresh = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=48))
+    assert coarse.n_filled > 0 and coarse.fill_found is not None
+
+    def refuse(*a, **k):
+        raise AssertionError("the fill was found again")
+
+    monkeypatch.setattr(pp, "fill_interior", refuse)
+    moved = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=48), reuse_fill=coarse)
+    assert moved.n_filled == fresh.n_filled
+    np.testing.assert_array_equal(moved.fill_source, fresh.fill_source)
+    np.testing.assert_allclose(moved.positions_sim, fresh.positions_sim, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(moved.volumes, fresh.volumes, rtol=1e-9)
+    # another fill mode is found, not taken over
+    with pytest.raises(AssertionError, match="found again"):
+        prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="auto", grid_res=48), reuse_fill=coarse)
+
+
 def test_a_real_closed_scan_is_filled_and_weighs_the_same_at_every_quality(shared_data) -> None:
     """The tree capture (30,000 of its Gaussians): found on the simulation's own cells, its
     interior was missed at draft's 32 cells and filled from 64, so draft simulated a hollow
