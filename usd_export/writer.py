@@ -547,7 +547,9 @@ def _per_splat_inputs(n: int, colors, opacities, sh, ids):
         if not np.isfinite(a).all() or a.min() < 0 or a.max() > 1:
             raise UsdExportError(f"{name} must lie in 0-1 (found {a.min():g}..{a.max():g}); "
                                  f"pass activated values, not logits")
-    ids = np.arange(n, dtype=np.int64) if ids is None else np.asarray(_np(ids), dtype=np.int64)
+    if ids is None:
+        return colors, opacities, sh, np.arange(n, dtype=np.int64)
+    ids = np.asarray(_np(ids), dtype=np.int64)
     if ids.shape != (n,) or np.unique(ids).size != n:
         raise UsdExportError(f"ids must be {n} distinct integers")
     return colors, opacities, sh, ids

@@ -238,7 +238,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
         shape = tuple(int(v) for v in (i1 - i0))
         if math.prod(shape) > MAX_VOXELS:
             continue
-        cov_diag = np.einsum("nij,nj,nij->ni", rot, sig**2, rot)  # diagonal of R S^2 R^T
+        cov_diag = (rot * rot * (sig * sig)[:, None, :]).sum(-1)  # diagonal of R S^2 R^T
         radius = np.ceil(3.0 * np.sqrt(cov_diag) / h + 0.5).astype(np.int64)  # [N, 3]
         if float(np.prod(2 * radius + 1, axis=1).sum()) > MAX_SPLAT_WORK:
             continue
@@ -310,7 +310,7 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
 
     wp.config.quiet = True
     wp.init()
-    prec = np.einsum("nij,nj,nkj->nik", rot, 1.0 / sig_v**2, rot).astype(np.float32)
+    prec = np.matmul(rot / (sig_v * sig_v)[:, None, :], rot.transpose(0, 2, 1)).astype(np.float32)  # R S^-2 R^T
     radius = (np.asarray(radius).reshape(len(u), -1) * np.ones((1, 3), np.int64)).astype(np.int32)
     work = np.cumsum(np.prod(2 * radius.astype(np.int64) + 1, axis=1))
     dens = wp.zeros(shape, dtype=float, device=device)

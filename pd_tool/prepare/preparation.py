@@ -186,9 +186,7 @@ class PreparedScene:
     report: list[str] = field(default_factory=list)
     fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
     thin: Any = None  # pd_tool.prepare.thickness.ThinParts of the moving particles at this grid, or None
-    # (pd_tool.prepare.fill.FillResult, the object's corner [3] m it was found from), or None
-    # without a fill; prepare_scene(reuse_fill=) moves it to another grid
-    fill_found: Any = None
+    grid_free: Any = None  # GridFree: what another grid's preparation takes over (prepare_scene(reuse=))
 
     # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
     # interior particles added by filling (simulated, never rendered).
@@ -450,63 +448,67 @@ def particle_volumes(positions_sim: np.ndarray, scanned: int, filled: np.ndarray
 FILL_GRID = 128
 
 
+@dataclass
+class GridFree:
+    """What a preparation finds that does not depend on its grid, so that a preparation of
+    the same scene on another grid takes it over (prepare_scene(reuse=)): the foreground
+    [F] and static mask [F] with their report lines, the interior fill as found and the
+    object's corner [3] m it was found from (None with --fill off), and the scanned
+    Gaussians' volumes [F] m^3 (surface_volumes works on the Gaussians' own box)."""
+
+    options: PrepareOptions  # up axis resolved; the grid is not compared
+    foreground: np.ndarray
+    static: np.ndarray
+    report: list[str]
+    fill: Any
+    corner: np.ndarray | None
+    scanned_volumes: np.ndarray
+
+    def serves(self, scene: GaussianScene, options: PrepareOptions, prep: PreparedScene) -> bool:
+        return prep.scene is scene and replace(self.options, grid_res=options.grid_res) == options
+
+
 def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *,
-                  reuse_fill: PreparedScene | None = None) -> PreparedScene:
-    """Select, fix, map and weigh the Gaussians of `scene` for simulation. reuse_fill: a
-    preparation of the same scene and foreground on another grid, whose interior fill is
-    taken over instead of found again (the fill is found on FILL_GRID's cells whatever the
-    grid: a third of a 300k preparation's time)."""
+                  reuse: PreparedScene | None = None) -> PreparedScene:
+    """Select, fix, map and weigh the Gaussians of `scene` for simulation. reuse: a
+    preparation of the same scene with the same options on another grid, whose
+    grid-independent parts (GridFree: foreground, pins, interior fill, scanned volumes)
+    are taken over instead of found again: at 300k Gaussians, two thirds of the time."""
     options = options or PrepareOptions()
     if options.density_kg_m3 <= 0 or not math.isfinite(options.density_kg_m3):
         raise PreparationError(f"density {options.density_kg_m3} must be a positive number of kg/m^3")
-    if options.up_axis == "auto":
-
-        up, guess = resolve_up(scene.positions.detach().cpu().double().numpy(),
-                               "auto", scene.scales.detach().cpu().double().numpy(),
-                               scene.opacities.detach().cpu().double().numpy())
-        # resolved here, so that a fit stores the axis it simulated with
-        options = replace(options, up_axis=up)
-        up_report = [up_line(guess)]
-    else:
-        up_report = []
-    fg, report = select_foreground(scene, options)
-    report = up_report + report
-    pos_scene = scene.positions.detach().cpu().double().numpy()[fg]
-    static, static_report = static_selection(pos_scene, options)
-    report += static_report
-    transform, dx, dims = fit_transform(pos_scene, options)
-    pos_sim = transform.to_sim(pos_scene)
-    fill_source, filled, fill_found = None, np.zeros(0), None
     if options.fill not in ("auto", "on", "off"):
         raise PreparationError(f"--fill {options.fill!r} must be auto, on or off")
-    if options.fill != "off":
-
-        fg_t = torch.as_tensor(fg, device=scene.device)
+    if options.up_axis == "auto" and reuse is not None:
+        options = replace(options, up_axis=reuse.options.up_axis)  # resolved there
+    free = reuse.grid_free if reuse is not None and reuse.grid_free is not None else None
+    if free is not None and not free.serves(scene, options, reuse):
+        free = None
+    if free is None:
+        free = _grid_free(scene, options)
+    options = free.options.updated(grid_res=options.grid_res)
+    fg, static, report = free.foreground, free.static, list(free.report)
+    pos_scene = scene.positions.detach().cpu().double().numpy()[fg]
+    transform, dx, dims = fit_transform(pos_scene, options)
+    pos_sim = transform.to_sim(pos_scene)
+    fill_source, filled = None, np.zeros(0)
+    res = free.fill
+    if res is not None:
         # found on FILL_GRID's cells, set on the object's own corner, whatever this grid;
-        # then sampled at this grid's density
-        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
+        # then moved to this grid's corner and sampled at its density
         corner = pos_sim.min(axis=0)
-        found = reuse_fill.fill_found if reuse_fill is not None else None
-        if (found is not None and reuse_fill.scene is scene and reuse_fill.options.fill == options.fill
-                and reuse_fill.transform.scale == transform.scale and np.array_equal(reuse_fill.foreground, fg)):
-            # the interior does not depend on this grid: move the other preparation's along
-            res = replace(found[0], points=found[0].points - found[1] + corner)
-        else:
-            res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
-                                scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
-                                scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
-                                grid_origin=corner, device=_warp_device(scene.device))
-        fill_found = (res, corner)
+        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
         if res.decision and len(res.points):
-            points, fill_source, filled = resample_fill(res.points, res.source, res.interior_volume,
-                                                        cell / PARTICLES_PER_CELL_AXIS, dx / PARTICLES_PER_CELL_AXIS)
+            points, fill_source, filled = resample_fill(res.points - free.corner + corner, res.source,
+                                                        res.interior_volume, cell / PARTICLES_PER_CELL_AXIS,
+                                                        dx / PARTICLES_PER_CELL_AXIS)
             pos_sim = np.concatenate([pos_sim, points])
             static = np.concatenate([static, static[fill_source]])
             report.append(f"fill ({options.fill}): filled {len(points):,} interior particles "
                           f"({res.interior_volume:.3g} m^3): {res.reason.partition('): ')[2]}")
         else:
             report.append(f"fill ({options.fill}): {res.reason}")
-    volumes = particle_volumes(pos_sim, len(fg), filled)
+    volumes = np.concatenate([free.scanned_volumes, filled])
     report.append(
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
         f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
@@ -518,7 +520,7 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
     prep = PreparedScene(
         scene=scene, options=options, foreground=fg, static=static, transform=transform,
         positions_sim=pos_sim, volumes=volumes, masses=volumes * options.density_kg_m3,
-        dx=dx, grid_dims=dims, report=report, fill_source=fill_source, thin=thin, fill_found=fill_found,
+        dx=dx, grid_dims=dims, report=report, fill_source=fill_source, thin=thin, grid_free=free,
     )
     if static.any() and (~static).any():
         apart = prep.detached_share()
@@ -532,6 +534,37 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
 def _warp_device(device: torch.device) -> str:
     """Where warp runs a scene's preparation kernels: its CUDA device, else the CPU."""
     return str(device) if device.type == "cuda" else "cpu"
+
+
+def _grid_free(scene: GaussianScene, options: PrepareOptions) -> GridFree:
+    """The grid-independent parts of preparing `scene` (GridFree), found."""
+    if options.up_axis == "auto":
+        up, guess = resolve_up(scene.positions.detach().cpu().double().numpy(),
+                               "auto", scene.scales.detach().cpu().double().numpy(),
+                               scene.opacities.detach().cpu().double().numpy())
+        # resolved here, so that a fit stores the axis it simulated with
+        options = replace(options, up_axis=up)
+        up_report = [up_line(guess)]
+    else:
+        up_report = []
+    fg, report = select_foreground(scene, options)
+    report = up_report + report
+    pos_scene = scene.positions.detach().cpu().double().numpy()[fg]
+    static, static_report = static_selection(pos_scene, options)
+    report += static_report
+    transform = fit_transform(pos_scene, options)[0]
+    pos_sim = transform.to_sim(pos_scene)
+    res, corner = None, None
+    if options.fill != "off":
+        fg_t = torch.as_tensor(fg, device=scene.device)
+        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
+        corner = pos_sim.min(axis=0)
+        res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
+                            scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
+                            scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
+                            grid_origin=corner, device=_warp_device(scene.device))
+    return GridFree(options=options, foreground=fg, static=static, report=report, fill=res, corner=corner,
+                    scanned_volumes=surface_volumes(pos_sim))
 
 
 # the share of the moving particles held apart from the static ones
@@ -584,7 +617,7 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
         else:
             stop, apart = "apart", prep.detached_share(dx)  # on cells of dx, not yet the finer box's
             if apart <= most_apart:
-                finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target), reuse_fill=prep)
+                finer = prepare_scene(prep.scene, replace(prep.options, grid_res=target), reuse=prep)
                 apart = finer.detached_share()  # where its own cells fall
                 if apart <= most_apart:
                     break

@@ -55,11 +55,29 @@ MAX_GRID = 256  # the largest grid the CLI accepts
 SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5 s on a CPU core)
 
 
-def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray, ...]:
-    """Per particle: count [N], weight [N], weighted sum [N, 3] and weighted sum of outer
-    products [N, 3, 3] of the particles in the 3x3x3 bins of edge h around its own, positions
-    in units of h relative to its bin's corner (so that the covariance does not cancel at
-    large coordinates). w [N]: the particles' weights."""
+# Moments a window sums, packed per bin: count, weight, weighted sums of the 3 coordinates
+# and of their 6 distinct products (xx, yy, zz, xy, xz, yz), about the bin's own corner.
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _shift_map(o: np.ndarray) -> np.ndarray:
+    """[11, 11] A with packed moments about a corner moved by -o (positions y = x + o):
+    m' = m @ A. Shifting is linear: s' = s + n o, q'_ab = q_ab + s_a o_b + o_a s_b + n o_a o_b."""
+    A = np.eye(11)
+    for a in range(3):
+        A[1, 2 + a] = o[a]
+    for k, (a, b) in enumerate(_PAIRS):
+        A[2 + b, 5 + k] += o[a]
+        A[2 + a, 5 + k] += o[b]
+        A[1, 5 + k] = o[a] * o[b]
+    return A
+
+
+def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per occupied bin of edge h: the packed moments [M, 11] (_PAIRS) of the particles in
+    the 3x3x3 bins around it, positions in units of h about its own corner (so that the
+    covariance does not cancel at large coordinates); and each particle's bin [N]. Every
+    particle of a bin sees the same window. w [N]: the particles' weights."""
     keys = np.floor(x / h).astype(np.int64)
     lo = keys.min(axis=0) - 1
     k = keys - lo
@@ -67,35 +85,22 @@ def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray,
     lin = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
     cells, inverse = np.unique(lin, return_inverse=True)
     inverse = inverse.reshape(-1)
-    # moments per occupied cell, about each cell's own corner
+    m = len(cells)
     local = x / h - keys
-    c_c = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
-    n_c = np.bincount(inverse, w, len(cells))
-    s_c = np.stack([np.bincount(inverse, w * local[:, a], len(cells)) for a in range(3)], 1)
-    q_c = np.stack([np.bincount(inverse, w * local[:, a] * local[:, b], len(cells))
-                    for a in range(3) for b in range(3)], 1).reshape(-1, 3, 3)
+    cols = [np.ones(len(x)), w] + [w * local[:, a] for a in range(3)] + [w * local[:, a] * local[:, b]
+                                                                          for a, b in _PAIRS]
+    own = np.stack([np.bincount(inverse, c, m) for c in cols], 1)
     cell_k = np.stack([cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]], 1)
-    c_w = np.zeros(len(cells))
-    n_w = np.zeros(len(cells))
-    s_w = np.zeros((len(cells), 3))
-    q_w = np.zeros((len(cells), 3, 3))
+    win = np.zeros((m, 11))
     half = WINDOW_BINS // 2
     for off in np.ndindex(WINDOW_BINS, WINDOW_BINS, WINDOW_BINS):
         o = np.array(off) - half
         nb = cell_k + o
         nb_lin = (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2]
-        pos = np.searchsorted(cells, nb_lin).clip(0, len(cells) - 1)
-        hit = cells[pos] == nb_lin
-        j = pos[hit]
-        # shift the neighbour's moments from its corner to ours: y = local + o
-        n, s, q = n_c[j], s_c[j], q_c[j]
-        s_shift = s + n[:, None] * o
-        q_shift = q + np.einsum("ka,b->kab", s, o) + np.einsum("a,kb->kab", o, s) + n[:, None, None] * np.outer(o, o)
-        c_w[hit] += c_c[j]
-        n_w[hit] += n
-        s_w[hit] += s_shift
-        q_w[hit] += q_shift
-    return c_w[inverse], n_w[inverse], s_w[inverse], q_w[inverse]
+        pos = np.searchsorted(cells, nb_lin).clip(0, m - 1)
+        hit = np.flatnonzero(cells[pos] == nb_lin)
+        win[hit] += own[pos[hit]] @ _shift_map(o)
+    return win, inverse
 
 
 def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
@@ -110,13 +115,17 @@ def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | 
         return out
     w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
     h = window / WINDOW_BINS
-    count, n, s, q = _window_moments(x, w, h)
-    ok = count >= MIN_POINTS
-    mean = s[ok] / n[ok, None]
-    cov = q[ok] / n[ok, None, None] - np.einsum("ka,kb->kab", mean, mean)
-    lam = np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)
-    out[ok] = np.sqrt(12.0 * lam) * h
-    return out
+    win, inverse = _window_moments(x, w, h)
+    ok = win[:, 0] >= MIN_POINTS
+    m = win[ok]
+    n = m[:, 1]
+    mean = m[:, 2:5] / n[:, None]
+    cov = np.empty((len(m), 3, 3))
+    for k, (a, b) in enumerate(_PAIRS):
+        cov[:, a, b] = cov[:, b, a] = m[:, 5 + k] / n - mean[:, a] * mean[:, b]
+    per_bin = np.full(len(win), np.nan)
+    per_bin[ok] = np.sqrt(12.0 * np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)) * h
+    return per_bin[inverse]
 
 
 def local_thickness_ref(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:

@@ -1,6 +1,8 @@
 """Scene preparation: selection, static region, invertible box mapping, volumes, mass."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -181,29 +183,38 @@ def test_fill_adds_simulated_particles_after_the_gaussians() -> None:
     assert selection_scene(filled).count == plant.count
 
 
-def test_a_finer_grid_takes_the_fill_over_as_found_again(monkeypatch) -> None:
-    # The interior is found on FILL_GRID's cells whatever the grid, so a preparation on
-    # another grid may move the found fill along instead of finding it again: the result
-    # must be the one a fresh preparation gives, and fill_interior must not run.
+def test_another_grid_takes_the_grid_free_parts_over(monkeypatch) -> None:
+    # The foreground, the pins, the interior fill (found on FILL_GRID's cells) and the
+    # scanned volumes (on the Gaussians' own box) do not depend on the grid, so a
+    # preparation on another grid takes them over instead of finding them again: the
+    # result must be the one a fresh preparation gives.
     from pd_tool.prepare import preparation as pp
 
     plant = make_plant(1500, seed=0)
-    coarse = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=32))
-    fresh = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=48))
-    assert coarse.n_filled > 0 and coarse.fill_found is not None
+    opts = PrepareOptions(static_below=POT_TOP, fill="on", up_axis="auto")
+    coarse = prepare_scene(plant, replace(opts, grid_res=32))
+    fresh = prepare_scene(plant, replace(opts, grid_res=48))
+    assert coarse.n_filled > 0
 
     def refuse(*a, **k):
-        raise AssertionError("the fill was found again")
+        raise AssertionError("found again")
 
-    monkeypatch.setattr(pp, "fill_interior", refuse)
-    moved = prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="on", grid_res=48), reuse_fill=coarse)
+    for name in ("fill_interior", "surface_volumes", "select_foreground", "static_selection", "resolve_up"):
+        monkeypatch.setattr(pp, name, refuse)
+    moved = prepare_scene(plant, replace(opts, grid_res=48), reuse=coarse)
+    assert moved.options == fresh.options and moved.grid_dims == fresh.grid_dims
+    assert moved.report == fresh.report
     assert moved.n_filled == fresh.n_filled
     np.testing.assert_array_equal(moved.fill_source, fresh.fill_source)
+    np.testing.assert_array_equal(moved.static, fresh.static)
     np.testing.assert_allclose(moved.positions_sim, fresh.positions_sim, rtol=0, atol=1e-9)
     np.testing.assert_allclose(moved.volumes, fresh.volumes, rtol=1e-9)
-    # another fill mode is found, not taken over
-    with pytest.raises(AssertionError, match="found again"):
-        prepare_scene(plant, PrepareOptions(static_below=POT_TOP, fill="auto", grid_res=48), reuse_fill=coarse)
+    # other options, or another scene, are prepared afresh
+    for other, scene in ((replace(opts, grid_res=48, fill="auto"), plant),
+                         (replace(opts, grid_res=48, static_below=None), plant),
+                         (replace(opts, grid_res=48), make_plant(1500, seed=0))):
+        with pytest.raises(AssertionError, match="found again"):
+            prepare_scene(scene, other, reuse=coarse)
 
 
 def test_a_real_closed_scan_is_filled_and_weighs_the_same_at_every_quality(shared_data) -> None:
