@@ -4,8 +4,9 @@
 
 Times the whole `pd_tool.bake.baker.bake` call (after a warm-up bake that compiles the kernels)
 and its parts: setup (preparation, K-Means, nearest drivers), simulation, interpolation,
-USD writing. Peak memory: host RSS (ru_maxrss) and, on CUDA, torch's peak allocation plus
-warp's mempool high-water mark where available.
+USD writing. Peak memory: host RSS (ru_maxrss) and, on CUDA, torch's peak allocation and
+the device memory the bake took and kept (torch's cache and warp's mempool), beside the
+estimate the bake checked before it started (pd_tool.prepare.memory).
 """
 from __future__ import annotations
 
@@ -59,6 +60,7 @@ def main() -> None:
                                    device=args.device), **kw)
         if args.device == "cuda":
             torch.cuda.reset_peak_memory_stats()
+            free_before = torch.cuda.mem_get_info()[0]
         profiler = cProfile.Profile() if args.profile else None
         if profiler:
             profiler.enable()
@@ -67,6 +69,9 @@ def main() -> None:
                    settings=BakeSettings(seconds=args.seconds, fps=args.fps, quality=args.quality, fmt=args.fmt,
                                          device=args.device, stop_at_rest=False), **kw)
         wall = time.perf_counter() - t0
+        # what the bake took from the device and kept (torch's cache and warp's mempool hold
+        # their high-water marks): the device peak as closely as the process can see it
+        device_taken = (free_before - torch.cuda.mem_get_info()[0]) / 2**20 if args.device == "cuda" else None
         if profiler:
             profiler.disable()
             text = io.StringIO()
@@ -84,6 +89,8 @@ def main() -> None:
         "file_bytes": size, "bytes_per_frame": size / res.frames,
         "host_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "cuda_peak_torch_mb": torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else None,
+        "cuda_taken_mb": device_taken,
+        "estimate_mb": {"host": res.memory_estimate.host / 2**20, "device": res.memory_estimate.device / 2**20},
     }
     print(json.dumps(out, indent=2))
     if args.json:

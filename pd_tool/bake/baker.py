@@ -179,6 +179,7 @@ class BakeResult:
     output_bytes: dict[str, int] = field(default_factory=dict)  # format -> bytes written
     output_seconds: dict[str, float] = field(default_factory=dict)  # format -> seconds spent writing it
     work_estimate: work.WorkEstimate | None = None  # the whole run's, the match's runs included
+    memory_estimate: Any = None  # pd_tool.prepare.memory.MemoryEstimate of the discretisation baked
 
 
 def _with_match(before: work.WorkEstimate, after: work.WorkEstimate, frames: int,
@@ -424,9 +425,10 @@ class Baker:
         speed the force can give); keep the estimate as `work_estimate`. Raises
         InsufficientMemory / WorkTooLarge."""
         s, scene, dev = self.settings, self.scene, self.dev
-        check_memory(estimate_bake_memory(
+        self.memory_estimate = estimate_bake_memory(
             n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
-            frames=self.n_frames, preview_pixels=self.preview_pixels, sh_coeffs=int(scene.sh.shape[1]), device=dev),
+            frames=self.n_frames, preview_pixels=self.preview_pixels, sh_coeffs=int(scene.sh.shape[1]), device=dev)
+        check_memory(self.memory_estimate,
             what="bake", quality=str(s.quality or "the fit's"), driver_ratio=ratio, device=dev,
             resolution=f"grid {'x'.join(map(str, p.grid_dims))} cells, set by "
                        f"{'the fit (a coarser --quality overrides it)' if self.follows_fit else '--quality'}")
@@ -700,7 +702,7 @@ class Baker:
             displacement_per_frame=self.disp, report=self._report(), timings=self.timings,
             setup_parts=dict(self.setup_parts), outputs=paths,
             output_bytes=sizes, output_seconds=dict(self.outputs.seconds),
-            work_estimate=self.work_estimate,
+            work_estimate=self.work_estimate, memory_estimate=self.memory_estimate,
         )
         if self.preview is not None:
             write_preview(self.preview_images, self.preview, self.settings.fps)
