@@ -227,10 +227,35 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     finite = scl[np.isfinite(scl).all(1)]
     floor = VOXEL_MIN_SCALES * float(np.median(finite.max(1))) if len(finite) else 0.0
     k_min = max(1, int(math.ceil(floor / lattice - 1e-9)))
-    for k in range(k_min, k_min + 64):  # coarsen the analysis voxel until memory and work are bounded
-        h = lattice * k
+    rot2 = rot * rot
+
+    def sig_radius(h: float) -> tuple[np.ndarray, np.ndarray]:
         # the cap follows the voxel too, so that large Gaussians (a scan's underside) keep
         # closing the shell on a fine grid
+        sig = np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
+        cov_diag = (rot2 * (sig * sig)[:, None, :]).sum(-1)  # diagonal of R S^2 R^T
+        # a sigma clipped to SIGMA_MIN_VOXELS lands on a whole number of voxels here, which float
+        # rounding must not push up by one: the work would then rise with the voxel
+        return sig, np.ceil(3.0 * np.sqrt(cov_diag) / h + 0.5 - 1e-9).astype(np.int64)  # [N, 3] voxels
+
+    def light(k: int) -> bool:  # the splat's work is within MAX_SPLAT_WORK
+        radius = sig_radius(lattice * k)[1]
+        return float(np.prod(2 * radius + 1, axis=1).sum()) <= MAX_SPLAT_WORK
+
+    # Coarsen the analysis voxel until memory and work are bounded: the least k in
+    # [k_min, k_min + 64) that passes both. Each sigma in voxels only shrinks as the voxel
+    # grows, so the work does too, and its least passing k is found by bisection (a scan
+    # of a million Gaussians passed 60 voxel sizes one by one, each an O(N) pass); the
+    # voxel count costs nothing to check, so it is checked in order from there.
+    first, stop = k_min, k_min + 64
+    while first < stop:
+        mid = (first + stop) // 2
+        if light(mid):
+            stop = mid
+        else:
+            first = mid + 1
+    for k in range(first, k_min + 64):
+        h = lattice * k
         sig = np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
         pad = 3.0 * sig.max() + 2.0 * h
         i0 = np.floor((lo - pad - origin) / h).astype(np.int64)
@@ -238,10 +263,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
         shape = tuple(int(v) for v in (i1 - i0))
         if math.prod(shape) > MAX_VOXELS:
             continue
-        cov_diag = (rot * rot * (sig * sig)[:, None, :]).sum(-1)  # diagonal of R S^2 R^T
-        radius = np.ceil(3.0 * np.sqrt(cov_diag) / h + 0.5).astype(np.int64)  # [N, 3]
-        if float(np.prod(2 * radius + 1, axis=1).sum()) > MAX_SPLAT_WORK:
-            continue
+        sig, radius = sig_radius(h)
         grid = (k, h, i0, shape, sig, radius)
         break
     if grid is None:

@@ -338,3 +338,25 @@ def test_resample_fill_keeps_the_volume_and_the_region(lattice):
         assert len(pts) == len(np.unique(np.floor(r.points / lattice), axis=0))
     else:
         assert len(pts) >= len(r.points) * (spacing / lattice) ** 3 * 0.99
+
+
+@pytest.mark.parametrize("work", [2e5, 1.2e5, 5e4])
+def test_the_voxel_is_the_least_that_bounds_the_work(monkeypatch, work):
+    # The analysis voxel is the least multiple k of the lattice whose splat work is within
+    # MAX_SPLAT_WORK (found by bisection): the same k a scan of every k finds.
+    monkeypatch.setattr(fl, "MAX_SPLAT_WORK", work)
+    p, q, s, o = sphere_shell(n=300)
+    r = fill_interior(p, q, s, o, cell=CELL, mode="on")
+    lattice = CELL / fl.PARTICLES_PER_CELL_AXIS
+    rot = quat_to_matrix_np(q)
+    k_min = max(1, int(math.ceil(fl.VOXEL_MIN_SCALES * float(np.median(s.max(1))) / lattice - 1e-9)))
+
+    def splat_work(k):
+        h = lattice * k
+        sig = np.clip(s, fl.SIGMA_MIN_VOXELS * h, fl.SIGMA_MAX_CELLS * max(CELL, 2.0 * h))
+        cov = np.einsum("nij,nj,nij->ni", rot, sig**2, rot)
+        return np.prod(2 * np.ceil(3.0 * np.sqrt(cov) / h + 0.5 - 1e-9) + 1, axis=1).sum()
+
+    k = next(k for k in range(k_min, k_min + 64) if splat_work(k) <= work)
+    assert k > k_min or work == 2e5  # the bound coarsens the voxel in the last two cases
+    assert r.voxel == pytest.approx(lattice * k, rel=1e-12)
