@@ -184,14 +184,18 @@ def quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
     A zero or non-finite quaternion (a broken splat file) gives the identity."""
     q = np.asarray(q, dtype=np.float64)
     q = np.where(np.isfinite(q), q, 0.0)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    norm = np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
     q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
+    w, x, y, z = np.ascontiguousarray(q.T)  # contiguous columns: strided ones run several times slower
+    # written in place: nested stacks copy every entry twice
+    R = np.empty((len(q), 3, 3))
+    xx, yy, zz = x * x, y * y, z * z
+    R[:, 0, 0], R[:, 1, 1], R[:, 2, 2] = 1 - 2 * (yy + zz), 1 - 2 * (xx + zz), 1 - 2 * (xx + yy)
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R[:, 0, 1], R[:, 1, 0] = 2 * (xy - wz), 2 * (xy + wz)
+    R[:, 0, 2], R[:, 2, 0] = 2 * (xz + wy), 2 * (xz - wy)
+    R[:, 1, 2], R[:, 2, 1] = 2 * (yz - wx), 2 * (yz + wx)
+    return R
 
 
 # --------------------------------------------------------------------------- warp
