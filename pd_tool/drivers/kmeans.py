@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from pd_tool.drivers.knn import DEFAULT_CHUNK, _pick_cell, knn
+from pd_tool.drivers.knn import _pick_cell, default_chunk, knn
 from pd_tool.core.errors import PdToolError
 
 DEFAULT_ITERS = 20  # Lloyd iterations at most
@@ -214,7 +214,7 @@ def kmeans(
     seed: int = 0,
     iters: int = DEFAULT_ITERS,
     tol: float = DEFAULT_TOL,
-    chunk: int = DEFAULT_CHUNK,
+    chunk: int | None = None,
     init: str = "morton",
 ) -> tuple[Tensor, Tensor]:
     """Cluster points into k clusters (Lloyd), memory-bounded and deterministic for a seed.
@@ -225,8 +225,8 @@ def kmeans(
         seed: seeds the initialisation; same seed and device -> same result.
         iters: Lloyd iterations at most.
         tol: stop when fewer than tol * N points change cluster in an iteration.
-        chunk: (point, candidate) pairs held in memory at once; memory is
-            O(N + k + chunk), never N x k.
+        chunk: (point, candidate) pairs held in memory at once (default:
+            pd_tool.drivers.knn.default_chunk); memory is O(N + k + chunk), never N x k.
         init: "morton" (default: Z-order stratified seeding, O(N log N)) or "kmeans++"
             (D^2 sampling, k sequential passes: fine for k up to a few thousand).
     Returns:
@@ -249,6 +249,7 @@ def kmeans(
     else:
         raise DriverError(f"kmeans: unknown init {init!r}; use 'morton' or 'kmeans++'")
     fixed = _FixedPoint(points)
+    chunk = default_chunk(points.device) if chunk is None else chunk
     lists = _CentreLists(chunk)
     labels = None
     for _ in range(max(1, iters)):

@@ -34,7 +34,9 @@ B_GAUSS_BAKE = 1150  # measured: preparation (float64 copies), animator tables, 
 B_DRIVER = 400  # particle state u, v, C, F + base, E, volume, mass, static, order, sorted copies
 B_NODE = 32  # grid m (4) + mv (12) + v (12) + fixed (4)
 B_PAIR = 5  # measured: k-NN / k-means (query, candidate) pairs resident per chunk element
-KNN_CHUNK = 1 << 22  # pd_tool.drivers.knn.DEFAULT_CHUNK: pairs held at once
+KNN_CHUNK = 1 << 22  # pd_tool.drivers.knn.DEFAULT_CHUNK: pairs held at once on the CPU
+KNN_CHUNK_CUDA = 1 << 24  # pd_tool.drivers.knn.CUDA_CHUNK: ... on a GPU
+B_PAIR_CUDA = 75  # measured: torch's peak per pair, K-Means and nearest drivers of 1M / 3M points, H200
 PREVIEW_PIXELS = 480 * 270  # the bake's automatic preview camera
 # fit
 B_GAUSS_FIT = 1500  # measured: scene on the device, animator, fields' inputs
@@ -61,10 +63,11 @@ class InsufficientMemory(PdToolError):
     """The run's estimated peak memory exceeds what is available."""
 
 
-def _knn_workspace(n_points: int, n_drivers: int) -> float:
+def _knn_workspace(n_points: int, n_drivers: int, gpu: bool) -> float:
     # k-means assigns every point to its nearest centre and the animator finds 8 drivers per
-    # Gaussian; both hold at most KNN_CHUNK (query, candidate) pairs at a time.
-    return B_PAIR * min(KNN_CHUNK, max(n_points, 1) * max(n_drivers, 1))
+    # Gaussian; both hold at most a chunk of (query, candidate) pairs at a time.
+    pairs = max(n_points, 1) * max(n_drivers, 1)
+    return B_PAIR_CUDA * min(KNN_CHUNK_CUDA, pairs) if gpu else B_PAIR * min(KNN_CHUNK, pairs)
 
 
 def estimate_bake_memory(
@@ -99,7 +102,7 @@ def estimate_bake_memory(
         "gaussians": float(B_GAUSS_BAKE + 12 * sh_coeffs) * n_gaussians,
         "drivers": float(B_DRIVER) * q,
         "grid": float(B_NODE) * nodes,
-        "knn": _knn_workspace(n_simulated, q),
+        "knn": _knn_workspace(n_simulated, q, gpu),
         # every preview frame is kept as uint8 RGB until the video is encoded
         "preview": 3.0 * preview_pixels * frames + (40.0 * preview_pixels if preview_pixels else 0.0),
     }
@@ -152,7 +155,7 @@ def estimate_fit_memory(
                                  + float(B_PIXEL_FRAME) * image_pixels),
         # the tape pool (with gradients: x2) plus the untaped grid
         "tape": (segment + 1) * 2.0 * 96 * q + (2 * segment + 1) * float(B_NODE) * nodes,
-        "knn": _knn_workspace(n_simulated, q),
+        "knn": _knn_workspace(n_simulated, q, gpu),
     }
     on_device = ("gaussians", "drivers", "videos", "graph", "tape", "knn") if gpu else ()
     host = sum(v for k, v in terms.items() if k not in on_device)
