@@ -10,7 +10,7 @@ Public API (torch, CPU or CUDA; shapes in the docstrings of each function):
                               drivers.neighbors)                    # once
     points_now, quats_now = move(x_now)                              # every frame
 
-- kmeans(points [N,3], k, *, seed=0, iters=20, tol=1e-4, chunk=2**22, init="morton")
+- kmeans(points [N,3], k, *, seed=0, iters=20, tol=1e-4, chunk=None, init="morton")
   -> (centres [k,3], labels [N]): Lloyd with exact grid-accelerated assignment, memory
   O(N + k + chunk) (never N x k), deterministic per seed and device, no empty cluster.
 - driver_count(points_sim [N,3], dx, *, ratio=None, count=None, min_per_cell=8) -> int:
