@@ -244,8 +244,8 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
 
     # Coarsen the analysis voxel until memory and work are bounded: the least k in
     # [k_min, k_min + 64) that passes both. Each sigma in voxels only shrinks as the voxel
-    # grows, so the work does too, and its least passing k is found by bisection (a scan
-    # of a million Gaussians passed 60 voxel sizes one by one, each an O(N) pass); the
+    # grows, so the work does too, and its least passing k is found by bisection (a
+    # million-Gaussian scan can need 60 coarser voxels, each an O(N) pass to check); the
     # voxel count costs nothing to check, so it is checked in order from there.
     first, stop = k_min, k_min + 64
     while first < stop:
