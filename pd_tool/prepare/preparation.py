@@ -9,6 +9,7 @@ to scene units exactly up to float64 rounding.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Sequence
 
@@ -555,16 +556,21 @@ def _grid_free(scene: GaussianScene, options: PrepareOptions) -> GridFree:
     transform = fit_transform(pos_scene, options)[0]
     pos_sim = transform.to_sim(pos_scene)
     res, corner = None, None
-    if options.fill != "off":
-        fg_t = torch.as_tensor(fg, device=scene.device)
-        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
-        corner = pos_sim.min(axis=0)
-        res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
-                            scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
-                            scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
-                            grid_origin=corner, device=_warp_device(scene.device))
+    # the scanned volumes do not depend on the fill: found in a second thread beside it
+    # (numpy releases the GIL in its array loops, and the fill's splat waits on the GPU)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        volumes = pool.submit(surface_volumes, pos_sim)
+        if options.fill != "off":
+            fg_t = torch.as_tensor(fg, device=scene.device)
+            cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
+            corner = pos_sim.min(axis=0)
+            res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
+                                scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
+                                scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
+                                grid_origin=corner, device=_warp_device(scene.device))
+        scanned = volumes.result()
     return GridFree(options=options, foreground=fg, static=static, report=report, fill=res, corner=corner,
-                    scanned_volumes=surface_volumes(pos_sim))
+                    scanned_volumes=scanned)
 
 
 # the share of the moving particles held apart from the static ones
