@@ -115,7 +115,7 @@ class UsdBakeWriter:
         # None: every instance moves, and frames are written without a subset copy
         self._moving_idx = np.flatnonzero(~static) if len(self._static_idx) else None
         self._static_pose: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
-        self._static_first: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # as given, unnormalised
+        self._static_q_given: np.ndarray | None = None  # the first frame's, unnormalised
         self.n_points, self.fps, self.fmt = n, float(fps), fmt
         self.start_frame = float(start_frame)
         self.flush_bytes = int(flush_bytes)
@@ -278,14 +278,14 @@ class UsdBakeWriter:
             size = float(np.abs(p0).max(initial=0.0) + np.ptp(pos, axis=0).max(initial=0.0))
             self._static_pose = (p0.copy(), normalize_quats(q[si]), sig[si].copy(),
                                  STATIC_POS_TOL * max(size, 1e-30))
-            self._static_first = (p0.copy(), q[si].copy(), sig[si].copy())
+            self._static_q_given = q[si]  # fancy indexing copies
             return
+        p0, q0, s0, tol = self._static_pose
         # a bake hands its static instances over unchanged, bit for bit: comparing the bytes
         # is a third of the tolerance test's cost
         pos_s, q_s, sig_s = pos[si], q[si], sig[si]
-        if all(np.array_equal(a, b) for a, b in zip((pos_s, q_s, sig_s), self._static_first)):
+        if np.array_equal(pos_s, p0) and np.array_equal(q_s, self._static_q_given) and np.array_equal(sig_s, s0):
             return
-        p0, q0, s0, tol = self._static_pose
         moved = float(np.abs(pos_s - p0).max())
         qn = normalize_quats(q_s)
         turned = float(np.minimum(np.abs(qn - q0).max(axis=1), np.abs(qn + q0).max(axis=1)).max())

@@ -358,7 +358,7 @@ class Baker:
         for first, so that each part is charged its own kernels."""
         t = time.perf_counter()
         yield
-        if str(getattr(self, "dev", "cpu")).startswith("cuda"):
+        if str(getattr(self, "dev", "cpu")).startswith("cuda"):  # dev is set within the first part
             torch.cuda.synchronize()
         self.setup_parts[name] = self.setup_parts.get(name, 0.0) + time.perf_counter() - t
 
@@ -539,20 +539,24 @@ class Baker:
 
     def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
         """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
-        prep, s, force = self.prep, self.settings, self.force
         with self._part("drivers"):
-            self.drivers = prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
-        t_solver = time.perf_counter()
+            self.drivers = self.prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
+        with self._part("solver"):  # a fitted E's match inside is its own part
+            self._build_solver(material, material_file)
+        self.setup_parts["solver"] -= self.setup_parts.get("match", 0.0)
+
+    def _build_solver(self, material: Material | None, material_file: MaterialFile | None) -> None:
+        """The drivers' E (a fitted one matched to this discretisation), the solver and the
+        force on its region, checked against the stability guard."""
+        prep, force = self.prep, self.force
         d_rest = self.drivers.positions.double().cpu().numpy()
         d_static = self.drivers.static.cpu().numpy().astype(bool)
         if material_file is not None:
             E = material_file.E_at(prep.transform.to_scene(d_rest))
             if self._matches(prep, self.ratio):
                 before, match_frames = self.work_estimate, self._match_frames(prep, self.ratio)
-                t_match = time.perf_counter()
                 with self._part("match"):
                     E = self._match_fit(material_file, E)
-                t_solver += time.perf_counter() - t_match
                 self.E_top = float(E.max())
                 self._check_cost(prep, self.ratio)  # a stiffer E takes more substeps
                 self.work_estimate = _with_match(before, self.work_estimate, self.n_frames, match_frames)
@@ -569,9 +573,6 @@ class Baker:
         self.force_end = force.start + force.duration
         self.n_drivers = len(d_rest)
         self.substeps = self.solver.substeps_per_frame(self.frame_dt)
-        if str(self.dev).startswith("cuda"):
-            torch.cuda.synchronize()
-        self.setup_parts["solver"] = time.perf_counter() - t_solver
 
     def _open_outputs(self, camera: Camera | None) -> None:
         """Every Gaussian follows its drivers; the writers are opened last, so that no

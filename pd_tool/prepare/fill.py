@@ -229,10 +229,13 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     k_min = max(1, int(math.ceil(floor / lattice - 1e-9)))
     rot2 = rot * rot
 
-    def sig_radius(h: float) -> tuple[np.ndarray, np.ndarray]:
+    def sigmas(h: float) -> np.ndarray:
         # the cap follows the voxel too, so that large Gaussians (a scan's underside) keep
         # closing the shell on a fine grid
-        sig = np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
+        return np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
+
+    def sig_radius(h: float) -> tuple[np.ndarray, np.ndarray]:
+        sig = sigmas(h)
         cov_diag = (rot2 * (sig * sig)[:, None, :]).sum(-1)  # diagonal of R S^2 R^T
         # a sigma clipped to SIGMA_MIN_VOXELS lands on a whole number of voxels here, which float
         # rounding must not push up by one: the work would then rise with the voxel
@@ -256,8 +259,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
             first = mid + 1
     for k in range(first, k_min + 64):
         h = lattice * k
-        sig = np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
-        pad = 3.0 * sig.max() + 2.0 * h
+        pad = 3.0 * sigmas(h).max() + 2.0 * h
         i0 = np.floor((lo - pad - origin) / h).astype(np.int64)
         i1 = np.ceil((hi + pad - origin) / h).astype(np.int64)
         shape = tuple(int(v) for v in (i1 - i0))

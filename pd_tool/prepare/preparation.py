@@ -433,16 +433,6 @@ def surface_volumes(positions: np.ndarray) -> np.ndarray:
     return t * a * a * (block[:, 0] / block[:, 1])[inverse]
 
 
-def particle_volumes(positions_sim: np.ndarray, scanned: int, filled: np.ndarray | None = None) -> np.ndarray:
-    """Per-particle volume [P] m^3 of `positions_sim` [P, 3] m: the first `scanned` are
-    Gaussians (surface_volumes); the rest are interior particles with the volumes `filled`
-    [P - scanned] m^3 that the fill gave them."""
-    vol = np.empty(len(positions_sim))
-    vol[:scanned] = surface_volumes(positions_sim[:scanned])
-    vol[scanned:] = np.zeros(0) if filled is None else filled
-    return vol
-
-
 # The interior of a closed scan is found on the cells of a grid this fine, whatever the
 # simulation's grid: found on the simulation's own cells, the tree was hollow at 32 and 48
 # cells and filled from 64, and its filled volume moved by a quarter between grids.

@@ -11,7 +11,7 @@ from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.prepare.preparation import (
     AREA_CELL_STEP, SHELL_GRID, SPARSE_SHARE, SURFACE_PER_CELL, WALL_CELLS, Box, PrepareOptions, SimTransform,
-    fit_transform, particle_volumes, prepare_scene, surface_volumes, up_rotation,
+    fit_transform, prepare_scene, surface_volumes, up_rotation,
 )
 from pd_tool.prepare.outliers import select_outliers
 from pd_tool.io.synthetic import POT_TOP, REGIONS, make_plant
@@ -103,13 +103,14 @@ def test_particle_volumes_do_not_move_with_the_grid() -> None:
     # the same scan, moved as another grid's box moves it: the same volumes
     rng = np.random.default_rng(2)
     pts = rng.normal(size=(5000, 3)) * [0.3, 0.1, 0.05]
-    np.testing.assert_allclose(particle_volumes(pts + 0.137, 5000), particle_volumes(pts, 5000), rtol=1e-9)
-    # filled particles keep the volumes the fill gave them
-    inside = rng.uniform(-0.01, 0.01, (80, 3))
-    given = rng.uniform(1e-6, 2e-6, 80)
-    vol = particle_volumes(np.r_[pts, inside], 5000, given)
-    np.testing.assert_array_equal(vol[5000:], given)
-    np.testing.assert_allclose(vol[:5000], surface_volumes(pts))
+    np.testing.assert_allclose(surface_volumes(pts + 0.137), surface_volumes(pts), rtol=1e-9)
+    # a prepared scene weighs its Gaussians so, and its filled particles keep the volumes
+    # the fill gave them, which add up to the interior it found
+    prep = prepare_scene(make_plant(1500, seed=0), PrepareOptions(static_below=POT_TOP, fill="on"))
+    n = prep.count
+    assert prep.n_filled > 0
+    np.testing.assert_allclose(prep.volumes[:n], surface_volumes(prep.positions_sim[:n]), rtol=1e-9)
+    assert prep.volumes[n:].sum() == pytest.approx(prep.grid_free.fill.interior_volume, rel=1e-9)
 
 
 def test_prepared_mass_is_the_same_on_every_grid() -> None:
