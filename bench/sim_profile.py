@@ -2,10 +2,14 @@
 activity timing), scatter P2G against the gather P2G, without CUDA graphs (timing needs
 plain launches; a graph replays the same kernels). --backward profiles the differentiable
 path's backward of a frame instead (hand-written adjoints), with its wall time per substep,
-so that host launch overhead shows as the gap between the two.
+so that host launch overhead shows as the gap between the two. --scene profiles a bake's own
+solver instead of the block: the procedural plant (`plant`, `thin` for 3 mm leaves, raised to
+the finer grid as a bake raises it) or a capture (`udon`, `donut`, `tree` from --data), poked
+as bench/bake_speed.py pokes it, at --quality.
 
     python bench/sim_profile.py --device cuda --sizes 100000:64 --json profile.json
     python bench/sim_profile.py --device cuda --sizes 100000:64 --backward
+    python bench/sim_profile.py --device cuda --scene thin --gaussians 300000
 """
 from __future__ import annotations
 
@@ -52,6 +56,54 @@ def per_kernel(results, total_substeps: int) -> dict:
             for name, t in sorted(per.items(), key=lambda kv: -kv[1])}
 
 
+def bake_inputs(name: str, gaussians: int, device: str, data: Path):
+    """(scene, PrepareOptions) as the bake benchmarks use them: the plant with its pot
+    static, or a capture with its lowest tenth static (bench/convergence.py's cases)."""
+    from pd_tool.io.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, up_rotation
+
+    if name in ("plant", "thin"):
+        return make_plant(gaussians, seed=0, device=device, thin=name == "thin"), PrepareOptions(static_below=POT_TOP)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from convergence import CASES, load_scene
+
+    scene = load_scene(name, gaussians, data=data).to(device)
+    up = CASES[name].up
+    height = scene.positions.detach().cpu().double().numpy() @ up_rotation(up)[2]
+    lo, hi = float(height.min()), float(height.max())
+    return scene, PrepareOptions(up_axis=up, static_below=lo + 0.1 * (hi - lo))
+
+
+def profile_bake(name: str, gaussians: int, quality: str, frames: int, device: str, data: Path) -> dict:
+    """Per-kernel GPU time (us per substep) of a bake's solver over `frames` frames from the
+    poke's start, without CUDA graphs; with the solver's size and the share of the grid's
+    activity blocks that the last substep visited."""
+    import tempfile
+
+    import numpy as np
+
+    from pd_tool.bake.baker import Baker, BakeSettings, ForceSpec
+    from pd_tool.materials.presets import Material
+
+    scene, opts = bake_inputs(name, gaussians, device, data)
+    with tempfile.TemporaryDirectory() as tmp, Baker(
+            scene, Path(tmp) / "out.usd", force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)),
+            material=Material.from_preset("flower"), prepare_options=opts,
+            settings=BakeSettings(seconds=(frames + 1) / 30.0, quality=quality, device=device,
+                                  stop_at_rest=False)) as baker:
+        sim = baker.solver
+        sim._use_graphs = False
+        substeps = sim.step_frame(baker.frame_dt)
+        wp.synchronize_device(device)
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET)
+        counts = [sim.step_frame(baker.frame_dt) for _ in range(frames)]
+        kernels = per_kernel(wp.timing_end(), sum(counts))
+        # the binned P2G's tags (CUDA): the last substep's is the last frame's substep count
+        active = float(np.mean(sim.grid.blocks.numpy() == counts[-1])) if sim._gather else None
+        return {"particles": sim.n, "grid": list(baker.prep.grid_dims), "substeps_per_frame": substeps,
+                "active_blocks": active, "kernels": kernels}
+
+
 def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None) -> dict:
     """Per-kernel GPU time and wall time (us per substep) of backward_frame, without CUDA
     graphs (the activity timing needs plain launches)."""
@@ -95,13 +147,38 @@ def main(argv=None) -> int:
     ap.add_argument("--segment", type=int, default=None, help="backward: substeps per recomputed segment "
                     "(default SimConfig's)")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 particles on a 32-cell grid, 4 substeps, 1 frame")
+    ap.add_argument("--scene", default=None, help="profile a bake's solver on this scene instead: plant, thin, "
+                    "udon, donut or tree")
+    ap.add_argument("--gaussians", type=int, default=300_000, help="--scene: Gaussians (a capture is subsampled)")
+    ap.add_argument("--quality", default="default", help="--scene: the bake's quality")
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
+                    help="--scene: the folder holding the captures")
+    ap.add_argument("--chunk", type=int, default=None, help="particles per chunk of the chunked P2G "
+                    "(gather.CHUNK; compile-time, one value per process)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    from pd_tool.sim import gather as G
+
+    if args.chunk:  # before the first launch compiles the module
+        G.CHUNK, G.CHUNK_W = args.chunk, wp.constant(args.chunk)
     if args.quick:
         args.sizes, args.substeps, args.frames = "20000:32", 4, 1
     wp.config.quiet = True
     wp.init()
     out = {"hardware": hardware(args.device), "rows": []}
+    if args.scene:
+        row = profile_bake(args.scene, args.gaussians, args.quality, args.frames, args.device, args.data)
+        out["rows"].append({"scene": args.scene, "gaussians": args.gaussians, "quality": args.quality, **row})
+        gpu = sum(k["us_per_substep"] for k in row["kernels"].values())
+        active = "" if row["active_blocks"] is None else f", {100 * row['active_blocks']:.1f}% of the activity blocks visited"
+        print(f"{args.scene} ({args.gaussians} Gaussians, {args.quality}): {row['particles']} particles, grid "
+              f"{row['grid']}, {row['substeps_per_frame']} substeps a frame{active}: {gpu:.1f} us/substep"
+              + (" (kernel times need CUDA)" if not args.device.startswith("cuda") else ""))
+        for name, k in row["kernels"].items():
+            print(f"    {k['us_per_substep']:8.2f} us  {name} ({k['calls']} calls)")
+        if args.json:
+            args.json.write_text(json.dumps(out, indent=1))
+        return 0
     if args.backward:
         for item in args.sizes.split(","):
             n, res = (int(v) for v in item.split(":"))
@@ -115,8 +192,6 @@ def main(argv=None) -> int:
         if args.json:
             args.json.write_text(json.dumps(out, indent=1))
         return 0
-    from pd_tool.sim import gather as G
-
     blocks = [tuple(int(v) for v in b.split(":")) for b in args.blocks.split(",") if b]
     for item in args.sizes.split(","):
         n, res = (int(v) for v in item.split(":"))

@@ -35,14 +35,12 @@ from pd_tool.sim.gather import (
     CELL_BLOCK,
     PARTICLE_BLOCK,
     CellLists,
-    cell_lane_row,
-    cell_row_terms,
-    find_runs,
+    block_tagged,
+    chunk_threads,
     g2p_bin,
     grid_update_clear_bins,
-    p2g_runs,
+    p2g_chunks,
     red_add_vec4,
-    runs_per_pass,
 )
 
 
@@ -121,7 +119,7 @@ def g2p_adjoint_particle(
     overwritten with the partial cotangents of the input u and G (the P2G adjoint adds the
     rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity
     cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the cell lists (binned != 0,
-    summed by scatter_runs) or straight to adj_grid_v."""
+    summed by gather.p2g_chunks) or straight to adj_grid_v."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
@@ -132,7 +130,7 @@ def g2p_adjoint_particle(
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
         if binned != 0:
-            lists.cell[p] = -1  # in no run
+            lists.cell[p] = -1  # adds nothing
     else:
         inv_dx = 1.0 / dx
         gvel = adj.v[p] + dt * gu
@@ -282,41 +280,6 @@ def p2g_g2p_adjoint(
     g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, lists, adj_grid_v)
 
 
-@wp.func
-def cell_row_sums_vec(
-    run: int,
-    a: int,
-    b: int,
-    lists: CellLists,
-    dx: float,
-    nodes: wp.vec3i,
-    out: wp.array3d(dtype=wp.vec4),
-):
-    """gather.cell_row_sums without the mass: the vector sums of one run and row, then
-    three reductions (the vec4s' w unused: one 128-bit reduction beats three 32-bit ones)."""
-    n, _m, s0, s1, s2 = cell_row_terms(run, a, b, lists, dx, nodes)
-    red_add_vec4(out, n[0], n[1], n[2], wp.vec4(s0[0], s0[1], s0[2], 0.0))
-    red_add_vec4(out, n[0], n[1], n[2] + 1, wp.vec4(s1[0], s1[1], s1[2], 0.0))
-    red_add_vec4(out, n[0], n[1], n[2] + 2, wp.vec4(s2[0], s2[1], s2[2], 0.0))
-
-
-@wp.kernel(enable_backward=False)
-def scatter_runs(
-    lists: CellLists,
-    dx: float,
-    nodes: wp.vec3i,
-    runs_per_pass: int,
-    out: wp.array3d(dtype=wp.vec4),
-):
-    """gather.p2g_runs for the grid-velocity cotangent (nine threads per run)."""
-    lane_row = cell_lane_row(wp.tid())
-    n = lists.n_starts[0]
-    slot = lane_row[0]
-    while slot < n:
-        cell_row_sums_vec(slot, lane_row[1], lane_row[2], lists, dx, nodes, out)
-        slot += runs_per_pass
-
-
 @wp.kernel(enable_backward=False)
 def grid_adjoint(
     step: K.StepParams,
@@ -324,11 +287,13 @@ def grid_adjoint(
     adj_grid_v: wp.array3d(dtype=wp.vec4),
     adj_mmv: wp.array3d(dtype=wp.vec4),
     binned: int,
-    lists: CellLists,
+    blocks: wp.array3d(dtype=int),
+    tag: int,
 ):
     """Adjoint of kernels.node_velocity per node; consumes (zeroes) adj_grid_v and the stored
     momentum and mass (the next recompute's P2G adds into them: this saves a memset per
-    substep) and, when binned, clears the run list for the next substep's scatter.
+    substep). When binned, only the nodes of blocks the recompute tagged `tag` are visited
+    (gather.block_tagged): every node with mass or a cotangent lies in one.
 
     A node no particle reached holds an all-zero vec4, and its grid-velocity cotangent is
     zero too (the cotangent scatter carries the same B-spline weights as the P2G; a weight
@@ -342,8 +307,8 @@ def grid_adjoint(
     i, j, k = wp.tid()
     nodes = step.nodes
     pad = step.pad
-    if binned != 0 and i == 0 and j == 0 and k == 0:
-        lists.n_starts[0] = 0
+    if binned != 0 and not block_tagged(blocks, tag, i, j, k):
+        return
     q = grid_mmv[i, j, k]
     m = q[3]
     if m == 0.0 and q[0] == 0.0 and q[1] == 0.0 and q[2] == 0.0:
@@ -376,6 +341,12 @@ def grid_adjoint(
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
+def block_tag(k0: int, i: int) -> int:
+    """The activity tag of substep k0 + i's grid (gather.block_tagged): the recompute tags
+    it, its adjoint reads it; unique within a frame."""
+    return k0 + i + 1
+
+
 def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists: CellLists,
                       binned: bool) -> None:
     """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
@@ -406,18 +377,17 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
     def g2p_bin_into(do_g2p: int, i_in: int, i_out: int) -> None:
         # G2P of substep i_in (skipped if do_g2p is 0) into state i_out, binned for substep i_out
         wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, ptcl, states[i_in].struct, states[i_out].struct, step, forces, float((k0 + i_out) * dt),
+            do_g2p, 1, ptcl, states[i_in].struct, states[i_out].struct, step, forces, float((k0 + i_out) * dt),
             grids[i_in].v, lists, ctx.stats])
-        wp.launch(find_runs, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[lists])
 
     nodes, dx = geo.nodes_vec, float(geo.dx)
-    per_pass = runs_per_pass(lists)
     g2p_bin_into(0, 0, 0)
     for i in range(count):
         g = grids[i]
-        wp.launch(p2g_runs, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, dx, nodes, per_pass, g.mmv])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 0, lists])
+        wp.launch(p2g_chunks, dim=chunk_threads(n), device=dev, block_dim=CELL_BLOCK,
+                  inputs=[lists, dx, nodes, g.mmv, g.blocks, block_tag(k0, i)])
+        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev,
+                  inputs=[step, g.mmv, g.v, 0, g.blocks, block_tag(k0, i)])
         if i < count - 1:
             g2p_bin_into(1, i, i + 1)
         else:
@@ -441,7 +411,6 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     adj_state, adj_E = adj
     adj_s = adj_state.struct
     adj_gv, adj_mmv = adj_grid
-    per_pass = runs_per_pass(lists)
     count = len(grids)
     last = count - 1
     wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
@@ -449,10 +418,11 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
         if binned:
-            wp.launch(find_runs, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[lists])
-            wp.launch(scatter_runs, dim=9 * per_pass, device=dev, block_dim=CELL_BLOCK,
-                      inputs=[lists, dx, nodes, per_pass, adj_gv])
-        wp.launch(grid_adjoint, dim=geo.nodes, device=dev, inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), lists])
+            # the payload's mass is 0, so the sums' w stays 0; tag 0 tags nothing
+            wp.launch(p2g_chunks, dim=chunk_threads(n), device=dev, block_dim=CELL_BLOCK,
+                      inputs=[lists, dx, nodes, adj_gv, g.blocks, 0])
+        wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
+                  inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), g.blocks, block_tag(k0, i)])
         t_offset = float((k0 + i) * dt)
         if i > 0:
             wp.launch(p2g_g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[

@@ -389,17 +389,15 @@ def grid_update_and_clear(
 
 
 @wp.func
-def g2p_gather(
+def g2p_values(
     p: int,
     ptcl: Particles,
     s_in: ParticleVars,
     step: StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
-    s_out: ParticleVars,
-    stats: wp.array(dtype=float),
 ):
-    """Grid to particle p: v, C from the grid; F <- (I + dt C) F, as G <- G + dt C (I + G);
-    u <- u + dt v; guard. Reads u, G of s_in and writes u, v, C, G of s_out."""
+    """Grid to particle p from s_in's u and G: the new (u, v, C, G), with F <- (I + dt C) F
+    as G <- G + dt C (I + G) and u <- u + dt v."""
     dx = step.dx
     dt = step.dt
     inv_dx = 1.0 / dx
@@ -428,20 +426,41 @@ def g2p_gather(
         Cn = wp.mat33(0.0)
     Gn = Gp + (dt * Cn) * deformation_gradient(Gp)
     un = up + dt * vel
-    s_out.u[p] = un
-    s_out.v[p] = vel
-    s_out.C[p] = Cn
-    s_out.G[p] = Gn
+    return un, vel, Cn, Gn
 
-    xn = ptcl.base[p] + un
-    J = wp.determinant(deformation_gradient(Gn))
-    if not (wp.isfinite(xn) and wp.isfinite(vel) and wp.isfinite(J)):
+
+@wp.func
+def g2p_guard(x: wp.vec3, v: wp.vec3, G: wp.mat33, step: StepParams, stats: wp.array(dtype=float)):
+    """Count a particle at x (m) with velocity v and F = I + G in the guard's stats if it is
+    not finite, collapsed or at the grid's edge (no atomics in the normal case)."""
+    J = wp.determinant(deformation_gradient(G))
+    if not (wp.isfinite(x) and wp.isfinite(v) and wp.isfinite(J)):
         wp.atomic_add(stats, STAT_NONFINITE, 1.0)
     else:
         if not (J > step.min_det_f):
             wp.atomic_add(stats, STAT_COLLAPSED, 1.0)
-        if wp.min(xn - step.edge_lo) < 0.0 or wp.max(xn - step.edge_hi) > 0.0:
+        if wp.min(x - step.edge_lo) < 0.0 or wp.max(x - step.edge_hi) > 0.0:
             wp.atomic_add(stats, STAT_EDGE, 1.0)
+
+
+@wp.func
+def g2p_gather(
+    p: int,
+    ptcl: Particles,
+    s_in: ParticleVars,
+    step: StepParams,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    s_out: ParticleVars,
+    stats: wp.array(dtype=float),
+):
+    """Grid to particle p (g2p_values): reads u, G of s_in, writes u, v, C, G of s_out, then
+    the guard."""
+    un, vel, Cn, Gn = g2p_values(p, ptcl, s_in, step, grid_v)
+    s_out.u[p] = un
+    s_out.v[p] = vel
+    s_out.C[p] = Cn
+    s_out.G[p] = Gn
+    g2p_guard(ptcl.base[p] + un, vel, Gn, step, stats)
 
 
 @wp.kernel

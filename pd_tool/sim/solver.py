@@ -17,7 +17,7 @@ import warp as wp
 from pd_tool.core.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
+from pd_tool.sim.gather import alloc_cell_lists, block_shape, run_substeps_binned
 from pd_tool.sim.guard import check_stats, fold_stat_lanes
 
 wp.config.quiet = True
@@ -176,10 +176,12 @@ class ForceArrays:
 @dataclass
 class GridArrays:
     """mmv: momentum (kg m/s) and mass (kg) per node, one vec4 so that a CUDA P2G adds both
-    with one 128-bit reduction (gather.red_add_vec4); v: node velocity (m/s)."""
+    with one 128-bit reduction (gather.red_add_vec4); v: node velocity (m/s); blocks: the
+    binned P2G's activity tags, one per block of gather.BLOCK^3 nodes (gather.block_tagged)."""
 
     mmv: wp.array
     v: wp.array
+    blocks: wp.array
 
     @classmethod
     def alloc(cls, geo: GridGeometry, device, requires_grad: bool = False) -> "GridArrays":
@@ -187,6 +189,7 @@ class GridArrays:
         return cls(
             mmv=wp.zeros(s, dtype=wp.vec4, device=device, requires_grad=requires_grad),
             v=wp.zeros(s, dtype=wp.vec3, device=device, requires_grad=requires_grad),
+            blocks=wp.zeros(block_shape(s), dtype=int, device=device),
         )
 
 

@@ -71,10 +71,10 @@ def test_adjoint_matches_tape_with_every_boundary(binned, segment, near_rest):
 
 
 def test_binned_adjoint_with_crowded_cells():
-    """64 particles a cell against runs of at most RUN_MAX: each cell's grid-velocity
-    cotangent is summed by several runs; the sum must not change."""
+    """64 particles a cell against chunks of CHUNK: each cell's grid-velocity cotangent is
+    summed by several chunks; the sum must not change."""
     x, static, vol, _ = block(1 / 8, 4, seed=1)
-    assert len(x) / 8 > gather.RUN_MAX  # 2 x 2 x 2 cells
+    assert len(x) / 8 > gather.CHUNK  # 2 x 2 x 2 cells
     cfg_a = SimConfig(grid_res=8, segment=3, backward="adjoint")
     cfg_t = SimConfig(grid_res=8, segment=3, backward="tape")
     for a, b in zip(frame_grads(x, static, vol, cfg_a, True, 3, 5, False),

@@ -2,8 +2,8 @@
 
 Both are the same sums in a different order, so every particle output must agree to float32
 rounding: with forces, a static layer, ground, damping, gravity, with cells so crowded
-that their particles split into several runs, and with particles out of cell order (runs
-of one particle).
+that their particles span many chunks, and with particles out of cell order (a change of
+cell at every particle).
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 from pd_tool.sim import MPMSolver, SimConfig
-from pd_tool.sim.gather import RUN_MAX, red_add_vec4
+from pd_tool.sim.gather import CHUNK, red_add_vec4
 
 
 def block(n: int, side: float, seed: int = 0):
@@ -40,11 +40,11 @@ def test_gather_matches_scatter(device: str, side: float, label: str) -> None:
     x, vol, mass, E, static = block(3000, side)
     cfg = SimConfig(grid_res=32, substeps=8, damping=2.0, ground_z=0.3)
     if label == "crowded":
-        # The block spans ~2 cells: far more particles per cell than a run holds.
+        # The block spans ~2 cells: far more particles per cell than a chunk holds.
         cells = np.floor(x / (1.0 / 32) - 0.5).astype(int)
         _, per_cell = np.unique(cells, axis=0, return_counts=True)
-        assert per_cell.max() > 4 * RUN_MAX
-    sort = label != "unsorted"  # random order: nearly every run is one particle
+        assert per_cell.max() > 4 * CHUNK
+    sort = label != "unsorted"  # random order: the cell changes at nearly every particle
     ref = run(x, vol, mass, E, static, cfg, device, gather=False, sort=sort)
     got = run(x, vol, mass, E, static, cfg, device, gather=True, sort=sort)
     for name, a, b in zip(("u", "v", "F"), ref, got):
@@ -56,7 +56,7 @@ def test_gather_matches_scatter(device: str, side: float, label: str) -> None:
 
 
 def test_gather_is_reusable_across_frames_and_configs(device: str) -> None:
-    """Counters left by one frame (odd or even substep counts) never leak into the next."""
+    """Activity tags left by one frame (odd or even substep counts) never leak into the next."""
     x, vol, mass, E, static = block(2000, 0.3, seed=3)
     outs = []
     for substeps in (7, 8):
@@ -64,19 +64,6 @@ def test_gather_is_reusable_across_frames_and_configs(device: str) -> None:
         outs.append([run(x, vol, mass, E, static, cfg, device, gather=g, frames=4)[0] for g in (False, True)])
     for ref, got in outs:
         assert np.abs(ref - got).max() <= 2e-5 * np.abs(ref).max() + 1e-7
-
-
-def test_gather_loops_over_more_runs_than_one_pass(device: str, monkeypatch) -> None:
-    """Fewer run lanes than runs: each lane must loop until every run is summed."""
-    from pd_tool.sim import gather
-
-    monkeypatch.setattr(gather, "RUNS_PER_PASS", 7)
-    x, vol, mass, E, static = block(1500, 0.3, seed=5)
-    cfg = SimConfig(grid_res=24, substeps=5)
-    ref = run(x, vol, mass, E, static, cfg, device, gather=False, frames=2)
-    got = run(x, vol, mass, E, static, cfg, device, gather=True, frames=2)
-    for a, b in zip(ref, got):
-        assert np.abs(a - b).max() <= 2e-5 * max(float(np.abs(a).max()), 1e-3) + 1e-7
 
 
 @wp.kernel
@@ -98,3 +85,31 @@ def test_red_add_vec4_sums_every_contribution(device: str) -> None:
     ref = np.zeros((3, 3, 3, 4))
     np.add.at(ref, (idx[:, 0], idx[:, 1], idx[:, 2]), vals.astype(np.float64))
     np.testing.assert_allclose(out.numpy(), ref, atol=2e-3)
+
+
+def test_gather_follows_a_block_across_activity_blocks(device: str) -> None:
+    """A block flying through the grid leaves activity blocks behind and enters new ones
+    every few substeps: nodes it left keep old velocities, which no particle may read, and
+    nodes it enters must be updated and cleared."""
+    from pd_tool.sim import gather
+
+    x, vol, mass, E, static = block(1500, 0.12, seed=7)
+    x[:, 0] -= 0.25
+    static[:] = False
+    cfg = SimConfig(grid_res=24, substeps=6)
+    outs = []
+    for g in (False, True):
+        sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, gather_p2g=g)
+        v = np.zeros_like(x)
+        v[:, 0] = 25.0
+        v[:, 2] = 4.0 * np.sin(30.0 * x[:, 1])
+        sim.set_velocity(v)
+        for _ in range(8):
+            sim.step_frame(2e-3)
+        outs.append((sim.displacements(), sim.velocities(), sim.deformation_gradients()))
+    # the block crossed several activity blocks
+    cell = 1.0 / 24
+    assert float(np.median(outs[0][0][:, 0])) > 2 * gather.BLOCK * cell
+    for a, b in zip(*outs):
+        assert np.all(np.isfinite(b))
+        assert np.abs(a - b).max() <= 2e-5 * max(float(np.abs(a).max()), 1e-3) + 1e-7
