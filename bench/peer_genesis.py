@@ -111,24 +111,28 @@ def run_genesis(python: str | None, x, v0, static, particle_size: float, res: in
         return {"traj": d["traj"], "seconds": float(d["seconds"]), "version": str(d["version"])}
 
 
-def block_scene(n: int, res: int, speed: float) -> dict:
+def block_scene(n: int, res: int, speed: float, clamp: bool = True) -> dict:
     """The block of about n particles that both solvers get: n rounded to a cube k^3 (Genesis's
-    box sampler makes k^3 particles), x [n, 3] m, vol and mass [n], static [n], the sway v0
-    [n, 3] m/s and Genesis's particle_size (m), whose cube is each particle's volume."""
+    box sampler makes k^3 particles), x [n, 3] m, vol and mass [n], static [n] (none without
+    `clamp`), the sway v0 [n, 3] m/s and Genesis's particle_size (m), whose cube is each
+    particle's volume."""
     from peer_newton import sway
 
     from pd_tool.io.synthetic import make_block
 
     n = round(n ** (1.0 / 3.0)) ** 3
     x, vol, mass, _, static = make_block(n, res, E=E, density=DENSITY)
+    if not clamp:
+        static = np.zeros_like(static)
     return {"n": n, "x": x, "vol": vol, "mass": mass, "static": static, "v0": sway(x, static, speed),
             "particle_size": float(np.cbrt(vol[0]))}
 
 
-def compare(n: int, res: int, seconds: float, speed: float, device: str, python: str | None) -> dict:
+def compare(n: int, res: int, seconds: float, speed: float, device: str, python: str | None,
+            clamp: bool = True) -> dict:
     from peer_newton import motion, run_pdtool
 
-    b = block_scene(n, res, speed)
+    b = block_scene(n, res, speed, clamp)
     n, x, vol, mass, static, v0 = b["n"], b["x"], b["vol"], b["mass"], b["static"], b["v0"]
     frames = int(round(seconds * FPS))
     moving = ~static
@@ -140,7 +144,7 @@ def compare(n: int, res: int, seconds: float, speed: float, device: str, python:
     diff = np.linalg.norm(theirs["traj"][:, moving] - ours["traj"][:, moving], axis=-1)
     steps = frames * substeps
     return {
-        "n": n, "res": res, "frames": frames, "speed_m_s": speed, "substeps_per_frame": substeps,
+        "n": n, "res": res, "clamp": clamp, "frames": frames, "speed_m_s": speed, "substeps_per_frame": substeps,
         "pdtool": {"s_per_sim_s": ours["seconds"] / seconds, "ms_per_substep": 1e3 * ours["seconds"] / ours["steps"],
                    "particle_substeps_per_s": n * ours["steps"] / ours["seconds"], "peak_m": peak,
                    "motion_m": m_ours.tolist()},
@@ -163,6 +167,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated time")
     ap.add_argument("--speed", type=float, default=0.3, help="the sway's speed at the top, m/s")
     ap.add_argument("--genesis-python", default=None, help="the Python with genesis-world installed (default: this one)")
+    ap.add_argument("--free", action="store_true", help="no clamp: the block flies and wobbles, so that the "
+                    "two clamps' difference leaves the comparison")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 4,000 particles on 24 cells, 0.2 s")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
@@ -182,7 +188,7 @@ def main() -> None:
     rows = []
     for spec in args.sizes.split(","):
         n, res = (int(v) for v in spec.split(":"))
-        row = compare(n, res, args.seconds, args.speed, args.device, args.genesis_python)
+        row = compare(n, res, args.seconds, args.speed, args.device, args.genesis_python, clamp=not args.free)
         rows.append(row)
         p, g = row["pdtool"], row["genesis"]
         print(f"N={row['n']:,} res={res}, {row['substeps_per_frame']} substeps a frame: pdtool {p['s_per_sim_s']:.3f} s per "
