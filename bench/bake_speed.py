@@ -1,6 +1,7 @@
-"""Bake time and peak memory for one second of animation of a synthetic plant.
+"""Bake time and peak memory for one second of animation of a synthetic plant or a capture.
 
     python bench/bake_speed.py --device cuda --gaussians 300000 --json bake.json
+    python bench/bake_speed.py --device cuda --scene tree --json tree.json   # udon, donut, tree
 
 Times the whole `pd_tool.bake.baker.bake` call (after a warm-up bake that compiles the kernels)
 and its parts: setup (preparation, K-Means, nearest drivers), simulation, interpolation,
@@ -22,6 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -34,6 +36,10 @@ def main() -> None:
     ap.add_argument("--fmt", default="instancer")
     ap.add_argument("--preset", default="flower")
     ap.add_argument("--thin", action="store_true", help="the plant with 3 mm leaves and petals (make_plant(thin=True))")
+    ap.add_argument("--scene", default=None, help="a capture instead of the plant: udon, donut or tree (at most "
+                    "--gaussians of it; its lowest tenth static, as bench/convergence.py pins it)")
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
+                    help="--scene: the folder holding the captures")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 3000 Gaussians, 0.2 s of animation, draft")
     ap.add_argument("--profile", type=Path, help="also write cProfile's 60 costliest calls (cumulative) of the timed "
                     "bake to this text file; set CUDA_LAUNCH_BLOCKING=1 so that GPU work is charged where it is launched")
@@ -51,7 +57,13 @@ def main() -> None:
     from pd_tool.io.synthetic import POT_TOP, make_plant
 
     init_warp_quietly()
-    scene = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin)
+    if args.scene:
+        from sim_profile import bake_inputs
+
+        scene, opts = bake_inputs(args.scene, args.gaussians, args.device, args.data)
+    else:
+        scene, opts = make_plant(args.gaussians, seed=0, device=args.device, thin=args.thin), \
+            PrepareOptions(static_below=POT_TOP)
     kw = dict(force=ForceSpec.from_interaction("poke", (20.0, 0.0, 0.0)), material=Material.from_preset(args.preset))
     with tempfile.TemporaryDirectory() as tmp:
         bake(make_plant(2000, seed=1, device=args.device, thin=False), Path(tmp) / "warm.usd",
@@ -65,7 +77,7 @@ def main() -> None:
         if profiler:
             profiler.enable()
         t0 = time.perf_counter()
-        res = bake(scene, Path(tmp) / "out.usd", prepare_options=PrepareOptions(static_below=POT_TOP),
+        res = bake(scene, Path(tmp) / "out.usd", prepare_options=opts,
                    settings=BakeSettings(seconds=args.seconds, fps=args.fps, quality=args.quality, fmt=args.fmt,
                                          device=args.device, stop_at_rest=False), **kw)
         wall = time.perf_counter() - t0
@@ -81,7 +93,7 @@ def main() -> None:
     out = {
         "device": args.device,
         "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
-        "gaussians": args.gaussians, "thin": args.thin, "report": res.report, "drivers": res.drivers, "frames": res.frames,
+        "scene": args.scene or "plant", "gaussians": scene.count, "thin": args.thin, "report": res.report, "drivers": res.drivers, "frames": res.frames,
         "substeps_per_frame": res.substeps_per_frame, "quality": args.quality, "fmt": args.fmt,
         "wall_s": wall, "timings_s": res.timings, "setup_parts_s": res.setup_parts,
         "output_seconds": res.output_seconds,

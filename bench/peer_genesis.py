@@ -19,6 +19,9 @@ Compared: seconds per simulated second, each with a host copy of the positions e
 frame, and the motion (99th-percentile displacement of the moving particles, RMS of the
 per-particle difference, as shares of pdtool's peak).
 
+`--free` drops the clamp (no static particles: the block flies and wobbles), which leaves
+the two solvers alone in the comparison.
+
 Genesis runs in its own Python (its dependencies are many, and it brings its own
 compiler, quadrants): `--genesis-python PATH` names that interpreter, and this file runs
 there as a worker that reads the scene from and writes the trajectory to .npz files. With

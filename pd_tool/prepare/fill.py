@@ -311,7 +311,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     lat = (vox[:, None, :] * k + sub[None]).reshape(-1, 3)  # lattice indices from `corner`
     points = corner + (lat + 0.5) * lattice
     deadline.check("placing particles")
-    source = idx[_nearest_source(points, pos, corner, h, shape, deadline)]
+    source = idx[_nearest_source(points, pos, corner, h, shape, deadline, device)]
     reason = (f"filled {len(points):,} interior particles ({volume:.3g} m^3): {pct}")
     return FillResult(_like(points, like), _like_index(source, like), True, closedness, reason,
                       volume, h)
@@ -524,14 +524,15 @@ def _grow_into_shell(interior: np.ndarray, shell: np.ndarray, deadline: _Deadlin
     return inside
 
 
-def _nearest_source(points, pos, corner, h, shape, deadline) -> np.ndarray:
+def _nearest_source(points, pos, corner, h, shape, deadline, device: str = "cpu") -> np.ndarray:
     """Index into `pos` of an approximately nearest Gaussian of each point.
 
     Jump flooding on a grid of at most JFA_MAX_VOXELS voxels (each voxel seeded with one
     Gaussian it contains), then each point takes the nearest of the seeds found in its
     voxel's 27 neighbours. The answer is at most about one coarse voxel diagonal farther
-    than the true nearest; cost O(grid log grid + M), never O(N * M). numpy on purpose:
-    these are small gathers, where torch's threads only add overhead on a busy CPU.
+    than the true nearest; cost O(grid log grid + M), never O(N * M). The jump flooding is
+    numpy (a grid of at most JFA_MAX_VOXELS); the points' refinement runs in torch on
+    `device` (_refine_nearest_torch; its reference is _refine_nearest_np).
     """
     c = 1
     while math.prod(-(-np.asarray(shape) // c)) > JFA_MAX_VOXELS:
@@ -567,10 +568,25 @@ def _nearest_source(points, pos, corner, h, shape, deadline) -> np.ndarray:
             best[better] = dc[better]
     pts = points.astype(np.float32)
     pv = np.clip(np.floor((points - corner) / g).astype(np.int64), 0, dims - 1)
+    deadline.check("finding nearest Gaussians")
+    return _refine_nearest_torch(pts, pos32, lab, pv, torch.device(device))
+
+
+def _refine_nearest_np(pts, pos32, lab, pv, deadline=None) -> np.ndarray:
+    """Each point's nearest of the seeds `lab` holds in its search voxel's 27 neighbours
+    (the numpy reference of _refine_nearest_torch).
+
+    pts [M, 3] float32 points, pos32 [N, 3] float32 Gaussians, lab [X, Y, Z] int64 seed
+    (index into pos32, -1 none) of each search voxel, pv [M, 3] int64 each point's search
+    voxel. Returns [M] int64 indices into pos32 (-1 where all 27 voxels are empty, which
+    a jump-flooded grid never has); of equally near seeds, the first in the order centre,
+    then _DIRS."""
+    dims = np.asarray(lab.shape)
     best_i = lab[tuple(pv.T)]
-    best_d = ((pos32[best_i] - pts) ** 2).sum(-1)
+    best_d = np.where(best_i >= 0, ((pos32[np.maximum(best_i, 0)] - pts) ** 2).sum(-1), np.float32(np.inf))
     for off in _DIRS:
-        deadline.check("finding nearest Gaussians")
+        if deadline is not None:
+            deadline.check("finding nearest Gaussians")
         q = pv + np.asarray(off)
         ok = ((q >= 0) & (q < dims)).all(-1)
         ci = np.where(ok, lab[tuple(np.clip(q, 0, dims - 1).T)], -1)
@@ -579,6 +595,38 @@ def _nearest_source(points, pos, corner, h, shape, deadline) -> np.ndarray:
         best_i[better] = ci[better]
         best_d[better] = dc[better]
     return best_i
+
+
+def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device) -> np.ndarray:
+    """_refine_nearest_np in torch on `device`: the same candidates, distances and ties.
+
+    A filled closed scan has millions of lattice points (the donut: 3M), whose 27 gathers
+    each were most of its preparation in numpy: on the 2-core development CPU the donut
+    prepares in 1.14 s with torch here against 2.34 s with numpy. On CUDA the gathers take
+    milliseconds."""
+    dims = torch.tensor(lab.shape, device=device)
+    labt = torch.as_tensor(lab, device=device)
+    post = torch.as_tensor(pos32, device=device)
+    ptst = torch.as_tensor(pts, device=device)
+    pvt = torch.as_tensor(pv, device=device)
+
+    def sqdist(i: torch.Tensor) -> torch.Tensor:
+        d = post[i.clamp(min=0)] - ptst
+        # summed in the order numpy's does (x, then y, then z) so that ties break alike
+        return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
+
+    best_i = labt[pvt[:, 0], pvt[:, 1], pvt[:, 2]]
+    best_d = torch.where(best_i >= 0, sqdist(best_i), torch.inf)
+    for off in _DIRS:
+        q = pvt + torch.tensor(off, device=device)
+        ok = ((q >= 0) & (q < dims)).all(-1)
+        qc = torch.minimum(q.clamp(min=0), dims - 1)
+        ci = torch.where(ok, labt[qc[:, 0], qc[:, 1], qc[:, 2]], -1)
+        dc = sqdist(ci)
+        better = (ci >= 0) & (dc < best_d)
+        best_i = torch.where(better, ci, best_i)
+        best_d = torch.where(better, dc, best_d)
+    return best_i.cpu().numpy()
 
 
 def _shift3(t: np.ndarray, off: list[int]) -> np.ndarray:

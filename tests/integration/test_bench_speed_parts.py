@@ -53,3 +53,17 @@ def test_bake_speed_setup_parts_add_up(tmp_path: Path) -> None:
     # the parts cover the setup but for the output checks before them
     assert 0.8 * setup <= sum(parts.values()) <= setup * 1.001
     assert "prepare_scene" in (tmp_path / "p.txt").read_text()
+
+
+def test_bake_speed_bakes_a_capture(tmp_path: Path, shared_data: Path) -> None:
+    """--scene bakes the capture itself (every one of udon's Gaussians, its lowest tenth
+    pinned), not the plant."""
+    out = tmp_path / "b.json"
+    subprocess.run([sys.executable, str(REPO / "bench" / "bake_speed.py"), "--device", "cpu", "--scene", "udon",
+                    "--data", str(shared_data), "--gaussians", "300000", "--quality", "draft", "--seconds", "0.1",
+                    "--json", str(out)], check=True, capture_output=True, cwd=REPO)
+    d = json.loads(out.read_text())
+    from pd_tool.io import load_splats
+
+    assert d["scene"] == "udon" and d["gaussians"] == load_splats(shared_data / "udon.ply").count
+    assert d["drivers"] > 0 and any(" static" in line for line in d["report"])

@@ -360,3 +360,28 @@ def test_the_voxel_is_the_least_that_bounds_the_work(monkeypatch, work):
     k = next(k for k in range(k_min, k_min + 64) if splat_work(k) <= work)
     assert k > k_min or work == 2e5  # the bound coarsens the voxel in the last two cases
     assert r.voxel == pytest.approx(lattice * k, rel=1e-12)
+
+
+def test_nearest_refinement_torch_matches_numpy():
+    """The fill's per-point nearest-seed refinement on a torch device (the CUDA path, run
+    here on the CPU) against its numpy reference: the same seed for every point, empty
+    search voxels and points at the grid's edge included."""
+    rng = np.random.default_rng(4)
+    shape = (7, 5, 6)
+    pos32 = rng.random((300, 3)).astype(np.float32)
+    lab = rng.integers(-1, len(pos32), shape).astype(np.int64)  # about 1 in 300 empty
+    lab[0, 0, 0] = lab[6, 4, 5] = -1
+    pts = rng.random((5000, 3)).astype(np.float32)
+    pv = np.floor(pts * np.asarray(shape)).astype(np.int64)
+    pv[:50] = [0, 0, 0]
+    pv[50:100] = [6, 4, 5]
+    want = fl._refine_nearest_np(pts, pos32, lab, pv)
+    got = fl._refine_nearest_torch(pts, pos32, lab, pv, torch.device("cpu"))
+    assert got.dtype == np.int64 and np.array_equal(got, want)
+    # and each is the nearest of its 27 neighbours' seeds (brute force over them)
+    for m in rng.choice(len(pts), 200, replace=False):
+        voxels = [pv[m] + np.asarray(d) - 1 for d in np.ndindex(3, 3, 3)]
+        cand = [lab[tuple(q)] for q in voxels if np.all((q >= 0) & (q < shape))]
+        cand = [c for c in cand if c >= 0]
+        best = min(((pos32[c] - pts[m]) ** 2).sum() for c in cand)
+        assert ((pos32[got[m]] - pts[m]) ** 2).sum() == best
