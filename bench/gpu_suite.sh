@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f) and the 3 mm plant's fit, CLI and Pareto (g, h); JSON and logs
+# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), and the profiles and capture bakes (i); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -62,4 +62,14 @@ if [ "$part" = h ]; then
   run pareto_thin 560 bench/pareto.py --device cuda --gaussians 300000 --threads 16 --grids 32,48,64,96,128 \
     --cfls 0.5 --ratios 0.05,0.1,0.5 --reference-grid 192 --reference-cfl 0.25 --reference-ratio 1.0 --check-grid 256 \
     --reference-cache /tmp/pareto_thin_ref.npz --png "$OUT/pareto_thin.png"
+fi
+# where a bake's substep goes (the thin plant and the captures) and the captures' bake speed
+# and memory (docs/benchmarks.md, "Bake speed"; docs/simulator.md, the per-kernel profiles)
+if [ "$part" = i ]; then
+  run sim_profile_thin 120 bench/sim_profile.py --device cuda --scene thin --gaussians 300000
+  run sim_profile_backward 120 bench/sim_profile.py --device cuda --sizes 100000:64 --backward
+  for s in tree donut udon; do
+    run sim_profile_$s 120 bench/sim_profile.py --device cuda --scene $s --gaussians 100000 --data $DATA
+    run bake_speed_$s 150 bench/bake_speed.py --device cuda --scene $s --gaussians 300000 --data $DATA
+  done
 fi
