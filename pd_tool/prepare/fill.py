@@ -602,7 +602,7 @@ def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device) -> np.ndarr
 
     A filled closed scan has millions of lattice points (the donut: 3M), whose 27 gathers
     each were most of its preparation in numpy: on the 2-core development CPU the donut
-    prepares in 1.14 s with torch here against 2.34 s with numpy. On CUDA the gathers take
+    prepares in 1.16 s with torch here (the refinement 0.53 s of it) against 2.3 s with numpy (1.7 s). On CUDA the gathers take
     milliseconds."""
     dims = torch.tensor(lab.shape, device=device)
     labt = torch.as_tensor(lab, device=device)
@@ -611,7 +611,7 @@ def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device) -> np.ndarr
     pvt = torch.as_tensor(pv, device=device)
 
     def sqdist(i: torch.Tensor) -> torch.Tensor:
-        d = post[i.clamp(min=0)] - ptst
+        d = post.index_select(0, i.clamp(min=0)) - ptst  # faster than advanced indexing on a CPU
         # summed in the order numpy's does (x, then y, then z) so that ties break alike
         return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
 
@@ -621,7 +621,7 @@ def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device) -> np.ndarr
         q = pvt + torch.tensor(off, device=device)
         ok = ((q >= 0) & (q < dims)).all(-1)
         qc = torch.minimum(q.clamp(min=0), dims - 1)
-        ci = torch.where(ok, labt[qc[:, 0], qc[:, 1], qc[:, 2]], -1)
+        ci = torch.where(ok, labt.view(-1).index_select(0, (qc[:, 0] * dims[1] + qc[:, 1]) * dims[2] + qc[:, 2]), -1)
         dc = sqdist(ci)
         better = (ci >= 0) & (dc < best_d)
         best_i = torch.where(better, ci, best_i)
