@@ -197,8 +197,7 @@ class DiffSim:
         return int(min(substeps, max(1, budget * 2**20 // per_substep)))
 
     def _lists(self, binned: bool):
-        # The fast path's cell lists on CUDA; unbinned, a
-        # one-particle set that no kernel reads.
+        # The fast path's cell lists on CUDA; unbinned, a one-particle set that no kernel reads.
         if binned:
             bins = getattr(self, "_bins", None)
             if bins is None:
