@@ -113,6 +113,18 @@ def load_scene(name: str, gaussians: int, seed: int = 0, data: Path = DATA):
     return scene
 
 
+def pinned_below(scene, case: Case) -> float:
+    """The case's --static-below height: the strip's block only, else the lowest tenth of
+    the scene along its up axis."""
+    from pd_tool.prepare.preparation import up_rotation
+
+    if case.name == "strip":
+        return 1e-6
+    height = scene.positions.detach().cpu().double().numpy() @ up_rotation(case.up)[2]
+    lo, hi = float(height.min()), float(height.max())
+    return lo + 0.1 * (hi - lo)
+
+
 def even_strip_weights() -> None:
     """Make the strip's Gaussians (those above its block) share its volume evenly, for every
     later preparation in this process: the volume rule's part in the strip's frequency."""
@@ -136,13 +148,9 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it."""
     from pd_tool.fit.reference import simulate_positions
-    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin, up_rotation
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin
 
-    pos = scene.positions.detach().cpu().double().numpy()
-    height = pos @ up_rotation(case.up)[2]
-    lo, hi = float(height.min()), float(height.max())
-    static_below = 1e-6 if case.name == "strip" else lo + 0.1 * (hi - lo)
-    prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=static_below,
+    prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=pinned_below(scene, case),
                                                density_kg_m3=case.density, fill=fill))
     finer = refine_for_thin(prep, thin_grid) if thin_grid else None
     if finer is not None:  # as a bake does: the finer grid, and drivers enough for its cells

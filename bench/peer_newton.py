@@ -123,6 +123,17 @@ def motion(traj: np.ndarray, moving: np.ndarray) -> np.ndarray:
     return np.quantile(d, 0.99, axis=1)
 
 
+def against(ours: np.ndarray, theirs: np.ndarray, moving: np.ndarray, peak: float) -> dict:
+    """A peer's trajectory [F+1, N, 3] against pdtool's, whose motion peaks at `peak` m: its
+    peak over pdtool's, the RMS of the per-particle difference over pdtool's peak, and its
+    motion [F+1] (m)."""
+    m = motion(theirs, moving)
+    diff = np.linalg.norm(theirs[:, moving] - ours[:, moving], axis=-1)
+    return {"peak_ratio": float(m.max()) / max(peak, 1e-30),
+            "rms_diff_over_peak": float(np.sqrt((diff ** 2).mean())) / max(peak, 1e-30),
+            "motion_m": m.tolist()}
+
+
 def compare(n: int, res: int, seconds: float, speed: float, newton_substeps: list[int], device: str) -> dict:
     from pd_tool.io.synthetic import make_block
 
@@ -140,16 +151,12 @@ def compare(n: int, res: int, seconds: float, speed: float, newton_substeps: lis
            "newton": []}
     for k in newton_substeps:
         theirs = run_newton(x, vol, mass, static, 1.0 / res, v0, frames, k, device)
-        m_theirs = motion(theirs["traj"], moving)
-        diff = np.linalg.norm(theirs["traj"][:, moving] - ours["traj"][:, moving], axis=-1)
         row["newton"].append({
             "version": theirs["version"], "steps_per_frame": k, "s_per_sim_s": theirs["seconds"] / seconds,
             "ms_per_step": 1e3 * theirs["seconds"] / theirs["steps"],
             "particle_steps_per_s": n * theirs["steps"] / theirs["seconds"],
             "time_ratio": theirs["seconds"] / ours["seconds"],  # Newton's time over pdtool's, same simulated time
-            "peak_ratio": float(m_theirs.max()) / max(peak, 1e-30),
-            "rms_diff_over_peak": float(np.sqrt((diff ** 2).mean())) / max(peak, 1e-30),
-            "motion_m": m_theirs.tolist()})
+            **against(ours["traj"], theirs["traj"], moving, peak)})
     row["pdtool"]["motion_m"] = m_ours.tolist()
     return row
 

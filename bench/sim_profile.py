@@ -60,18 +60,15 @@ def bake_inputs(name: str, gaussians: int, device: str, data: Path):
     """(scene, PrepareOptions) as the bake benchmarks use them: the plant with its pot
     static, or a capture with its lowest tenth static (bench/convergence.py's cases)."""
     from pd_tool.io.synthetic import POT_TOP, make_plant
-    from pd_tool.prepare.preparation import PrepareOptions, up_rotation
+    from pd_tool.prepare.preparation import PrepareOptions
 
     if name in ("plant", "thin"):
         return make_plant(gaussians, seed=0, device=device, thin=name == "thin"), PrepareOptions(static_below=POT_TOP)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from convergence import CASES, load_scene
+    from convergence import CASES, load_scene, pinned_below
 
     scene = load_scene(name, gaussians, data=data).to(device)
-    up = CASES[name].up
-    height = scene.positions.detach().cpu().double().numpy() @ up_rotation(up)[2]
-    lo, hi = float(height.min()), float(height.max())
-    return scene, PrepareOptions(up_axis=up, static_below=lo + 0.1 * (hi - lo))
+    return scene, PrepareOptions(up_axis=CASES[name].up, static_below=pinned_below(scene, CASES[name]))
 
 
 def profile_bake(name: str, gaussians: int, quality: str, frames: int, device: str, data: Path) -> dict:

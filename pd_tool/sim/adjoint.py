@@ -35,10 +35,11 @@ from pd_tool.sim.gather import (
     CELL_BLOCK,
     PARTICLE_BLOCK,
     CellLists,
+    block_tag,
     block_tagged,
     chunk_threads,
     g2p_bin,
-    grid_update_clear_bins,
+    grid_update_tagged,
     p2g_chunks,
     red_add_vec4,
 )
@@ -341,12 +342,6 @@ def grid_adjoint(
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
-def block_tag(k0: int, i: int) -> int:
-    """The activity tag of substep k0 + i's grid (gather.block_tagged): the recompute tags
-    it, its adjoint reads it; unique within a frame."""
-    return k0 + i + 1
-
-
 def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists: CellLists,
                       binned: bool) -> None:
     """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
@@ -383,11 +378,10 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
     nodes, dx = geo.nodes_vec, float(geo.dx)
     g2p_bin_into(0, 0, 0)
     for i in range(count):
-        g = grids[i]
+        g, tag = grids[i], block_tag(k0, i)
         wp.launch(p2g_chunks, dim=chunk_threads(n), device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, dx, nodes, g.mmv, g.blocks, block_tag(k0, i)])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev,
-                  inputs=[step, g.mmv, g.v, 0, g.blocks, block_tag(k0, i)])
+                  inputs=[lists, dx, nodes, g.mmv, g.blocks, tag])
+        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 0, g.blocks, tag])
         if i < count - 1:
             g2p_bin_into(1, i, i + 1)
         else:

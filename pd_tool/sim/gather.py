@@ -16,7 +16,7 @@ of a 100k-particle substep on an H200). Here:
    payload (L1 broadcasts) and write different nodes. A chunk's length is fixed, so no
    thread waits on a long loop through a crowded cell (a thin leaf on a fine grid: up to
    500 particles a cell) and no list of where cells start is built.
-3. `grid_update_clear_bins` (per node): the usual grid update, clearing the grid for the
+3. `grid_update_tagged` (per node): the usual grid update, clearing the grid for the
    next substep. It visits only the nodes of the 4^3-node blocks that step 2 tagged this
    substep: a thin object leaves most of its grid empty.
 
@@ -179,6 +179,32 @@ def bspline_at(fx: float, a: int) -> float:
 
 
 @wp.func
+def chunk_row(t: int) -> wp.vec3i:
+    """Thread t of a nine-threads-per-chunk launch: (chunk, stencil offsets a, b) of the
+    row of nodes (a, b, 0..2) it owns."""
+    lane = t // 9
+    o = t - 9 * lane
+    a = o // 3
+    return wp.vec3i(lane, a, o - 3 * a)
+
+
+@wp.func
+def tag_row(blocks: wp.array3d(dtype=int), tag: int, n: wp.vec3i):
+    """Tag the activity blocks of the nodes n, n + (0, 0, 1), n + (0, 0, 2) with `tag`. The
+    tag is read first: most rows' blocks are tagged already, and a read served by the cache
+    costs less than a store to a line that every SM writes."""
+    bi = n[0] // BLOCK_W
+    bj = n[1] // BLOCK_W
+    b0 = n[2] // BLOCK_W
+    b1 = (n[2] + 2) // BLOCK_W
+    if blocks[bi, bj, b0] != tag:
+        blocks[bi, bj, b0] = tag
+    if b1 != b0:
+        if blocks[bi, bj, b1] != tag:
+            blocks[bi, bj, b1] = tag
+
+
+@wp.func
 def row_shares(q: int, a: int, b: int, lists: CellLists, dx: float):
     """Particle q's shares of the three nodes (a, b, 0..2) of its cell's stencil: the masses
     w_n m and the vectors w_n (momentum + A dpos_n) of its payload."""
@@ -261,32 +287,6 @@ def chunk_threads(n_particles: int) -> int:
 
 
 @wp.func
-def tag_row(blocks: wp.array3d(dtype=int), tag: int, n: wp.vec3i):
-    """Tag the activity blocks of the nodes n, n + (0, 0, 1), n + (0, 0, 2) with `tag`. The
-    tag is read first: most rows' blocks are tagged already, and a read served by the cache
-    costs less than a store to a line that every SM writes."""
-    bi = n[0] // BLOCK_W
-    bj = n[1] // BLOCK_W
-    b0 = n[2] // BLOCK_W
-    b1 = (n[2] + 2) // BLOCK_W
-    if blocks[bi, bj, b0] != tag:
-        blocks[bi, bj, b0] = tag
-    if b1 != b0:
-        if blocks[bi, bj, b1] != tag:
-            blocks[bi, bj, b1] = tag
-
-
-@wp.func
-def chunk_row(t: int) -> wp.vec3i:
-    """Thread t of a nine-threads-per-chunk launch: (chunk, stencil offsets a, b) of the
-    row of nodes (a, b, 0..2) it owns."""
-    lane = t // 9
-    o = t - 9 * lane
-    a = o // 3
-    return wp.vec3i(lane, a, o - 3 * a)
-
-
-@wp.func
 def block_tagged(blocks: wp.array3d(dtype=int), tag: int, i: int, j: int, k: int) -> bool:
     """Whether node (i, j, k) lies in an activity block tagged `tag`.
 
@@ -300,7 +300,7 @@ def block_tagged(blocks: wp.array3d(dtype=int), tag: int, i: int, j: int, k: int
 
 
 @wp.kernel(enable_backward=False)
-def grid_update_clear_bins(
+def grid_update_tagged(
     step: K.StepParams,
     grid_mmv: wp.array3d(dtype=wp.vec4),
     grid_v: wp.array3d(dtype=wp.vec3),
@@ -317,6 +317,13 @@ def grid_update_clear_bins(
     grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], i, j, k, step)
     if clear_grid != 0:
         grid_mmv[i, j, k] = wp.vec4(0.0)
+
+
+def block_tag(k0: int, i: int) -> int:
+    """The activity tag of substep k0 + i of a run of substeps (block_tagged): its chunk
+    sums write it, its grid update and the backward's grid adjoint read it. Unique within a
+    frame; a tag reused in a later frame only makes a block be visited for nothing."""
+    return k0 + i + 1
 
 
 def block_shape(nodes: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -352,11 +359,10 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
     bin_particles(0, 0.0)
     for s in range(n):
-        # any tags work (block_tagged); these differ between a call's consecutive substeps
-        tag = s + 1
+        tag = block_tag(0, s)
         wp.launch(p2g_chunks, dim=chunk_threads(count), device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, dx, nodes, g.mmv, g.blocks, tag])
-        wp.launch(grid_update_clear_bins, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 1, g.blocks, tag])
+        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 1, g.blocks, tag])
         if s < n - 1:
             bin_particles(1, (s + 1) * dt)
         else:

@@ -375,7 +375,7 @@ def test_nearest_refinement_torch_matches_numpy():
     pv = np.floor(pts * np.asarray(shape)).astype(np.int64)
     pv[:50] = [0, 0, 0]
     pv[50:100] = [6, 4, 5]
-    want = fl._refine_nearest_np(pts, pos32, lab, pv)
+    want = fl._refine_nearest_ref(pts, pos32, lab, pv)
     got = fl._refine_nearest_torch(pts, pos32, lab, pv, torch.device("cpu"))
     assert got.dtype == np.int64 and np.array_equal(got, want)
     # and each is the nearest of its 27 neighbours' seeds (brute force over them)
