@@ -5,7 +5,8 @@ stem) moves like a hollow balloon: too light and too soft. `fill_interior` finds
 inside of the shell and places particles there on a regular lattice. Those particles are
 simulated, never rendered.
 
-Pipeline (all on a voxel grid, numpy / torch on the CPU, memory and time bounded):
+Pipeline (all on a voxel grid in torch on the scan's device: voxels.py; memory and time
+bounded):
 1. density: opacity-weighted, unnormalised Gaussians alpha * exp(-d^T Sigma^-1 d / 2), cut
    at 3 sigma; scales clamped to [SIGMA_MIN_VOXELS voxels, SIGMA_MAX_CELLS cells] so that
    near-singular and absurd covariances neither vanish between voxels nor cost O(N * grid).
@@ -41,10 +42,10 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.quaternion import quat_to_matrix_np
+from pd_tool.prepare import voxels as vx
 from pd_tool.prepare.cells import unique_cells
 
 SHELL_THRESHOLD = 0.3  # summed alpha * Gaussian value (0-1 per Gaussian) that makes a voxel shell
@@ -141,7 +142,7 @@ def fill_interior(
         grid_origin: [3] a corner of the simulation grid, metres; pass it so that the
             lattice aligns with the grid and each interior cell holds exactly p^3 particles.
             Default: the lattice is aligned to multiples of `cell`.
-        device: where the density splat runs (warp's "cpu" or "cuda:N"); the rest is numpy.
+        device: where the density splat and the grid passes run (warp's "cpu" or "cuda:N").
     Returns:
         FillResult; `points` are in the kind of `positions` (numpy, or torch on its device).
     Raises:
@@ -227,23 +228,30 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     finite = scl[np.isfinite(scl).all(1)]
     floor = VOXEL_MIN_SCALES * float(np.median(finite.max(1))) if len(finite) else 0.0
     k_min = max(1, int(math.ceil(floor / lattice - 1e-9)))
-    rot2 = rot * rot
+    # the voxel search and the grid passes run on the scan's device: at 300k Gaussians a
+    # dozen passes over [N, 3, 3] or over millions of voxels each, which a GPU host's numpy
+    # took seconds over
+    tdev = torch.device(device)
+    rot2 = torch.as_tensor(rot * rot, device=tdev)
+    scl_t = torch.as_tensor(scl, device=tdev)
 
-    def sigmas(h: float) -> np.ndarray:
+    def sigmas(h: float) -> torch.Tensor:
         # the cap follows the voxel too, so that large Gaussians (a scan's underside) keep
         # closing the shell on a fine grid
-        return np.clip(scl, SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
+        return scl_t.clamp(SIGMA_MIN_VOXELS * h, SIGMA_MAX_CELLS * max(cell, 2.0 * h))
 
-    def sig_radius(h: float) -> tuple[np.ndarray, np.ndarray]:
+    def sig_radius(h: float) -> tuple[torch.Tensor, torch.Tensor]:
         sig = sigmas(h)
-        cov_diag = (rot2 * (sig * sig)[:, None, :]).sum(-1)  # diagonal of R S^2 R^T
+        s2 = sig * sig
+        # the diagonal of R S^2 R^T, summed in numpy's order
+        cov_diag = (rot2[:, :, 0] * s2[:, None, 0] + rot2[:, :, 1] * s2[:, None, 1]) + rot2[:, :, 2] * s2[:, None, 2]
         # a sigma clipped to SIGMA_MIN_VOXELS lands on a whole number of voxels here, which float
         # rounding must not push up by one: the work would then rise with the voxel
-        return sig, np.ceil(3.0 * np.sqrt(cov_diag) / h + 0.5 - 1e-9).astype(np.int64)  # [N, 3] voxels
+        return sig, torch.ceil(3.0 * torch.sqrt(cov_diag) / h + 0.5 - 1e-9).long()  # [N, 3] voxels
 
     def light(k: int) -> bool:  # the splat's work is within MAX_SPLAT_WORK
         radius = sig_radius(lattice * k)[1]
-        return float(np.prod(2 * radius + 1, axis=1).sum()) <= MAX_SPLAT_WORK
+        return float((2 * radius + 1).prod(1).sum()) <= MAX_SPLAT_WORK
 
     # Coarsen the analysis voxel until memory and work are bounded: the least k in
     # [k_min, k_min + 64) that passes both. Each sigma in voxels only shrinks as the voxel
@@ -259,13 +267,13 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
             first = mid + 1
     for k in range(first, k_min + 64):
         h = lattice * k
-        pad = 3.0 * sigmas(h).max() + 2.0 * h
+        pad = 3.0 * float(sigmas(h).max()) + 2.0 * h
         i0 = np.floor((lo - pad - origin) / h).astype(np.int64)
         i1 = np.ceil((hi + pad - origin) / h).astype(np.int64)
         shape = tuple(int(v) for v in (i1 - i0))
         if math.prod(shape) > MAX_VOXELS:
             continue
-        sig, radius = sig_radius(h)
+        sig, radius = (t.cpu().numpy() for t in sig_radius(h))
         grid = (k, h, i0, shape, sig, radius)
         break
     if grid is None:
@@ -278,35 +286,36 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     corner = origin + i0 * h  # metres, low corner of voxel (0, 0, 0)
 
     dens = _splat_density((pos - corner) / h, rot, sig / h, opa, radius, shape, deadline, device)
-    shell = dens >= SHELL_THRESHOLD
-    shell = _close(shell)
+    shell = vx.close(dens >= SHELL_THRESHOLD)
     deadline.check("closing the shell")
 
-    vote = _ray_vote(shell, deadline)
+    vote = vx.ray_vote(shell, deadline.check)
     free = ~shell
     # A shell band thicker than two Gaussian half-widths has a solid core (a capture with
     # Gaussians all through its volume, like the donut): count that core as enclosed too.
     half_band = max(1, int(math.ceil(np.median(3.0 * sig.min(1)) / h)))
-    core = _deep(shell, 2 * half_band, deadline)
+    core = vx.deep(shell, 2 * half_band, deadline.check)
     open_ = free | core
-    enclosed = _drop_border_components(open_ & (vote >= VOTE_CANDIDATE), deadline)
-    interior = _drop_border_components(open_ & (vote >= VOTE_INTERIOR), deadline)
-    closedness = float(vote[enclosed].mean()) if enclosed.any() else 0.0
+    enclosed = vx.drop_border_components(open_ & (vote >= VOTE_CANDIDATE), deadline.check)
+    interior = vx.drop_border_components(open_ & (vote >= VOTE_INTERIOR), deadline.check)
+    any_enclosed = bool(enclosed.any())
+    closedness = float(vote[enclosed].mean()) if any_enclosed else 0.0
     # A flat sheet has no enclosed voxels at all (closedness 0); show its best vote instead
     # so that the user sees how far off it was.
-    shown = closedness if enclosed.any() else float(vote[free].max() if free.any() else 0.0)
-    solid = _grow_into_shell(interior, shell, deadline)
-    volume = float(solid.sum()) * h**3
+    shown = closedness if any_enclosed else float(vote[free].max() if bool(free.any()) else 0.0)
+    solid = vx.grow_into_shell(interior, shell, deadline.check)
+    n_solid = int(solid.sum())
+    volume = float(n_solid) * h**3
     pct = f"shell {100 * shown:.0f}% closed"
 
     if mode == "auto" and closedness < AUTO_CLOSEDNESS:
         return _empty(like, closedness, f"not filled: open surface ({pct}; auto fills at "
                       f"{100 * AUTO_CLOSEDNESS:.0f}%)", volume, h)
-    if not solid.any() or (mode == "auto" and volume < MIN_INTERIOR_CELLS * cell**3):
+    if n_solid == 0 or (mode == "auto" and volume < MIN_INTERIOR_CELLS * cell**3):
         return _empty(like, closedness, f"not filled: no enclosed interior found ({pct})",
                       0.0, h)
 
-    vox = np.argwhere(solid)  # [V, 3] analysis voxel indices
+    vox = torch.nonzero(solid).cpu().numpy()  # [V, 3] analysis voxel indices
     sub = np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), -1).reshape(-1, 3)
     lat = (vox[:, None, :] * k + sub[None]).reshape(-1, 3)  # lattice indices from `corner`
     points = corner + (lat + 0.5) * lattice
@@ -320,12 +329,12 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
 # ----------------------------------------------------------------------------- pieces
 
 
-def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "cpu") -> np.ndarray:
+def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "cpu") -> torch.Tensor:
     """Sum of alpha * exp(-m / 2) over Gaussians with Mahalanobis m <= 9, per voxel centre.
 
     u: [N, 3] centres in voxel units (voxel i spans [i, i + 1)); rot: [N, 3, 3]; sig_v: [N,
     3] std-devs in voxels; radius: [N, 3] half box per axis in voxels (ints). Returns the
-    float32 grid of `shape` (numpy). Launches `fill_kernels.splat_density` (one thread per
+    float32 grid of `shape` (torch, on `device`). Launches `fill_kernels.splat_density` (one thread per
     Gaussian) in batches of about SPLAT_CHUNK evaluations, checking the deadline between.
     """
     import warp as wp
@@ -352,7 +361,7 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
             wp.array(opa32[sl], dtype=float, device=device),
             wp.array(radius[sl], dtype=wp.vec3i, device=device), dens])
         start = stop
-    return dens.numpy()
+    return wp.to_torch(dens)
 
 
 def splat_density_ref(u, rot, sig_v, opa, radius, shape, deadline=None) -> np.ndarray:
@@ -394,145 +403,14 @@ def splat_density_ref(u, rot, sig_v, opa, radius, shape, deadline=None) -> np.nd
     return dens.reshape(shape).numpy()
 
 
-def _close(mask: np.ndarray) -> np.ndarray:
-    """Morphological closing with a 3x3x3 cube: seals pinholes one voxel wide."""
-    t = torch.from_numpy(mask).float()[None, None]
-    dil = F.max_pool3d(t, 3, 1, 1)
-    ero = 1.0 - F.max_pool3d(1.0 - dil, 3, 1, 1)
-    return (ero[0, 0] > 0.5).numpy() | mask
-
-
-_DIRS = [d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]
-_DIRS = [tuple(int(c) - 1 for c in d) for d in _DIRS]  # 26 neighbour directions
-
-
-def _ray_hits(shell: np.ndarray, d: tuple[int, int, int]) -> np.ndarray:
-    """hit[x] = the ray x + t * d, t = 1, 2, ..., meets a shell voxel before leaving the grid."""
-    a = next(i for i in range(3) if d[i] != 0)
-    others = [i for i in range(3) if i != a]
-    s = np.moveaxis(shell, a, 0)
-    hit = np.zeros_like(s)
-    n = s.shape[0]
-    sb, sc = d[others[0]], d[others[1]]
-    order = range(n - 2, -1, -1) if d[a] > 0 else range(1, n)
-    for i in order:
-        j = i + d[a]
-        acc = s[j] | hit[j]
-        hit[i] = _shift2(acc, sb, sc)
-    return np.moveaxis(hit, 0, a)
-
-
-def _shift2(a: np.ndarray, sb: int, sc: int) -> np.ndarray:
-    """out[p, q] = a[p + sb, q + sc], False outside."""
-    out = np.zeros_like(a)
-    nb, nc = a.shape
-    out[max(0, -sb):nb - max(0, sb), max(0, -sc):nc - max(0, sc)] = \
-        a[max(0, sb):nb - max(0, -sb), max(0, sc):nc - max(0, -sc)]
-    return out
-
-
-def _ray_vote(shell: np.ndarray, deadline: _Deadline) -> np.ndarray:
-    """Fraction (0-1) of the 13 neighbour lines on which the shell lies on both sides.
-
-    A voxel is sandwiched along a line when the rays towards d and -d both hit the shell.
-    Outside a convex object no line is (a line meets a convex body on one side of an outside
-    point only), so the vote is 0 there; a bowl's or a torus hole's concavity gets the few
-    lines across it; inside a closed shell, all 13.
-    """
-    votes = np.zeros(shell.shape, np.uint8)
-    for d in _DIRS[:13]:  # the other 13 are their opposites
-        deadline.check("casting rays")
-        votes += _ray_hits(shell, d) & _ray_hits(shell, (-d[0], -d[1], -d[2]))
-    return votes.astype(np.float32) / 13
-
-
-def _flood(seed: np.ndarray, free: np.ndarray, deadline: _Deadline) -> np.ndarray:
-    """Voxels of `free` 6-connected to `seed`. Whole runs along an axis spread at once."""
-    reach = seed & free
-    while True:
-        before = int(reach.sum())
-        for axis in range(3):
-            deadline.check("flood filling")
-            reach = _spread(reach, free, axis)
-        if int(reach.sum()) == before:
-            return reach
-
-
-def _spread(reach: np.ndarray, free: np.ndarray, axis: int) -> np.ndarray:
-    r = np.moveaxis(reach, axis, -1)
-    f = np.moveaxis(free, axis, -1)
-    shape = r.shape
-    n = shape[-1]
-    r2, f2 = r.reshape(-1, n), f.reshape(-1, n)
-    lines = r2.shape[0]
-    run = np.cumsum(~f2, axis=1, dtype=np.int64) + (np.arange(lines) * (n + 1))[:, None]
-    lit = np.zeros(lines * (n + 1), bool)
-    lit[run[r2]] = True
-    out = lit[run] & f2
-    return np.moveaxis(out.reshape(shape), -1, axis)
-
-
-def _drop_border_components(mask: np.ndarray, deadline: _Deadline) -> np.ndarray:
-    """`mask` less its 6-connected components that touch the grid border."""
-    border = np.zeros_like(mask)
-    border[[0, -1]] = True
-    border[:, [0, -1]] = True
-    border[:, :, [0, -1]] = True
-    return mask & ~_flood(border, mask, deadline)
-
-
-def _deep(mask: np.ndarray, depth: int, deadline: _Deadline) -> np.ndarray:
-    """Voxels of `mask` more than `depth` 6-steps away from any voxel outside it."""
-    reach = ~mask
-    for _ in range(depth):
-        deadline.check("measuring the shell thickness")
-        reach = _dilate6(reach)
-    return mask & ~reach
-
-
-def _dilate6(m: np.ndarray) -> np.ndarray:
-    out = m.copy()
-    out[1:] |= m[:-1]
-    out[:-1] |= m[1:]
-    out[:, 1:] |= m[:, :-1]
-    out[:, :-1] |= m[:, 1:]
-    out[:, :, 1:] |= m[:, :, :-1]
-    out[:, :, :-1] |= m[:, :, 1:]
-    return out
-
-
-def _grow_into_shell(interior: np.ndarray, shell: np.ndarray, deadline: _Deadline) -> np.ndarray:
-    """Interior plus the inner half of the shell band (fronts from both sides, ties split)."""
-    inside = interior.copy()
-    outside = ~shell & ~interior
-    todo = shell & ~interior
-    flip = False
-    while todo.any():
-        deadline.check("splitting the shell band")
-        gi = _dilate6(inside) & todo
-        go = _dilate6(outside) & todo
-        if not (gi.any() or go.any()):
-            break
-        tie = gi & go
-        # Voxels reached by both fronts at once lie on the middle: alternate them so that
-        # neither side is favoured over the whole surface.
-        tie_in = tie & (np.indices(tie.shape).sum(0) % 2 == int(flip))
-        inside |= (gi & ~go) | tie_in
-        outside |= (go & ~gi) | (tie & ~tie_in)
-        todo &= ~(gi | go)
-        flip = not flip
-    return inside
-
-
 def _nearest_source(points, pos, corner, h, shape, deadline, device: str = "cpu") -> np.ndarray:
     """Index into `pos` of an approximately nearest Gaussian of each point.
 
     Jump flooding on a grid of at most JFA_MAX_VOXELS voxels (each voxel seeded with one
-    Gaussian it contains), then each point takes the nearest of the seeds found in its
-    voxel's 27 neighbours. The answer is at most about one coarse voxel diagonal farther
-    than the true nearest; cost O(grid log grid + M), never O(N * M). The jump flooding is
-    numpy (a grid of at most JFA_MAX_VOXELS); the points' refinement runs in torch on
-    `device` (_refine_nearest_torch; its reference is _refine_nearest_ref).
+    Gaussian it contains: voxels.jump_flood), then each point takes the nearest of the
+    seeds found in its voxel's 27 neighbours. The answer is at most about one coarse voxel
+    diagonal farther than the true nearest; cost O(grid log grid + M), never O(N * M). Both
+    run in torch on `device`.
     """
     c = 1
     while math.prod(-(-np.asarray(shape) // c)) > JFA_MAX_VOXELS:
@@ -542,33 +420,12 @@ def _nearest_source(points, pos, corner, h, shape, deadline, device: str = "cpu"
     gshape = tuple(int(v) for v in dims)
     pos32 = pos.astype(np.float32)
     gi = np.clip(np.floor((pos - corner) / g).astype(np.int64), 0, dims - 1)
-    lab = np.full(gshape, -1, np.int64)
-    lab[tuple(gi.T)] = np.arange(len(pos))
-    centre = (np.indices(gshape, np.float32).transpose(1, 2, 3, 0) * np.float32(g)
-              + (corner + 0.5 * g).astype(np.float32))
-
-    def dist(lb: np.ndarray) -> np.ndarray:
-        d = ((pos32[np.maximum(lb, 0)] - centre) ** 2).sum(-1)
-        d[lb < 0] = np.inf
-        return d
-
-    best = dist(lab)
-    steps = []
-    step = 1 << max(0, int(math.ceil(math.log2(max(gshape)))) - 1)
-    while step >= 1:
-        steps.append(step)
-        step //= 2
-    for step in steps + [1]:  # JFA+1: a last unit pass repairs most jump-flood misses
-        deadline.check("finding nearest Gaussians")
-        for off in _DIRS:
-            cand = _shift3(lab, [o * step for o in off])
-            dc = dist(cand)
-            better = dc < best
-            lab[better] = cand[better]
-            best[better] = dc[better]
+    tdev = torch.device(device)
+    lab = vx.jump_flood(torch.as_tensor(pos32, device=tdev), torch.as_tensor(gi, device=tdev), gshape,
+                        torch.as_tensor(corner, dtype=torch.float64), g, deadline.check)
     pts = points.astype(np.float32)
     pv = np.clip(np.floor((points - corner) / g).astype(np.int64), 0, dims - 1)
-    return _refine_nearest_torch(pts, pos32, lab, pv, torch.device(device), deadline)
+    return _refine_nearest_torch(pts, pos32, lab, pv, tdev, deadline)
 
 
 def _refine_nearest_ref(pts, pos32, lab, pv) -> np.ndarray:
@@ -579,11 +436,11 @@ def _refine_nearest_ref(pts, pos32, lab, pv) -> np.ndarray:
     (index into pos32, -1 none) of each search voxel, pv [M, 3] int64 each point's search
     voxel. Returns [M] int64 indices into pos32 (-1 where all 27 voxels are empty, which
     a jump-flooded grid never has); of equally near seeds, the first in the order centre,
-    then _DIRS."""
+    then voxels.DIRS."""
     dims = np.asarray(lab.shape)
     best_i = lab[tuple(pv.T)]
     best_d = np.where(best_i >= 0, ((pos32[np.maximum(best_i, 0)] - pts) ** 2).sum(-1), np.float32(np.inf))
-    for off in _DIRS:
+    for off in vx.DIRS:
         q = pv + np.asarray(off)
         ok = ((q >= 0) & (q < dims)).all(-1)
         ci = np.where(ok, lab[tuple(np.clip(q, 0, dims - 1).T)], -1)
@@ -609,15 +466,14 @@ def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device, deadline: _
     pvt = torch.as_tensor(pv, device=device)
 
     def sqdist(i: torch.Tensor) -> torch.Tensor:
-        d = post.index_select(0, i.clamp(min=0)) - ptst  # faster than advanced indexing on a CPU
-        # summed in the order numpy's does (x, then y, then z) so that ties break alike
-        return (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
+        # index_select: faster than advanced indexing on a CPU
+        return vx.sq_dist(post.index_select(0, i.clamp(min=0)), ptst)
 
     if deadline is not None:
         deadline.check("finding nearest Gaussians")
     best_i = labt[pvt[:, 0], pvt[:, 1], pvt[:, 2]]
     best_d = torch.where(best_i >= 0, sqdist(best_i), torch.inf)
-    for off in _DIRS:
+    for off in vx.DIRS:
         if deadline is not None:
             deadline.check("finding nearest Gaussians")
         q = pvt + torch.tensor(off, device=device)
@@ -629,19 +485,6 @@ def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device, deadline: _
         best_i = torch.where(better, ci, best_i)
         best_d = torch.where(better, dc, best_d)
     return best_i.cpu().numpy()
-
-
-def _shift3(t: np.ndarray, off: list[int]) -> np.ndarray:
-    """out[x] = t[x + off], -1 outside."""
-    out = np.full_like(t, -1)
-    src, dst = [], []
-    for o, n in zip(off, t.shape):
-        if abs(o) >= n:
-            return out
-        src.append(slice(max(0, o), n + min(0, o)))
-        dst.append(slice(max(0, -o), n - max(0, o)))
-    out[tuple(dst)] = t[tuple(src)]
-    return out
 
 
 # ----------------------------------------------------------------------------- helpers

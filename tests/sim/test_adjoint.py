@@ -31,10 +31,11 @@ def block(dx: float, per_cell_axis: int, seed: int):
     return x, x[:, 2] < 3.5 * dx, np.full(len(x), h**3), rng
 
 
-def frame_grads(x, static, vol, cfg: SimConfig, binned: bool, seed: int, substeps: int, near_rest: bool):
+def frame_grads(x, static, vol, cfg: SimConfig, binned: bool, seed: int, substeps: int, near_rest: bool,
+                device: str = "cpu"):
     rng = np.random.default_rng(seed)
     n = len(x)
-    sim = DiffSim(vol, vol * 1000, static, cfg, device="cpu")
+    sim = DiffSim(vol, vol * 1000, static, cfg, device=device)
     sim.binned = binned
     xt = torch.tensor(x, dtype=torch.float32)
     v = torch.tensor(rng.normal(0, 0.5, (n, 3)), dtype=torch.float32)
@@ -44,17 +45,17 @@ def frame_grads(x, static, vol, cfg: SimConfig, binned: bool, seed: int, substep
     if not near_rest:
         F = F + torch.tensor(rng.normal(0, 0.05, (n, 3, 3)), dtype=torch.float32)
     E = torch.tensor(rng.uniform(1e4, 3e4, n), dtype=torch.float32)
-    ins = [t.requires_grad_() for t in (xt, v, C, F, E)]
+    ins = [t.to(sim.torch_device).requires_grad_() for t in (xt, v, C, F, E)]
     push = Force(mask=x[:, 0] > 0.5, accel=(5.0, -2.0, 8.0), t_start=2e-3, t_end=6e-3)
     out = sim.frame(tuple(ins[:4]), ins[4], 1e-3 * substeps, substeps, [push])
     g = torch.Generator().manual_seed(seed + 1)
-    loss = sum((o * torch.randn(o.shape, generator=g)).sum() for o in out)
-    return torch.autograd.grad(loss, ins)
+    loss = sum((o * torch.randn(o.shape, generator=g).to(o.device)).sum() for o in out)
+    return [gr.cpu() for gr in torch.autograd.grad(loss, ins)]
 
 
 @pytest.mark.parametrize("binned,segment", [(False, 4), (True, 4), (True, None)])
 @pytest.mark.parametrize("near_rest", [True, False])
-def test_adjoint_matches_tape_with_every_boundary(binned, segment, near_rest):
+def test_adjoint_matches_tape_with_every_boundary(binned, segment, near_rest, device):
     """Walls (the block touches the wall layers), ground plane, Dirichlet nodes, damping,
     a force window inside the frame, 9 substeps in segments of 4 (checkpoints) or in one
     (segment None: the whole frame fits the memory budget)."""
@@ -63,22 +64,22 @@ def test_adjoint_matches_tape_with_every_boundary(binned, segment, near_rest):
     for mode in ("adjoint", "tape"):
         cfg = SimConfig(grid_res=8, damping=2.0, segment=segment if mode == "adjoint" else 4, ground_z=0.4,
                         backward=mode)
-        grads[mode] = frame_grads(x, static, vol, cfg, binned and mode == "adjoint", 7, 9, near_rest)
+        grads[mode] = frame_grads(x, static, vol, cfg, binned and mode == "adjoint", 7, 9, near_rest, device)
     for name, a, b in zip("xvCFE", grads["adjoint"], grads["tape"]):
         assert torch.all(torch.isfinite(a)), name
         assert float(b.abs().max()) > 0, name  # the comparison sees a gradient
         assert rel_err(a, b) < TOL, (name, rel_err(a, b))
 
 
-def test_binned_adjoint_with_crowded_cells():
+def test_binned_adjoint_with_crowded_cells(device):
     """64 particles a cell against chunks of CHUNK: each cell's grid-velocity cotangent is
     summed by several chunks; the sum must not change."""
     x, static, vol, _ = block(1 / 8, 4, seed=1)
     assert len(x) / 8 > gather.CHUNK  # 2 x 2 x 2 cells
     cfg_a = SimConfig(grid_res=8, segment=3, backward="adjoint")
     cfg_t = SimConfig(grid_res=8, segment=3, backward="tape")
-    for a, b in zip(frame_grads(x, static, vol, cfg_a, True, 3, 5, False),
-                    frame_grads(x, static, vol, cfg_t, False, 3, 5, False)):
+    for a, b in zip(frame_grads(x, static, vol, cfg_a, True, 3, 5, False, device),
+                    frame_grads(x, static, vol, cfg_t, False, 3, 5, False, device)):
         assert rel_err(a, b) < TOL
 
 
