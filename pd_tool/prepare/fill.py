@@ -289,20 +289,20 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     shell = vx.close(dens >= SHELL_THRESHOLD)
     deadline.check("closing the shell")
 
-    vote = vx.ray_vote(shell, deadline.check)
+    votes = vx.ray_votes(shell, deadline.check)
     free = ~shell
     # A shell band thicker than two Gaussian half-widths has a solid core (a capture with
     # Gaussians all through its volume, like the donut): count that core as enclosed too.
     half_band = max(1, int(math.ceil(np.median(3.0 * sig.min(1)) / h)))
     core = vx.deep(shell, 2 * half_band, deadline.check)
     open_ = free | core
-    enclosed = vx.drop_border_components(open_ & (vote >= VOTE_CANDIDATE), deadline.check)
-    interior = vx.drop_border_components(open_ & (vote >= VOTE_INTERIOR), deadline.check)
+    enclosed = vx.drop_border_components(open_ & (votes >= _lines(VOTE_CANDIDATE)), deadline.check)
+    interior = vx.drop_border_components(open_ & (votes >= _lines(VOTE_INTERIOR)), deadline.check)
     any_enclosed = bool(enclosed.any())
-    closedness = float(vote[enclosed].mean()) if any_enclosed else 0.0
+    closedness = float(votes[enclosed].double().mean()) / vx.LINES if any_enclosed else 0.0
     # A flat sheet has no enclosed voxels at all (closedness 0); show its best vote instead
     # so that the user sees how far off it was.
-    shown = closedness if any_enclosed else float(vote[free].max() if bool(free.any()) else 0.0)
+    shown = closedness if any_enclosed else (float(votes[free].max()) / vx.LINES if bool(free.any()) else 0.0)
     solid = vx.grow_into_shell(interior, shell, deadline.check)
     n_solid = int(solid.sum())
     volume = float(n_solid) * h**3
@@ -327,6 +327,11 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
 
 
 # ----------------------------------------------------------------------------- pieces
+
+
+def _lines(share: float) -> int:
+    """The least number of the 13 lines whose vote reaches `share`."""
+    return math.ceil(share * vx.LINES - 1e-9)
 
 
 def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "cpu") -> torch.Tensor:

@@ -6,7 +6,7 @@ takes and returns tensors on one device and gives the same answer on every devic
 are integer and boolean work, and the nearest-seed search sums its float32 distances in a
 fixed order).
 
-References (tests/prepare/test_voxels.py): brute-force ray walks for `ray_vote`, a
+References (tests/prepare/test_voxels.py): brute-force ray walks for `ray_votes`, a
 breadth-first search for `flood` and for `deep`'s 6-step distance, and every seed's
 distance for `jump_flood`.
 """
@@ -98,18 +98,22 @@ def sandwiched(shell: Tensor, d: tuple[int, int, int], by_planes: bool | None = 
     return _grid_in_lines(both, n, step).permute(*inv)
 
 
-def ray_vote(shell: Tensor, check: Check = _no_check) -> Tensor:
-    """float32 [X, Y, Z] in 0-1: the fraction of the 13 neighbour lines through each voxel
-    on which `shell` lies on both sides.
+LINES = 13  # neighbour lines through a voxel: DIRS[:13], each with its opposite
 
-    Outside a convex object no line is (a line meets a convex body on one side of an outside
-    point only), so the vote is 0 there; a bowl's or a torus hole's concavity gets the few
-    lines across it; inside a closed shell, all 13."""
+
+def ray_votes(shell: Tensor, check: Check = _no_check) -> Tensor:
+    """uint8 [X, Y, Z] in 0-LINES: how many of the 13 neighbour lines through each voxel
+    meet `shell` on both sides of it.
+
+    Outside a convex object no line does (a line meets a convex body on one side of an
+    outside point only), so the vote is 0 there; a bowl's or a torus hole's concavity gets
+    the few lines across it; inside a closed shell, all 13. Counts, not fractions: a GPU's
+    division by 13 can land an ulp off the CPU's, and thresholds must not move with it."""
     votes = torch.zeros(shell.shape, dtype=torch.uint8, device=shell.device)
-    for d in DIRS[:13]:
+    for d in DIRS[:LINES]:
         check("casting rays")
         votes += sandwiched(shell, d)
-    return votes.to(torch.float32) / 13
+    return votes
 
 
 def _spread(reach: Tensor, free: Tensor, axis: int) -> Tensor:

@@ -18,7 +18,7 @@ def _t(a: np.ndarray, device: str) -> torch.Tensor:
 
 
 def _sandwich_ref(shell: np.ndarray) -> np.ndarray:
-    """The 13-line vote by walking each line out of the grid from every voxel."""
+    """The 13-line vote (a share, 0-1) by walking each line out of the grid from every voxel."""
     out = np.zeros(shell.shape)
     for x in np.ndindex(shell.shape):
         for d in vx.DIRS[:13]:
@@ -67,7 +67,7 @@ def test_ray_vote_matches_line_walks(device, shape):
     rng = np.random.default_rng(sum(shape))
     shell = rng.random(shape) < 0.15
     want = _sandwich_ref(shell)
-    np.testing.assert_array_equal(vx.ray_vote(_t(shell, device)).cpu().numpy(), want.astype(np.float32))
+    np.testing.assert_array_equal(vx.ray_votes(_t(shell, device)).cpu().numpy(), want * vx.LINES)
     for d in vx.DIRS:
         a = vx.sandwiched(_t(shell, device), d, by_planes=True)
         b = vx.sandwiched(_t(shell, device), d, by_planes=False)
@@ -78,8 +78,8 @@ def test_a_closed_box_votes_every_line_inside_and_none_outside(device):
     shell = np.zeros((9, 10, 11), bool)
     shell[2:7, 2:8, 2:9] = True
     shell[3:6, 3:7, 3:8] = False  # a hollow box, one voxel thick
-    vote = vx.ray_vote(_t(shell, device)).cpu().numpy()
-    assert (vote[3:6, 3:7, 3:8] == 1).all()
+    vote = vx.ray_votes(_t(shell, device)).cpu().numpy()
+    assert (vote[3:6, 3:7, 3:8] == vx.LINES).all()
     assert (vote[0] == 0).all() and (vote[:, :, -1] == 0).all()
 
 
