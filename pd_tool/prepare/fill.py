@@ -175,14 +175,14 @@ def fill_interior(
 
 
 def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing: float,
-                  lattice: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  lattice: float, device: str | torch.device = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The filled particles `points` [M, 3] m (sources [M]; on a lattice of `spacing` m,
     filling `volume` m^3 in equal shares) moved onto a lattice of spacing `lattice` m, so
     that the interior is found once and sampled at any simulation grid's density. Onto a
     coarser lattice, the points in each of its cells merge into one at their centroid that
     carries their volume and the first one's source; onto a finer one, each point splits
     into k^3 (k = the ratio, rounded up) spread over its own lattice cell. Returns points [Q, 3], sources [Q] and
-    volumes [Q] m^3, which sum to `volume`."""
+    volumes [Q] m^3, which sum to `volume`. Cells are grouped on `device`."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     source = np.asarray(source, np.int64)
     m = len(points)
@@ -190,7 +190,7 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
         return points, source, np.zeros(0)
     share = volume / m
     if lattice >= spacing * (1 - 1e-9):
-        _, inverse, counts, first = unique_cells(np.floor(points / lattice), index=True)
+        _, inverse, counts, first = unique_cells(np.floor(points / lattice), index=True, device=device)
         centroid = np.stack([np.bincount(inverse, points[:, a]) for a in range(3)], 1) / counts[:, None]
         return centroid, source[first], counts * share
     k = int(math.ceil(spacing / lattice - 1e-9))

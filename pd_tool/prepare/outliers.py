@@ -4,38 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from pd_tool.prepare.cells import unique_cells
+from pd_tool.prepare.cells import Device, neighbourhood_sums, unique_cells
 
 OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
 
 
-def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float) -> np.ndarray:
+def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float, device: Device = "cpu") -> np.ndarray:
     """Points [N] in each point's 3x3x3 block of voxels of size h (self included)."""
-    keys = np.floor((points - lo) / h).astype(np.int64)
-    uniq, inverse, counts = unique_cells(keys)
-    base = uniq.min(axis=0) - 1
-    span = uniq.max(axis=0) - base + 2
-
-    def lin(k: np.ndarray) -> np.ndarray:
-        return ((k[:, 0] - base[0]) * span[1] + (k[:, 1] - base[1])) * span[2] + (k[:, 2] - base[2])
-
-    ukeys = lin(uniq)
-    order = np.argsort(ukeys)
-    sorted_keys = ukeys[order]
-    total = np.zeros(len(uniq), np.int64)
-    for d in np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3):
-        q = lin(uniq + d)
-        pos = np.clip(np.searchsorted(sorted_keys, q), 0, len(sorted_keys) - 1)
-        hit = sorted_keys[pos] == q
-        total[hit] += counts[order[pos[hit]]]
-    return total[inverse]
+    uniq, inverse, counts = unique_cells(np.floor((points - lo) / h), device=device)
+    return neighbourhood_sums(uniq, counts, device=device).astype(np.int64)[inverse]
 
 
-def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS) -> np.ndarray:
+def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS, *,
+                    device: Device = "cpu") -> np.ndarray:
     """Mask [N] of isolated points: fewer than `min_neighbors` points (self included) in
     their 3x3x3 voxel neighbourhood. The voxel size adapts to the point density: the finest
     of max_cells, max_cells/2, ... voxels along the robust extent at which the median point
-    has at least 8 * min_neighbors neighbours. O(N log N), no pairwise distances."""
+    has at least 8 * min_neighbors neighbours. O(N log N), no pairwise distances; the
+    cells are sorted on `device`."""
     if len(points) == 0:
         return np.zeros(0, bool)
     lo = np.quantile(points, 0.01, axis=0)
@@ -43,7 +29,7 @@ def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int =
     extent = max(float((hi - lo).max()), 1e-12)
     cells = max_cells
     while True:
-        total = _neighbourhood_counts(points, lo, extent / cells)
+        total = _neighbourhood_counts(points, lo, extent / cells, device)
         if cells <= 4 or np.median(total) >= 8 * min_neighbors:
             return total < min_neighbors
         cells //= 2

@@ -9,7 +9,6 @@ to scene units exactly up to float64 rounding.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Sequence
 
@@ -19,7 +18,7 @@ import torch
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
-from pd_tool.prepare.cells import cell_components, neighbourhood_sums, unique_cells
+from pd_tool.prepare.cells import Device, cell_components, neighbourhood_sums, unique_cells
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
@@ -209,7 +208,7 @@ class PreparedScene:
 
     def occupied_cells(self, dx: float | None = None) -> int:
         """Grid cells (of edge `dx` m, default this grid's) that hold a simulated particle."""
-        return int(len(unique_cells(np.floor(self.positions_sim / (dx or self.dx)))[0]))
+        return int(len(unique_cells(np.floor(self.positions_sim / (dx or self.dx)), device=self.scene.device)[0]))
 
     def detached(self, dx: float | None = None) -> np.ndarray:
         """Which simulated particles [P] a grid of cell `dx` m (default this grid's) holds
@@ -217,8 +216,9 @@ class PreparedScene:
         with no static particle (without static particles, outside the group holding the
         most). MPM particles a whole empty cell apart hardly interact, so such a part flies
         off under a push."""
-        cells, inverse, _ = unique_cells(np.floor(self.positions_sim / (dx or self.dx)))
-        group = cell_components(cells)[inverse]
+        dev = self.scene.device
+        cells, inverse, _ = unique_cells(np.floor(self.positions_sim / (dx or self.dx)), device=dev)
+        group = cell_components(cells, device=dev)[inverse]
         static = np.asarray(self.static, bool)
         if static.any():
             anchored = np.isin(group, np.unique(group[static]))
@@ -271,7 +271,7 @@ def select_foreground(scene: GaussianScene, options: PrepareOptions) -> tuple[np
         keep &= opaque
     if options.remove_outliers and keep.sum() > 0:
         idx = np.flatnonzero(keep)
-        out = select_outliers(pos[idx], options.outlier_min_neighbors)
+        out = select_outliers(pos[idx], options.outlier_min_neighbors, device=scene.device)
         keep[idx[out]] = False
         report.append(f"outlier removal drops {int(out.sum()):,}")
     if not keep.any():
@@ -408,14 +408,14 @@ SPARSE_SHARE = 0.1
 AREA_CELL_STEP = 1.25  # the area cell grows by this factor until it is coarse enough
 
 
-def surface_volumes(positions: np.ndarray) -> np.ndarray:
+def surface_volumes(positions: np.ndarray, device: Device = "cpu") -> np.ndarray:
     """Per-Gaussian volume [N] m^3 of scanned Gaussians at `positions` [N, 3] m: a shell of
     thickness t = longest side / SHELL_GRID over the area their cells of edge a cover, a^2
     per occupied cell; a >= t is the finest that SURFACE_PER_CELL and SPARSE_SHARE allow.
     Each Gaussian weighs t a^2 times its cell's 3x3x3 block's occupied cells over the
     Gaussians in that block, so a partly full cell at a part's edge or face weighs its
     Gaussians like its neighbours do. The cells sit on the Gaussians' own bounding box, so
-    the volumes do not depend on the simulation grid."""
+    the volumes do not depend on the simulation grid. The cells are sorted on `device`."""
     x = np.asarray(positions, np.float64)
     if len(x) == 0:
         return np.zeros(0)
@@ -425,11 +425,12 @@ def surface_volumes(positions: np.ndarray) -> np.ndarray:
         return np.full(len(x), 1.0 / len(x))
     t = a = longest / SHELL_GRID
     while True:
-        cells, inverse, counts = unique_cells(np.floor(x / a))
+        cells, inverse, counts = unique_cells(np.floor(x / a), device=device)
         if np.quantile(counts[inverse], SPARSE_SHARE) >= SURFACE_PER_CELL or a >= longest:
             break
         a *= AREA_CELL_STEP
-    block = neighbourhood_sums(cells, np.stack([np.ones(len(counts)), counts.astype(np.float64)], axis=1))
+    block = neighbourhood_sums(cells, np.stack([np.ones(len(counts)), counts.astype(np.float64)], axis=1),
+                               device=device)
     return t * a * a * (block[:, 0] / block[:, 1])[inverse]
 
 
@@ -492,7 +493,7 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
         if res.decision and len(res.points):
             points, fill_source, filled = resample_fill(res.points - free.corner + corner, res.source,
                                                         res.interior_volume, cell / PARTICLES_PER_CELL_AXIS,
-                                                        dx / PARTICLES_PER_CELL_AXIS)
+                                                        dx / PARTICLES_PER_CELL_AXIS, device=scene.device)
             pos_sim = np.concatenate([pos_sim, points])
             static = np.concatenate([static, static[fill_source]])
             report.append(f"fill ({options.fill}): filled {len(points):,} interior particles "
@@ -505,7 +506,7 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
         f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
     )
 
-    thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes)
+    thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes, device=scene.device)
     if thin is not None and thin.thin:
         report.append(thin.line(max(dims)))
     prep = PreparedScene(
@@ -546,19 +547,15 @@ def _grid_free(scene: GaussianScene, options: PrepareOptions) -> GridFree:
     transform = fit_transform(pos_scene, options)[0]
     pos_sim = transform.to_sim(pos_scene)
     res, corner = None, None
-    # the scanned volumes do not depend on the fill: found in a second thread beside it
-    # (numpy releases the GIL in its array loops, and the fill's splat waits on the GPU)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        volumes = pool.submit(surface_volumes, pos_sim)
-        if options.fill != "off":
-            fg_t = torch.as_tensor(fg, device=scene.device)
-            cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
-            corner = pos_sim.min(axis=0)
-            res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
-                                scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
-                                scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
-                                grid_origin=corner, device=_warp_device(scene.device))
-        scanned = volumes.result()
+    scanned = surface_volumes(pos_sim, scene.device)
+    if options.fill != "off":
+        fg_t = torch.as_tensor(fg, device=scene.device)
+        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
+        corner = pos_sim.min(axis=0)
+        res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
+                            scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
+                            scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
+                            grid_origin=corner, device=_warp_device(scene.device))
     return GridFree(options=options, foreground=fg, static=static, report=report, fill=res, corner=corner,
                     scanned_volumes=scanned)
 

@@ -34,8 +34,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from pd_tool.materials.presets import builtin
+from pd_tool.prepare.cells import Device, neighbours, unique_rows
 
 WINDOW_BINS = 3  # bins along a window's edge
 WIDE_WINDOW = 3.0  # cells: the second window, which a bulk part's surface does not pass...
@@ -60,72 +63,73 @@ SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
-def _shift_map(o: np.ndarray) -> np.ndarray:
-    """[11, 11] A with packed moments about a corner moved by -o (positions y = x + o):
-    m' = m @ A. Shifting is linear: s' = s + n o, q'_ab = q_ab + s_a o_b + o_a s_b + n o_a o_b."""
-    A = np.eye(11)
+def _shifted(m: Tensor, o: tuple[int, int, int]) -> Tensor:
+    """Packed moments m [K, 11] (int64, fixed point) about a corner moved by -o (positions
+    y = x + o): s' = s + W o, q'_ab = q_ab + s_a o_b + o_a s_b + W o_a o_b."""
+    out = m.clone()
+    w = m[:, 1]
     for a in range(3):
-        A[1, 2 + a] = o[a]
+        out[:, 2 + a] += w * o[a]
     for k, (a, b) in enumerate(_PAIRS):
-        A[2 + b, 5 + k] += o[a]
-        A[2 + a, 5 + k] += o[b]
-        A[1, 5 + k] = o[a] * o[b]
-    return A
+        out[:, 5 + k] += m[:, 2 + a] * o[b] + o[a] * m[:, 2 + b] + w * (o[a] * o[b])
+    return out
 
 
-def _window_moments(x: np.ndarray, w: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+def _window_moments(x: Tensor, w: Tensor, h: float) -> tuple[Tensor, Tensor]:
     """Per occupied bin of edge h: the packed moments [M, 11] (_PAIRS) of the particles in
     the 3x3x3 bins around it, positions in units of h about its own corner (so that the
-    covariance does not cancel at large coordinates); and each particle's bin [N]. Every
-    particle of a bin sees the same window. w [N]: the particles' weights."""
-    keys = np.floor(x / h).astype(np.int64)
-    lo = keys.min(axis=0) - 1
-    k = keys - lo
-    span = k.max(axis=0) + 2
-    lin = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
-    cells, inverse = np.unique(lin, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    m = len(cells)
+    covariance does not cancel at large coordinates), as float64; and each particle's bin
+    [N]. Every particle of a bin sees the same window. x [N, 3], w [N] (> 0): positions and
+    weights, float64 on one device.
+
+    The sums are 64-bit fixed point (weights scaled to at most 1, coordinates within a bin
+    in [0, 1)), so they are exact and the same in any order: on every device, every run."""
+    n = len(x)
+    bits = min(40, 58 - math.ceil(math.log2(max(n, 2))))  # a window's sums stay below 2^62
+    scale = float(1 << bits)
+    keys = torch.floor(x / h)
     local = x / h - keys
-    cols = [np.ones(len(x)), w] + [w * local[:, a] for a in range(3)] + [w * local[:, a] * local[:, b]
-                                                                          for a, b in _PAIRS]
-    own = np.stack([np.bincount(inverse, c, m) for c in cols], 1)
-    cell_k = np.stack([cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]], 1)
-    win = np.zeros((m, 11))
+    cells, inverse, _, _ = unique_rows(keys.long())
+    wn = w / w.max()
+    cols = [wn] + [wn * local[:, a] for a in range(3)] + [wn * local[:, a] * local[:, b] for a, b in _PAIRS]
+    fixed = torch.cat([torch.ones(n, 1, dtype=torch.int64, device=x.device),
+                       torch.round(torch.stack(cols, 1) * scale).long()], 1)
+    own = torch.zeros((len(cells), 11), dtype=torch.int64, device=x.device).index_add_(0, inverse, fixed)
+    win = torch.zeros_like(own)
     half = WINDOW_BINS // 2
-    for off in np.ndindex(WINDOW_BINS, WINDOW_BINS, WINDOW_BINS):
-        o = np.array(off) - half
-        nb = cell_k + o
-        nb_lin = (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2]
-        pos = np.searchsorted(cells, nb_lin).clip(0, m - 1)
-        hit = np.flatnonzero(cells[pos] == nb_lin)
-        win[hit] += own[pos[hit]] @ _shift_map(o)
-    return win, inverse
+    offsets = [(a - half, b - half, c - half) for a in range(WINDOW_BINS) for b in range(WINDOW_BINS)
+               for c in range(WINDOW_BINS)]
+    for o, (i, j) in zip(offsets, neighbours(cells, offsets)):
+        win[i] += _shifted(own[j], o)
+    return win.double(), inverse
 
 
-def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
+def local_thickness(positions: np.ndarray, window: float, weights: np.ndarray | None = None, *,
+                    device: Device = "cpu") -> np.ndarray:
     """Local thickness [N] in metres of the part each particle lies in, seen through a window
     `window` metres wide; NaN where it holds fewer than MIN_POINTS particles.
     positions [N, 3] metres; weights [N] (> 0; default 1): the simulation's particle volumes,
     so that a filled inside, a few particles each holding a cell, counts for its volume
-    against the many on the surface."""
+    against the many on the surface. Computed on `device`."""
     x = np.asarray(positions, np.float64)
     out = np.full(len(x), np.nan)
     if len(x) == 0 or not window > 0.0:
         return out
-    w = np.ones(len(x)) if weights is None else np.asarray(weights, np.float64)
+    xt = torch.as_tensor(np.ascontiguousarray(x), device=device)
+    w = torch.ones(len(x), dtype=torch.float64, device=xt.device) if weights is None else \
+        torch.as_tensor(np.asarray(weights, np.float64), device=xt.device)
     h = window / WINDOW_BINS
-    win, inverse = _window_moments(x, w, h)
+    win, inverse = _window_moments(xt, w, h)
     ok = win[:, 0] >= MIN_POINTS
     m = win[ok]
     n = m[:, 1]
     mean = m[:, 2:5] / n[:, None]
-    cov = np.empty((len(m), 3, 3))
+    cov = torch.empty((len(m), 3, 3), dtype=torch.float64, device=xt.device)
     for k, (a, b) in enumerate(_PAIRS):
         cov[:, a, b] = cov[:, b, a] = m[:, 5 + k] / n - mean[:, a] * mean[:, b]
-    per_bin = np.full(len(win), np.nan)
-    per_bin[ok] = np.sqrt(12.0 * np.linalg.eigvalsh(cov)[:, 0].clip(0.0, None)) * h
-    return per_bin[inverse]
+    per_bin = torch.full((len(win),), math.nan, dtype=torch.float64, device=xt.device)
+    per_bin[ok] = torch.sqrt(12.0 * torch.linalg.eigvalsh(cov)[:, 0].clamp_min(0.0)) * h
+    return per_bin[inverse].cpu().numpy()
 
 
 def local_thickness_ref(positions: np.ndarray, window: float, weights: np.ndarray | None = None) -> np.ndarray:
@@ -205,11 +209,12 @@ def _length(m: float) -> str:
 
 
 def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: int,
-               volumes: np.ndarray | None = None) -> ThinParts | None:
+               volumes: np.ndarray | None = None, *, device: Device = "cpu") -> ThinParts | None:
     """ThinParts of the moving particles, or None when too few have an estimate.
 
     positions [N, 3] metres, moving [N] bool, dx metres, grid_res cells along the longest
-    side of the simulation box (grid_res * dx is that side), volumes [N] m^3 (the weights).
+    side of the simulation box (grid_res * dx is that side), volumes [N] m^3 (the weights);
+    the windows are summed on `device`.
     """
     x = np.asarray(positions, np.float64)
     moving = np.asarray(moving, bool)
@@ -218,11 +223,11 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
         # a fixed subset: the covariance of a window is unbiased under uniform thinning
         keep = np.random.default_rng(0).choice(len(x), SAMPLE, replace=False)
         x, moving, vol = x[keep], moving[keep], vol[keep]
-    t = local_thickness(x, dx, vol)[moving]
+    t = local_thickness(x, dx, vol, device=device)[moving]
     if np.isfinite(t).sum() < MIN_POINTS:
         return None
     size = float(np.ptp(x[moving], axis=0).max())
-    wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol)[moving]
+    wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol, device=device)[moving]
     # a particle whose window is too sparse to judge counts as not thin
     with np.errstate(invalid="ignore"):
         thin = (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
