@@ -211,8 +211,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
 
     # Robust box: a few floaters far away must not blow up the grid.
     q = BBOX_QUANTILE if keep.sum() > 1000 else 0.0
-    lo = np.quantile(pos[keep], q, axis=0)
-    hi = np.quantile(pos[keep], 1 - q, axis=0)
+    lo, hi = np.quantile(pos[keep], [q, 1 - q], axis=0)  # one partition for both
     span = np.maximum(hi - lo, cell)
     lo, hi = lo - 0.02 * span, hi + 0.02 * span
     keep &= ((pos >= lo) & (pos <= hi)).all(1)
@@ -348,23 +347,25 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
 
     wp.config.quiet = True
     wp.init()
-    prec = np.matmul(rot / (sig_v * sig_v)[:, None, :], rot.transpose(0, 2, 1)).astype(np.float32)  # R S^-2 R^T
+    tdev = torch.device(device)
+    rot_t = torch.as_tensor(rot, device=tdev)
+    sig_t = torch.as_tensor(sig_v, device=tdev)
+    prec = ((rot_t / (sig_t * sig_t)[:, None, :]) @ rot_t.transpose(1, 2)).float()  # R S^-2 R^T
     radius = (np.asarray(radius).reshape(len(u), -1) * np.ones((1, 3), np.int64)).astype(np.int32)
     work = np.cumsum(np.prod(2 * radius.astype(np.int64) + 1, axis=1))
     dens = wp.zeros(shape, dtype=float, device=device)
-    u32 = u.astype(np.float32)
-    opa32 = opa.astype(np.float32)
+    # uploaded once; the launches take views of them
+    u_w = wp.from_torch(torch.as_tensor(u, device=tdev).float().contiguous(), dtype=wp.vec3)
+    prec_w = wp.from_torch(prec.contiguous(), dtype=wp.mat33)
+    opa_w = wp.from_torch(torch.as_tensor(opa, device=tdev).float().contiguous())
+    radius_w = wp.from_torch(torch.as_tensor(radius, device=tdev), dtype=wp.vec3i)
     start = 0
     while start < len(u):
         deadline.check("splatting the density")
         done = work[start - 1] if start > 0 else 0
         stop = max(start + 1, int(np.searchsorted(work, done + SPLAT_CHUNK, side="right")))
-        sl = slice(start, stop)
         wp.launch(K.splat_density, dim=stop - start, device=device, inputs=[
-            wp.array(u32[sl], dtype=wp.vec3, device=device),
-            wp.array(prec[sl], dtype=wp.mat33, device=device),
-            wp.array(opa32[sl], dtype=float, device=device),
-            wp.array(radius[sl], dtype=wp.vec3i, device=device), dens])
+            u_w[start:stop], prec_w[start:stop], opa_w[start:stop], radius_w[start:stop], dens])
         start = stop
     return wp.to_torch(dens)
 
