@@ -24,6 +24,28 @@ def test_window_moments_match_the_brute_force_twin(device) -> None:
         np.testing.assert_allclose(fast[np.isfinite(fast)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-12)
 
 
+def test_smallest_eigenvalue_matches_lapack(device) -> None:
+    """The closed form against LAPACK's: random covariances, flat and needle-like ones,
+    repeated eigenvalues, multiples of the identity and zeros."""
+    rng = np.random.default_rng(9)
+    q, _ = np.linalg.qr(rng.normal(size=(400, 3, 3)))
+    lam = rng.uniform(0, 1, (400, 3)) * np.array([1.0, 1.0, 1.0])
+    lam[:100, 0] *= 1e-6  # flat
+    lam[100:200, :2] *= 1e-4  # needles
+    lam[200:250, 1] = lam[200:250, 0]  # repeated
+    lam[250:260] = 0.7
+    lam[260:265] = 0.0
+    cov = np.einsum("kij,kj,klj->kil", q, lam, q)
+    cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+    got = T.smallest_eigenvalue(torch.as_tensor(cov, device=device)).cpu().numpy()
+    want = np.linalg.eigvalsh(cov)[:, 0]
+    scale = np.abs(cov).max()
+    single = np.ones(len(cov), bool)
+    single[100:250] = False  # two eigenvalues (nearly) coincide: the cubic's root is sqrt(eps)-sensitive
+    np.testing.assert_allclose(got[single], want[single], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(got[~single], want[~single], rtol=0, atol=1e-7 * scale)
+
+
 @pytest.mark.parametrize("t", [0.002, 0.01, 0.03])
 def test_a_slab_reads_its_own_thickness(t: float) -> None:
     x = _slab(40000, t, 0.6, np.random.default_rng(2))
