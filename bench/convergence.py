@@ -132,8 +132,8 @@ def even_strip_weights() -> None:
 
     shell = preparation.surface_volumes
 
-    def even(positions):
-        vol = shell(positions)
+    def even(positions, device="cpu"):
+        vol = shell(positions, device)
         x = np.asarray(positions, np.float64) - np.asarray(positions, np.float64).min(axis=0)
         strip = x[:, 2] > STRIP["base"] + 1e-9 * STRIP["length"]
         vol[strip] = STRIP["length"] * STRIP["width"] * STRIP["thickness"] / max(int(strip.sum()), 1)
