@@ -350,13 +350,15 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
     tdev = torch.device(device)
     rot_t = torch.as_tensor(rot, device=tdev)
     sig_t = torch.as_tensor(sig_v, device=tdev)
-    prec = ((rot_t / (sig_t * sig_t)[:, None, :]) @ rot_t.transpose(1, 2)).float()  # R S^-2 R^T
     radius = (np.asarray(radius).reshape(len(u), -1) * np.ones((1, 3), np.int64)).astype(np.int32)
     work = np.cumsum(np.prod(2 * radius.astype(np.int64) + 1, axis=1))
-    dens = wp.zeros(shape, dtype=float, device=device)
+    dens_t = torch.zeros(shape, dtype=torch.float32, device=tdev)
+    dens = wp.from_torch(dens_t)
+    # on CUDA the launches go on torch's stream, so that they run after the torch work that
+    # made their inputs, and the grid passes after them
+    stream = wp.stream_from_torch(tdev) if tdev.type == "cuda" else None
     # uploaded once; the launches take views of them
     u_w = wp.from_torch(torch.as_tensor(u, device=tdev).float().contiguous(), dtype=wp.vec3)
-    prec_w = wp.from_torch(prec.contiguous(), dtype=wp.mat33)
     opa_w = wp.from_torch(torch.as_tensor(opa, device=tdev).float().contiguous())
     radius_w = wp.from_torch(torch.as_tensor(radius, device=tdev), dtype=wp.vec3i)
     start = 0
@@ -364,10 +366,14 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
         deadline.check("splatting the density")
         done = work[start - 1] if start > 0 else 0
         stop = max(start + 1, int(np.searchsorted(work, done + SPLAT_CHUNK, side="right")))
-        wp.launch(K.splat_density, dim=stop - start, device=device, inputs=[
-            u_w[start:stop], prec_w[start:stop], opa_w[start:stop], radius_w[start:stop], dens])
+        # R S^-2 R^T per launch: float64 [n, 3, 3] of all of a 10M-Gaussian scan at once
+        # would hold gigabytes of the GPU
+        r, sg = rot_t[start:stop], sig_t[start:stop]
+        prec = ((r / (sg * sg)[:, None, :]) @ r.transpose(1, 2)).float().contiguous()
+        wp.launch(K.splat_density, dim=stop - start, device=device, stream=stream, inputs=[
+            u_w[start:stop], wp.from_torch(prec, dtype=wp.mat33), opa_w[start:stop], radius_w[start:stop], dens])
         start = stop
-    return wp.to_torch(dens)
+    return dens_t
 
 
 def splat_density_ref(u, rot, sig_v, opa, radius, shape, deadline=None) -> np.ndarray:

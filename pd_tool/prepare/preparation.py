@@ -520,6 +520,10 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
             report.append(f"loose parts: {apart:.0%} of the moving particles are a cell or more apart from the "
                           f"pinned ones on this grid, so a push carries them off as loose pieces; pin them "
                           f"(--static-box) or leave them out (--foreground-box)")
+    if scene.device.type == "cuda":
+        # the passes' blocks go back to the device: the solver allocates through warp, outside
+        # torch's cache
+        torch.cuda.empty_cache()
     return prep
 
 
