@@ -55,7 +55,7 @@ MIN_POINTS = 30  # fewer particles in a window: no estimate (the smallest eigenv
 RESOLVED_CELLS = 0.25
 THIN_SHARE = 0.05  # a notice when at least this share of the moving particles is thin
 MAX_GRID = 256  # the largest grid the CLI accepts
-SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.5 s on a CPU core)
+SAMPLE = 100_000  # particles the estimate looks at (a random subset beyond; 0.2 s on one CPU core)
 
 
 # Moments a window sums, packed per bin: count, weight, weighted sums of the 3 coordinates
