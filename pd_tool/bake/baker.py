@@ -22,6 +22,7 @@ import torch
 from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.outputs import FrameOutputs, open_splat_writers
 from pd_tool.bake.transfer import MAX_RUNS, Discretisation, MotionMatch, match_fit_motion, window_frames
+from pd_tool.core.arrays import bounds, extent
 from pd_tool.core.atomic import check_destination, check_own_file, check_outputs, check_replaceable_folder
 from pd_tool.core.cameras import Camera
 from pd_tool.core.errors import OutputError, PdToolError, PreparationError
@@ -224,8 +225,9 @@ def force_mask(prep: PreparedScene, drivers_rest: np.ndarray, drivers_static: np
 def _free_space(prep: PreparedScene) -> float:
     """Least distance, m, between the simulated particles' bounding box and the grid cells
     the solver keeps for its walls, over the three axes."""
-    lo = prep.positions_sim.min(axis=0) - WALL_CELLS * prep.dx
-    hi = np.asarray(prep.domain) - WALL_CELLS * prep.dx - prep.positions_sim.max(axis=0)
+    p_lo, p_hi = bounds(prep.positions_sim)
+    lo = p_lo - WALL_CELLS * prep.dx
+    hi = np.asarray(prep.domain) - WALL_CELLS * prep.dx - p_hi
     return float(max(min(lo.min(), hi.min()), prep.dx))
 
 
@@ -566,7 +568,7 @@ class Baker:
         accel_sim = force.accel_sim(prep)
         free_E = E[~d_static] if (~d_static).any() else E
         check_force(float(np.linalg.norm(accel_sim)), self.push_s,
-                    float(np.ptp(d_rest[mask], axis=0).max()) if mask.sum() > 1 else prep.dx,
+                    float(extent(d_rest[mask]).max()) if mask.sum() > 1 else prep.dx,
                     self.opts.density_kg_m3, float(free_E.max()), float(max(prep.domain)),
                     force.unit_m_s2(prep), nu=self.nu, gap_m=_free_space(prep), magnitude=force.magnitude,
                     unit=force.unit_name())

@@ -43,6 +43,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from pd_tool.core.arrays import rows_all, rows_max, rows_min
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.quaternion import quat_to_matrix_np
 from pd_tool.prepare import voxels as vx
@@ -203,7 +204,7 @@ def resample_fill(points: np.ndarray, source: np.ndarray, volume: float, spacing
 
 
 def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, device="cpu") -> FillResult:
-    keep = np.isfinite(pos).all(1) & np.isfinite(opa) & (opa > 0)
+    keep = rows_all(np.isfinite(pos)) & np.isfinite(opa) & (opa > 0)
     if keep.sum() < 4:
         return _empty(like, 0.0, "not filled: fewer than 4 usable Gaussians", 0.0)
     lattice = cell / ppc
@@ -214,7 +215,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     lo, hi = np.quantile(pos[keep], [q, 1 - q], axis=0)  # one partition for both
     span = np.maximum(hi - lo, cell)
     lo, hi = lo - 0.02 * span, hi + 0.02 * span
-    keep &= ((pos >= lo) & (pos <= hi)).all(1)
+    keep &= rows_all((pos >= lo) & (pos <= hi))
     idx = np.nonzero(keep)[0]
     pos, quat, scl, opa = pos[idx], quat[idx], scl[idx], np.clip(opa[idx], 0.0, 1.0)
 
@@ -224,8 +225,8 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     # Voxels finer than a typical Gaussian see the gaps between a closed scan's Gaussians
     # as holes, and the decision would flip with the grid (the donut: 99% closed at 64
     # cells, 85% at 192). From there on, finer grids analyse the same voxels.
-    finite = scl[np.isfinite(scl).all(1)]
-    floor = VOXEL_MIN_SCALES * float(np.median(finite.max(1))) if len(finite) else 0.0
+    finite = scl[rows_all(np.isfinite(scl))]
+    floor = VOXEL_MIN_SCALES * float(np.median(rows_max(finite))) if len(finite) else 0.0
     k_min = max(1, int(math.ceil(floor / lattice - 1e-9)))
     # the voxel search and the grid passes run on the scan's device: at 300k Gaussians a
     # dozen passes over [N, 3, 3] or over millions of voxels each, which a GPU host's numpy
@@ -292,7 +293,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     free = ~shell
     # A shell band thicker than two Gaussian half-widths has a solid core (a capture with
     # Gaussians all through its volume, like the donut): count that core as enclosed too.
-    half_band = max(1, int(math.ceil(np.median(3.0 * sig.min(1)) / h)))
+    half_band = max(1, int(math.ceil(np.median(3.0 * rows_min(sig)) / h)))
     core = vx.deep(shell, 2 * half_band, deadline.check)
     open_ = free | core
     enclosed = vx.drop_border_components(open_ & (votes >= _lines(VOTE_CANDIDATE)), deadline.check)

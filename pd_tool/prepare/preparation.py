@@ -15,6 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from pd_tool.core.arrays import bounds, extent
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
@@ -253,7 +254,7 @@ class PreparedScene:
     @property
     def object_size_m(self) -> float:
         """Longest extent of the simulated Gaussians in metres."""
-        return float(np.ptp(self.positions_sim, axis=0).max())
+        return float(extent(self.positions_sim).max())
 
 
 # ----------------------------------------------------------------------------- steps
@@ -365,7 +366,7 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
     """
     R = up_rotation(options.up_axis)
     rotated = positions_scene @ R.T
-    lo, hi = rotated.min(axis=0), rotated.max(axis=0)
+    lo, hi = bounds(rotated)
     extent = hi - lo
     longest = float(extent.max())
     if not math.isfinite(longest) or longest <= 0:
@@ -419,7 +420,7 @@ def surface_volumes(positions: np.ndarray, device: Device = "cpu") -> np.ndarray
     x = np.asarray(positions, np.float64)
     if len(x) == 0:
         return np.zeros(0)
-    x = x - x.min(axis=0)
+    x = x - bounds(x)[0]
     longest = float(x.max())
     if not longest > 0.0:  # a single point: nothing to spread over
         return np.full(len(x), 1.0 / len(x))
@@ -488,8 +489,8 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
     if res is not None:
         # found on FILL_GRID's cells, set on the object's own corner, whatever this grid;
         # then moved to this grid's corner and sampled at its density
-        corner = pos_sim.min(axis=0)
-        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
+        corner, far = bounds(pos_sim)
+        cell = cell_size(float((far - corner).max()), options.padding, FILL_GRID)[0]
         if res.decision and len(res.points):
             points, fill_source, filled = resample_fill(res.points - free.corner + corner, res.source,
                                                         res.interior_volume, cell / PARTICLES_PER_CELL_AXIS,
@@ -503,7 +504,7 @@ def prepare_scene(scene: GaussianScene, options: PrepareOptions | None = None, *
     volumes = np.concatenate([free.scanned_volumes, filled])
     report.append(
         f"{len(fg):,} Gaussians simulated ({int(static.sum()):,} static) in a "
-        f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {np.ptp(pos_sim, axis=0).max():.3g} m"
+        f"{dims[0]}x{dims[1]}x{dims[2]} grid, dx {dx * 100:.3g} cm, object {extent(pos_sim).max():.3g} m"
     )
 
     thin = thin_parts(pos_sim, ~static, dx, max(dims), volumes, device=scene.device)
@@ -554,8 +555,8 @@ def _grid_free(scene: GaussianScene, options: PrepareOptions) -> GridFree:
     scanned = surface_volumes(pos_sim, scene.device)
     if options.fill != "off":
         fg_t = torch.as_tensor(fg, device=scene.device)
-        cell = cell_size(float(np.ptp(pos_sim, axis=0).max()), options.padding, FILL_GRID)[0]
-        corner = pos_sim.min(axis=0)
+        corner, far = bounds(pos_sim)
+        cell = cell_size(float((far - corner).max()), options.padding, FILL_GRID)[0]
         res = fill_interior(pos_sim, scene.quats[fg_t].detach().cpu().numpy(),
                             scene.scales[fg_t].detach().cpu().numpy() * transform.scale,
                             scene.opacities[fg_t].detach().cpu().numpy(), cell=cell, mode=options.fill,
@@ -604,7 +605,7 @@ def refine_for_thin(prep: PreparedScene, max_grid_res: int) -> PreparedScene | N
     # a grid finer than the particles fill resolves nothing: keep MIN_PARTICLES_PER_CELL;
     # and one whose cells open gaps between parts that the quality's grid holds together
     # would let those parts fly off
-    longest = float(np.ptp(prep.positions_sim[: prep.count], axis=0).max())
+    longest = float(extent(prep.positions_sim[: prep.count]).max())
     most_apart = prep.detached_share() + MAX_MORE_DETACHED
     stop, apart, finer = "", 0.0, None  # stop: why the last grid tried was refused
     while target > grid:

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pd_tool.core.arrays import extent
 from pd_tool.materials.presets import builtin
 from pd_tool.prepare.cells import Device, neighbours, unique_rows
 
@@ -247,7 +248,7 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
     t = local_thickness(x, dx, vol, device=device)[moving]
     if np.isfinite(t).sum() < MIN_POINTS:
         return None
-    size = float(np.ptp(x[moving], axis=0).max())
+    size = float(extent(x[moving]).max())
     wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol, device=device)[moving]
     # a particle whose window is too sparse to judge counts as not thin
     with np.errstate(invalid="ignore"):
