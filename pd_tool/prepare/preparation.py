@@ -367,8 +367,8 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
     R = up_rotation(options.up_axis)
     rotated = positions_scene @ R.T
     lo, hi = bounds(rotated)
-    extent = hi - lo
-    longest = float(extent.max())
+    sides = hi - lo
+    longest = float(sides.max())
     if not math.isfinite(longest) or longest <= 0:
         raise PreparationError("the foreground has zero extent (a single point?); select more Gaussians")
     mpu = options.meters_per_unit or DEFAULT_OBJECT_SIZE_M / longest
@@ -385,7 +385,7 @@ def fit_transform(positions_scene: np.ndarray, options: PrepareOptions) -> tuple
         raise PreparationError(f"grid resolution {res} is too small; use at least {2 * WALL_CELLS + 4}")
     longest_m = longest * mpu
     dx, pad_m = cell_size(longest_m, options.padding, res)
-    dims = tuple(int(math.ceil((e * mpu + 2 * pad_m) / dx - 1e-9)) + 2 * WALL_CELLS for e in extent)
+    dims = tuple(int(math.ceil((e * mpu + 2 * pad_m) / dx - 1e-9)) + 2 * WALL_CELLS for e in sides)
     dims = tuple(max(d, 2 * WALL_CELLS + 2) for d in dims)
     # centre the object in the box
     box = np.array(dims, np.float64) * dx
