@@ -108,7 +108,8 @@ def _window_moments(x: Tensor, w: Tensor, h: float) -> tuple[Tensor, Tensor]:
 def smallest_eigenvalue(cov: Tensor) -> Tensor:
     """The smallest eigenvalue [K] of symmetric 3x3 matrices cov [K, 3, 3], in closed form
     (the trigonometric solution of the characteristic cubic). torch.linalg.eigvalsh on a
-    GPU took 13 GB of workspace for 50k such matrices; this takes a few [K] temporaries.
+    GPU takes 13 GB of workspace for a 300k scene's windows; this takes a few [K]
+    temporaries.
     Its error is about machine epsilon times the largest eigenvalue, and up to its square
     root (1e-8) times it where the two smallest nearly coincide (a needle): under 1e-3 of a
     window's bin in thickness, far below what RESOLVED_CELLS tells apart."""
