@@ -68,24 +68,18 @@ def neighbours(cells: Tensor, offsets) -> list[tuple[Tensor, Tensor]]:
     return out
 
 
-def neighbourhood_sums(cells: np.ndarray, values: np.ndarray, *, device: Device = "cpu") -> np.ndarray:
-    """For each distinct integer cell [M, 3] (unique rows), the sum of `values` [M, ...]
-    over the occupied cells of its 3x3x3 block, itself included: [M, ...] float64. The
-    27 offsets are added in a fixed order, one neighbour per cell each."""
-    cells = np.asarray(cells, np.int64).reshape(-1, 3)
-    values = np.asarray(values, np.float64)
-    if len(cells) == 0:
-        return np.zeros_like(values)
-    c = torch.as_tensor(np.ascontiguousarray(cells), device=device)
-    v = torch.as_tensor(np.ascontiguousarray(values), device=c.device)
-    out = torch.zeros_like(v)
-    for i, j in neighbours(c, ALL27):
-        out[i] += v[j]
-    return out.cpu().numpy()
+def block_sums(cells: Tensor, values: Tensor) -> Tensor:
+    """For each distinct int64 cell [M, 3] (unique rows, M > 0), the sum of `values` [M, ...]
+    over the occupied cells of its 3x3x3 block, itself included: [M, ...], on their device.
+    The 27 offsets are added in a fixed order, one neighbour per cell each."""
+    out = torch.zeros_like(values)
+    for i, j in neighbours(cells, ALL27):
+        out[i] += values[j]
+    return out
 
 
-def neighbourhood_sums_ref(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """neighbourhood_sums over a dict of cells (tests)."""
+def block_sums_ref(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """block_sums over a dict of cells (tests)."""
     cells = [tuple(int(x) for x in r) for r in np.asarray(cells, np.int64).reshape(-1, 3)]
     where = {c: i for i, c in enumerate(cells)}
     values = np.asarray(values, np.float64)

@@ -232,7 +232,8 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     # dozen passes over [N, 3, 3] or over millions of voxels each, which a GPU host's numpy
     # took seconds over
     tdev = torch.device(device)
-    rot2 = torch.as_tensor(rot * rot, device=tdev)
+    rot_t = torch.as_tensor(rot, device=tdev)
+    rot2 = rot_t * rot_t
     scl_t = torch.as_tensor(scl, device=tdev)
 
     def sigmas(h: float) -> torch.Tensor:
@@ -273,8 +274,8 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
         shape = tuple(int(v) for v in (i1 - i0))
         if math.prod(shape) > MAX_VOXELS:
             continue
-        sig, radius = (t.cpu().numpy() for t in sig_radius(h))
-        grid = (k, h, i0, shape, sig, radius)
+        sig, radius = sig_radius(h)
+        grid = (k, h, i0, shape, sig, radius.cpu().numpy())
         break
     if grid is None:
         msg = (f"the object spans more than {MAX_VOXELS:,} fill voxels even at 64x the "
@@ -285,7 +286,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     k, h, i0, shape, sig, radius = grid
     corner = origin + i0 * h  # metres, low corner of voxel (0, 0, 0)
 
-    dens = _splat_density((pos - corner) / h, rot, sig / h, opa, radius, shape, deadline, device)
+    dens = _splat_density((pos - corner) / h, rot_t, sig / h, opa, radius, shape, deadline, device)
     shell = vx.close(dens >= SHELL_THRESHOLD)
     deadline.check("closing the shell")
 
@@ -293,7 +294,7 @@ def _fill(pos, quat, scl, opa, like, cell, mode, ppc, grid_origin, deadline, dev
     free = ~shell
     # A shell band thicker than two Gaussian half-widths has a solid core (a capture with
     # Gaussians all through its volume, like the donut): count that core as enclosed too.
-    half_band = max(1, int(math.ceil(np.median(3.0 * rows_min(sig)) / h)))
+    half_band = max(1, int(math.ceil(np.median(3.0 * rows_min(sig.cpu().numpy())) / h)))
     core = vx.deep(shell, 2 * half_band, deadline.check)
     open_ = free | core
     enclosed = vx.drop_border_components(open_ & (votes >= _lines(VOTE_CANDIDATE)), deadline.check)
@@ -338,7 +339,8 @@ def _splat_density(u, rot, sig_v, opa, radius, shape, deadline, device: str = "c
     """Sum of alpha * exp(-m / 2) over Gaussians with Mahalanobis m <= 9, per voxel centre.
 
     u: [N, 3] centres in voxel units (voxel i spans [i, i + 1)); rot: [N, 3, 3]; sig_v: [N,
-    3] std-devs in voxels; radius: [N, 3] half box per axis in voxels (ints). Returns the
+    3] std-devs in voxels (rot and sig_v float64, numpy or torch); radius: [N, 3] half box
+    per axis in voxels (ints). Returns the
     float32 grid of `shape` (torch, on `device`). Launches `fill_kernels.splat_density` (one thread per
     Gaussian) in batches of about SPLAT_CHUNK evaluations, checking the deadline between.
     """
@@ -431,14 +433,14 @@ def _nearest_source(points, pos, corner, h, shape, deadline, device: str = "cpu"
     g = h * c
     dims = -(-np.asarray(shape) // c)
     gshape = tuple(int(v) for v in dims)
-    pos32 = pos.astype(np.float32)
     gi = np.clip(np.floor((pos - corner) / g).astype(np.int64), 0, dims - 1)
     tdev = torch.device(device)
-    lab = vx.jump_flood(torch.as_tensor(pos32, device=tdev), torch.as_tensor(gi, device=tdev), gshape,
+    seeds = torch.as_tensor(pos.astype(np.float32), device=tdev)
+    lab = vx.jump_flood(seeds, torch.as_tensor(gi, device=tdev), gshape,
                         torch.as_tensor(corner, dtype=torch.float64), g, deadline.check)
     pts = points.astype(np.float32)
     pv = np.clip(np.floor((points - corner) / g).astype(np.int64), 0, dims - 1)
-    return _refine_nearest_torch(pts, pos32, lab, pv, tdev, deadline)
+    return _refine_nearest_torch(pts, seeds, lab, pv, tdev, deadline)
 
 
 def _refine_nearest_ref(pts, pos32, lab, pv) -> np.ndarray:
@@ -465,7 +467,8 @@ def _refine_nearest_ref(pts, pos32, lab, pv) -> np.ndarray:
 
 
 def _refine_nearest_torch(pts, pos32, lab, pv, device: torch.device, deadline: _Deadline | None = None) -> np.ndarray:
-    """_refine_nearest_ref in torch on `device`: the same candidates, distances and ties.
+    """_refine_nearest_ref in torch on `device` (its arrays numpy or torch): the same
+    candidates, distances and ties.
 
     A filled closed scan has up to millions of lattice points (the donut: 784k), each with
     27 gathers: on the 2-core development CPU this takes 0.5 s for the donut against the

@@ -3,16 +3,18 @@ found on a voxel grid in O(N log N) instead of by pairwise distances."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-from pd_tool.prepare.cells import Device, neighbourhood_sums, unique_cells
+from pd_tool.prepare.cells import Device, block_sums, unique_rows
 
 OUTLIER_CELLS = 64  # voxels along the longest axis for the outlier test
 
 
 def _neighbourhood_counts(points: np.ndarray, lo: np.ndarray, h: float, device: Device = "cpu") -> np.ndarray:
-    """Points [N] in each point's 3x3x3 block of voxels of size h (self included)."""
-    uniq, inverse, counts = unique_cells(np.floor((points - lo) / h), device=device)
-    return neighbourhood_sums(uniq, counts, device=device).astype(np.int64)[inverse]
+    """Points [N] (N > 0) in each point's 3x3x3 block of voxels of size h (self included)."""
+    keys = torch.as_tensor(np.floor((points - lo) / h).astype(np.int64), device=device)
+    uniq, inverse, counts, _ = unique_rows(keys)
+    return block_sums(uniq, counts)[inverse].cpu().numpy()
 
 
 def select_outliers(points: np.ndarray, min_neighbors: int = 3, max_cells: int = OUTLIER_CELLS, *,

@@ -19,7 +19,7 @@ from pd_tool.core.arrays import bounds, extent
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
-from pd_tool.prepare.cells import Device, cell_components, neighbourhood_sums, unique_cells
+from pd_tool.prepare.cells import Device, block_sums, cell_components, unique_cells, unique_rows
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
@@ -425,14 +425,14 @@ def surface_volumes(positions: np.ndarray, device: Device = "cpu") -> np.ndarray
     if not longest > 0.0:  # a single point: nothing to spread over
         return np.full(len(x), 1.0 / len(x))
     t = a = longest / SHELL_GRID
+    xt = torch.as_tensor(x, device=device)
     while True:
-        cells, inverse, counts = unique_cells(np.floor(x / a), device=device)
-        if np.quantile(counts[inverse], SPARSE_SHARE) >= SURFACE_PER_CELL or a >= longest:
+        cells, inverse, counts, _ = unique_rows(torch.floor(xt / a).long())
+        if np.quantile(counts[inverse].cpu().numpy(), SPARSE_SHARE) >= SURFACE_PER_CELL or a >= longest:
             break
         a *= AREA_CELL_STEP
-    block = neighbourhood_sums(cells, np.stack([np.ones(len(counts)), counts.astype(np.float64)], axis=1),
-                               device=device)
-    return t * a * a * (block[:, 0] / block[:, 1])[inverse]
+    block = block_sums(cells, torch.stack([torch.ones_like(counts), counts], 1).double())
+    return (t * a * a * (block[:, 0] / block[:, 1])[inverse]).cpu().numpy()
 
 
 # The interior of a closed scan is found on the cells of a grid this fine, whatever the

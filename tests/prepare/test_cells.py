@@ -44,17 +44,22 @@ def test_cell_components_join_corners_and_split_gaps(device):
     assert len(cell_components(np.zeros((0, 3)))) == 0
 
 
-def test_neighbourhood_sums_match_a_dict_of_cells(device):
-    from pd_tool.prepare.cells import neighbourhood_sums, neighbourhood_sums_ref
+def test_block_sums_match_a_dict_of_cells(device):
+    import torch
+
+    from pd_tool.prepare.cells import block_sums, block_sums_ref
+
+    def sums(cells, values):
+        t = lambda a: torch.as_tensor(np.ascontiguousarray(a), device=device)  # noqa: E731
+        return block_sums(t(cells), t(values)).cpu().numpy()
 
     rng = np.random.default_rng(2)
     for trial in range(20):
         n = int(rng.integers(1, 500))
         cells = unique_cells(rng.integers(-5, int(rng.integers(2, 12)), (n, 3)))[0]
         values = rng.uniform(0, 3, (len(cells), 2))
-        np.testing.assert_allclose(neighbourhood_sums(cells, values, device=device), neighbourhood_sums_ref(cells, values),
-                                   rtol=1e-12, err_msg=str(trial))
+        np.testing.assert_allclose(sums(cells, values), block_sums_ref(cells, values), rtol=1e-12, err_msg=str(trial))
     # a lone cell sums only itself; a full 3x3x3 block's centre sums all 27
     block = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)] + [[9, 9, 9]])
-    sums = neighbourhood_sums(block, np.ones(len(block)), device=device)
-    assert sums[13] == 27 and sums[-1] == 1 and sums[0] == 8
+    out = sums(block, np.ones(len(block), np.int64))
+    assert out[13] == 27 and out[-1] == 1 and out[0] == 8
