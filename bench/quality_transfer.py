@@ -98,9 +98,9 @@ def bake_positions(scene, up: str, mf, quality: str | None, match: bool, seconds
 
     class Recording(Baker):
         def _frame_arrays(self, d_now):
-            pos, q = super()._frame_arrays(d_now)
+            pos, q, disp = super()._frame_arrays(d_now)
             frames.append(pos.copy())
-            return pos, q
+            return pos, q, disp
 
     t0 = time.perf_counter()
     with Recording(scene, out, force=force, material_file=mf, settings=settings,

@@ -20,17 +20,30 @@ def normalize_quats(q: np.ndarray) -> np.ndarray:
     rather than to NaN (which would poison the extent and the file).
     """
     q = np.asarray(q, dtype=np.float32)
-    n = np.sqrt(np.einsum("ij,ij->i", q, q))
-    zero = n == 0
-    out = q / np.where(zero, 1, n)[:, None]
+    # column by column: numpy's row reductions and [N, 1] broadcasts over [N, 4] run several
+    # times slower than 1-D passes (this is on every frame of a bake)
+    n2 = q[:, 0] * q[:, 0]
+    for c in range(1, 4):
+        n2 += q[:, c] * q[:, c]
+    zero = n2 == 0
+    inv = 1.0 / np.sqrt(np.where(zero, np.float32(1), n2))
+    out = np.empty_like(q)
+    for c in range(4):
+        np.multiply(q[:, c], inv, out=out[:, c])
     if zero.any():
         out[zero] = (1, 0, 0, 0)
     return out
 
 
-def wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
-    """[N, 4] (w, x, y, z) -> [N, 4] (x, y, z, w), the layout Vt.Quat*Array.FromNumpy reads."""
-    return np.ascontiguousarray(q[:, [1, 2, 3, 0]])
+def wxyz_to_xyzw(q: np.ndarray, dtype=None) -> np.ndarray:
+    """[N, 4] (w, x, y, z) -> [N, 4] (x, y, z, w), the layout Vt.Quat*Array.FromNumpy reads,
+    cast to `dtype` (default: q's) in the same pass: half the time of a reordering copy
+    followed by a cast, for the float16 orientations of every bake frame."""
+    q = np.asarray(q)
+    out = np.empty(q.shape, q.dtype if dtype is None else dtype)
+    out[:, :3] = q[:, 1:]
+    out[:, 3] = q[:, 0]
+    return out
 
 
 def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from ._geom import ellipsoid_extent, sphere_extent, wxyz_to_xyzw
+from ._held import Held
 
 
 class InstancerPart:
@@ -57,6 +58,8 @@ class InstancerPart:
         self.orientations = inst.CreateOrientationsAttr().GetPath()
         self.scales = inst.CreateScalesAttr().GetPath()
         self.extent = inst.CreateExtentAttr().GetPath()
+        # sigmas -> (instance radii, their Vt array)
+        self._radii = Held(lambda s: (r := s * np.float32(self.scale_factor), Vt.Vec3fArray.FromNumpy(r)))
 
         self.points = None
         if color_points_path is not None:
@@ -80,15 +83,15 @@ class InstancerPart:
     def samples(self, positions: np.ndarray, quats: np.ndarray,
                 sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
         """Time samples for one frame: positions [N,3] f32, quats [N,4] unit wxyz, sigmas [N,3]."""
-        radii = sigmas * np.float32(self.scale_factor)
+        radii, radii_vt = self._radii(sigmas)
         pos_vt = Vt.Vec3fArray.FromNumpy(positions)
         # The extent bounds the unit spheres as instanced, from the float quaternions;
         # the quath rounding (~5e-4) moves a sphere's surface far less than the
         # outward float32 rounding margin of the box relative to typical radii.
         out = [
             (self.positions, pos_vt),
-            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats).astype(np.float16))),
-            (self.scales, Vt.Vec3fArray.FromNumpy(radii)),
+            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats, np.float16))),
+            (self.scales, radii_vt),
             (self.extent, Vt.Vec3fArray.FromNumpy(ellipsoid_extent(positions, quats, radii))),
         ]
         if self.points is not None:

@@ -25,6 +25,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdVol, Vt
 
 from ._geom import SPLAT_SUPPORT_SIGMAS, ellipsoid_extent, sh_degree, wxyz_to_xyzw
+from ._held import Held
 
 
 class SplatFieldPart:
@@ -47,6 +48,8 @@ class SplatFieldPart:
         self.orientations = field.CreateOrientationshAttr().GetPath()
         self.scales = field.CreateScalesAttr().GetPath()
         self.extent = field.CreateExtentAttr().GetPath()
+        # sigmas -> (the splats' support radii, the sigmas' Vt array)
+        self._scales = Held(lambda s: (s * np.float32(SPLAT_SUPPORT_SIGMAS), Vt.Vec3fArray.FromNumpy(s)))
 
     def first_frame_defaults(self, positions: np.ndarray, quats: np.ndarray,
                              sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
@@ -55,10 +58,11 @@ class SplatFieldPart:
     def samples(self, positions: np.ndarray, quats: np.ndarray,
                 sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
         """Time samples for one frame: positions [N,3] f32, quats [N,4] unit wxyz, sigmas [N,3]."""
-        box = ellipsoid_extent(positions, quats, sigmas * np.float32(SPLAT_SUPPORT_SIGMAS))
+        support, scales_vt = self._scales(sigmas)
+        box = ellipsoid_extent(positions, quats, support)
         return [
             (self.positions, Vt.Vec3fArray.FromNumpy(positions)),
-            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats).astype(np.float16))),
-            (self.scales, Vt.Vec3fArray.FromNumpy(sigmas)),
+            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats, np.float16))),
+            (self.scales, scales_vt),
             (self.extent, Vt.Vec3fArray.FromNumpy(box)),
         ]

@@ -622,13 +622,11 @@ class Baker:
         frames, the remaining frames are held (no simulation, no new samples) and `done`."""
         f = self.frame
         if f == 0:
-            pos, q = self._frame_arrays(None)
+            pos, q, _ = self._frame_arrays(None)
             self.outputs.write_frame(0, pos, q)
-            self._pos0 = pos
             self.disp.append(0.0)
         else:
             pos, q = self._simulate_frame(f)
-            self.disp.append(float(np.linalg.norm(pos - self._pos0, axis=1).max()))
         if self.rendering:
             self._snap(pos, q)
         self.frame = f + 1
@@ -644,22 +642,28 @@ class Baker:
         d_now = self.solver.positions()  # the host copy synchronises, so the timing is honest
         self.timings["simulate"] += time.perf_counter() - t
         t = time.perf_counter()
-        pos, q = self._frame_arrays(d_now)
+        pos, q, disp = self._frame_arrays(d_now)
+        self.disp.append(disp)
         self.timings["interpolate"] += time.perf_counter() - t
         t = time.perf_counter()
         self.outputs.write_frame(f, pos, q)
         self.timings["write"] += time.perf_counter() - t
         return pos, q
 
-    def _frame_arrays(self, d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _frame_arrays(self, d_now: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
         """Positions [N, 3] (scene units) and quaternions [N, 4] (w, x, y, z) in the
-        scene's axes for drivers at d_now [Q, 3] (m, simulation box); None: the rest pose."""
+        scene's axes for drivers at d_now [Q, 3] (m, simulation box), and the largest
+        distance from the rest pose (scene units); None: the rest pose."""
         with torch.no_grad():
             if d_now is None:
                 pos, q = self.animator.scene_positions, self.animator.scene_quats
+                disp = 0.0
             else:
                 pos, q = self.animator(d_now)
-        return pos.cpu().numpy(), q.cpu().numpy()
+                # on the scene's device: numpy's norm along the rows of [N, 3] took 17 ms a
+                # frame at 300k Gaussians on the bake's own thread
+                disp = float((pos - self.animator.scene_positions).square().sum(1).max().sqrt()) if len(pos) else 0.0
+        return pos.cpu().numpy(), q.cpu().numpy(), disp
 
     def _snap(self, pos: np.ndarray, q: np.ndarray) -> None:
         scene = self.scene

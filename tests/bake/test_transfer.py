@@ -208,9 +208,9 @@ def test_match_reads_the_gaussians_the_bake_writes(tmp_path) -> None:
 
     class Recording(Baker):
         def _frame_arrays(self, d_now):
-            p, q = super()._frame_arrays(d_now)
+            p, q, disp = super()._frame_arrays(d_now)
             frames.append(p.copy())
-            return p, q
+            return p, q, disp
 
     n = 5
     with Recording(scene, tmp_path / "b.usd", force=force, material_file=mf, prepare_options=opts,
@@ -228,6 +228,9 @@ def test_match_reads_the_gaussians_the_bake_writes(tmp_path) -> None:
         moved = np.stack(frames[1:n + 1])[:, sample] - frames[0][sample]
         written = (moved ** 2).sum(-1) * disc.scale ** 2
         assert written.max() > 1e-6  # the poke moves them
+        # the displacement the baker records per frame (on the scene's device) is the frames'
+        every = np.sqrt(((np.stack(frames) - frames[0]) ** 2).sum(-1)).max(1)
+        np.testing.assert_allclose(b.disp, every, rtol=1e-5, atol=1e-7 * every.max())
         np.testing.assert_allclose(sq, written, rtol=1e-3, atol=1e-4 * written.max())
         baker_module.MATCH_GAUSSIANS, cap = 50, baker_module.MATCH_GAUSSIANS
         try:

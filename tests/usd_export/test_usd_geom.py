@@ -78,7 +78,10 @@ def test_quaternion_order_round_trip_through_vt_and_gf():
     xyzw = wxyz_to_xyzw(wxyz)
     np.testing.assert_array_equal(xyzw_to_wxyz(xyzw), wxyz)
     for vt_type, dtype, tol in ((Vt.QuatfArray, np.float32, 0.0), (Vt.QuathArray, np.float16, 1e-3)):
-        arr = vt_type.FromNumpy(xyzw.astype(dtype))
+        cast = wxyz_to_xyzw(wxyz, dtype)  # reordered and cast in one pass
+        assert cast.dtype == dtype
+        np.testing.assert_array_equal(cast, xyzw.astype(dtype))
+        arr = vt_type.FromNumpy(cast)
         for i in (0, 17, 49):
             g = arr[i]  # Gf.Quatf / Gf.Quath: real part is w
             got = np.array([g.GetReal(), *g.GetImaginary()], dtype=np.float64)
@@ -94,6 +97,11 @@ def test_normalize_handles_zero_and_scale():
     q = np.array([[0, 0, 0, 0], [2, 0, 0, 0], [0, 3, 4, 0]], np.float32)
     out = normalize_quats(q)
     np.testing.assert_allclose(out, [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0.6, 0.8, 0]], atol=1e-7)
+    q = np.random.default_rng(RNG_SEED).normal(size=(1000, 4)).astype(np.float32) * 3
+    ref = q.astype(np.float64) / np.linalg.norm(q.astype(np.float64), axis=1, keepdims=True)
+    out = normalize_quats(q)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, ref, rtol=0, atol=3e-7)
 
 
 def test_sh_colour_round_trip_and_degree():

@@ -600,3 +600,42 @@ def test_validate_rejects_ids_repeated_across_instancers(tmp_path):
     layer.Save()
     with pytest.raises(UsdExportError, match="instance ids repeat"):
         validate_usd(path, usd_validators=False)
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_constant_scales_written_once_and_a_change_in_a_reused_buffer_lands(tmp_path, data, threaded):
+    """A bake hands the same scales every frame: they are authored once. A caller that
+    changes them in the same buffer gets the change, held values bracketed correctly."""
+    pos, quats, sig, sh, opac = data
+    s = sig[0].copy()
+    path = tmp_path / "s.usdc"
+    with UsdBakeWriter(path, n_points=N, fps=30, fmt="both", sh=sh, opacities=opac, threaded=threaded) as w:
+        for f in range(5):
+            if f == 3:
+                s *= 1.5  # in place: the writer must not keep a view of the caller's buffer
+            w.write_frame(f, pos[f], quats[f], s)
+    stage = Usd.Stage.Open(str(path))
+    from pxr import UsdVol
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Root/Instancer"))
+    field = UsdVol.ParticleField3DGaussianSplat(stage.GetPrimAtPath("/Root/Splats"))
+    for attr, factor in ((inst.GetScalesAttr(), 2.0), (field.GetScalesAttr(), 1.0)):
+        assert attr.GetTimeSamples() == [0, 2, 3]  # held from 0 to 2, changed at 3
+        for f in range(5):
+            want = factor * sig[0] * (1.5 if f >= 3 else 1.0)
+            np.testing.assert_allclose(np.asarray(attr.Get(f)), want, rtol=1e-6)
+    for f in (2, 4):  # the extents follow the changed radii
+        assert_box_bounds(np.asarray(inst.GetExtentAttr().Get(f)), pos[f], 2 * sig[0] * (1.5 if f >= 3 else 1.0))
+        assert_box_bounds(np.asarray(field.GetExtentAttr().Get(f)), pos[f], 3 * sig[0] * (1.5 if f >= 3 else 1.0))
+
+
+def test_sample_comparison_sees_a_change_off_its_stride():
+    from usd_export.writer import _same
+    a = np.random.default_rng(0).normal(size=(5000, 3)).astype(np.float32)
+    assert _same(a, a.copy())
+    for i in (0, 1, 7, a.size - 1):  # on and off the strided thousandth
+        b = a.copy()
+        b.reshape(-1)[i] += 1e-3
+        assert not _same(a, b)
+    assert not _same(a, a[:-1])
+    h = a.astype(np.float16)
+    assert _same(h, h.copy()) and not _same(h, -h)
