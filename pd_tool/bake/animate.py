@@ -51,7 +51,13 @@ class GaussianAnimator:
                                           mode=mode)
         # A static Gaussian near the edge of its region can have free drivers among its 8
         # nearest (one grid cell reaches deeper on a coarse grid): it must not follow them.
-        self.static = torch.as_tensor(np.asarray(prep.static[:f], bool), device=dev)[:, None]
+        # Static Gaussians keep the scene's own values, bit for bit: a round trip through
+        # simulation axes would move them by a rounding error each frame, and the USD
+        # writer would then check every static instance against its tolerance (15 ms a
+        # frame at 300k) instead of comparing bytes.
+        free = torch.as_tensor(~np.asarray(prep.static[:f], bool), device=dev)
+        self._free_rows = torch.nonzero(free).squeeze(1)  # rows of the simulated Gaussians that move
+        self._fg_free = self.fg[self._free_rows]
 
     def to_scene_points(self, x_sim: torch.Tensor) -> torch.Tensor:
         """Simulation metres [M, 3] -> scene units [M, 3] (torch, differentiable)."""
@@ -62,9 +68,8 @@ class GaussianAnimator:
         `drivers_now` [Q, 3] (metres, simulation box)."""
         d = torch.as_tensor(drivers_now, dtype=torch.float32, device=self.device)
         pts, quats = self._interp(d)[:2]
-        pts = torch.where(self.static, self.rest_points, pts)
-        quats = torch.where(self.static, self.rest_quats, quats)
+        pts, quats = pts[self._free_rows], quats[self._free_rows]
         q_scene = quat_multiply(self._q_scene.expand_as(quats), quats)
-        positions = self.scene_positions.index_put((self.fg,), self.to_scene_points(pts))
-        orientations = self.scene_quats.index_put((self.fg,), q_scene)
+        positions = self.scene_positions.index_put((self._fg_free,), self.to_scene_points(pts))
+        orientations = self.scene_quats.index_put((self._fg_free,), q_scene)
         return positions, orientations
