@@ -1,4 +1,6 @@
-"""Warp device code for the forward-only rigid interpolation (bake, previews).
+"""Warp device code for the forward-only rigid interpolation (bake, previews), and the
+hash-grid pass of the exact k nearest neighbours (knn.py launches it; its reference is
+_ref.knn_ref, the dense search).
 
 One thread per Gaussian does what interpolate.DriverInterpolator does in torch (the
 reference twin, tested against it): centroids of its K drivers at rest and now, the
@@ -44,3 +46,55 @@ def rigid_interpolate(
     points_out[i] = quat_matrix_wp(q) @ (rest_points[i] - c_rest) + c_now
     r = quat_multiply_wp(q, rest_quats[i])
     quats_out[i] = r / wp.length(r)
+
+
+# --------------------------------------------------------------------------------------
+# Exact k nearest neighbours on a hash grid (knn.py's first pass)
+# --------------------------------------------------------------------------------------
+KNN_MAX_K = 16  # neighbours a thread keeps in registers; knn.py searches larger k in torch
+_KnnD = wp.types.vector(length=KNN_MAX_K, dtype=wp.float32)
+_KnnI = wp.types.vector(length=KNN_MAX_K, dtype=wp.int32)
+
+
+@wp.kernel(enable_backward=False)
+def grid_knn(
+    grid: wp.uint64,
+    refs: wp.array(dtype=wp.vec3),
+    queries: wp.array(dtype=wp.vec3),
+    k: int,
+    radius: float,
+    sure2: float,
+    out_d: wp.array2d(dtype=wp.float32),
+    out_i: wp.array2d(dtype=wp.int64),
+    exact: wp.array(dtype=wp.int32),
+):
+    """The k (<= KNN_MAX_K) nearest refs of query t among those the hash grid visits
+    within `radius` (every ref that near, and some farther), by squared distance, ties by
+    the lower index so that the grid's visiting order does not matter. exact[t] = 1 when
+    the k-th lies within sqrt(sure2) (radius less a rounding margin): then no unvisited
+    ref can be nearer. Missing entries are inf / 0."""
+    t = wp.tid()
+    p = queries[t]
+    bd = _KnnD()
+    bi = _KnnI()
+    for s in range(KNN_MAX_K):
+        bd[s] = wp.inf
+        bi[s] = 0
+    last = k - 1
+    j = int(0)
+    query = wp.hash_grid_query(grid, p, radius)
+    while wp.hash_grid_query_next(query, j):
+        r = refs[j] - p
+        d2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+        if d2 < bd[last] or (d2 == bd[last] and j < bi[last]):
+            s = last
+            while s > 0 and (bd[s - 1] > d2 or (bd[s - 1] == d2 and bi[s - 1] > j)):
+                bd[s] = bd[s - 1]
+                bi[s] = bi[s - 1]
+                s -= 1
+            bd[s] = d2
+            bi[s] = j
+    for s in range(k):
+        out_d[t, s] = bd[s]
+        out_i[t, s] = wp.int64(bi[s])
+    exact[t] = wp.where(bd[last] <= sure2, 1, 0)

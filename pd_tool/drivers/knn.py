@@ -1,19 +1,30 @@
 """Exact k nearest neighbours of many query points among a set of reference points.
 
 Used twice: the 8 nearest drivers of each Gaussian at rest, and the assignment step of
-K-Means (k = 1). A full N x Q distance matrix is never built: the reference points go
-into a uniform grid, each query looks at the 3 x 3 x 3 block of cells around its own, and
-only queries whose k-th candidate is farther than the block's wall fall back to a
-brute-force search (chunked over the reference points). The result is exact either way.
+K-Means (k = 1). A full N x Q distance matrix is never built.
+
+1. For float32 points and k <= 16, one warp thread per query scans a hash grid of the
+   references within a radius that most queries' k-th neighbour lies within
+   (kernels.grid_knn): one launch, no host round trip.
+2. The queries it cannot settle (their k-th candidate lies beyond the radius), and every
+   query for float64 or larger k, go to torch: the references sorted into a uniform grid,
+   each query looks at the 3 x 3 x 3 block of cells around its own, and only queries whose
+   k-th candidate is farther than the block's wall retry with cells twice as large, then
+   fall back to a brute-force search (chunked over the reference points).
+
+The result is exact either way; equal distances go to the lower index in the first pass.
 
 Memory: at most ``chunk`` (query, candidate) pairs are held at once, plus O(N + Q).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
 from torch import Tensor
+
+from pd_tool.drivers.kernels import KNN_MAX_K
 
 DEFAULT_CHUNK = 1 << 22  # (query, candidate) pairs held in memory at once, on the CPU
 # ... and on a GPU, where each chunk costs a host round trip and a few launches. K-Means and
@@ -28,6 +39,12 @@ def default_chunk(device: torch.device | str) -> int:
     return CUDA_CHUNK if torch.device(device).type == "cuda" else DEFAULT_CHUNK
 _SAMPLE = 256  # queries whose k-th neighbour distance sets the cell size
 _SAMPLE_QUANTILE = 0.8  # of those distances: most queries finish in the first pass
+# The hash-grid kernel's search radius: this quantile of the sample's k-th neighbour
+# distances, times _GRID_SLACK. A query whose k-th neighbour lies farther is searched again
+# in torch; a larger radius costs candidates as its cube.
+_GRID_QUANTILE = 0.95
+_GRID_SLACK = 1.1
+_GRID_MAX_CELLS = 1 << 22  # hash grid buckets at most (two int32 each)
 _MIN_CELL = 1e-4  # cell size floor relative to the refs' extent (duplicate points)
 _SAFE_SPAN = 1e15  # coordinates spanning more (or less than its inverse) are rescaled first
 _OFFSETS = torch.tensor(
@@ -85,7 +102,7 @@ class _Grid:
         return torch.minimum(lo_gap, hi_gap).min(-1).values
 
 
-def _pick_cell(queries: Tensor, refs: Tensor, k: int, chunk: int) -> float:
+def _pick_cell(queries: Tensor, refs: Tensor, k: int, chunk: int, quantile: float = _SAMPLE_QUANTILE) -> float:
     """Cell size from the k-th neighbour distance of a few sample queries.
 
     The search is exact for a query whose k-th neighbour is within its block's wall, at
@@ -98,7 +115,7 @@ def _pick_cell(queries: Tensor, refs: Tensor, k: int, chunk: int) -> float:
     m = min(queries.shape[0], _SAMPLE)
     sample = queries[torch.linspace(0, queries.shape[0] - 1, m, device=queries.device).long()]
     d2, _ = knn_brute(sample, refs, k, chunk)
-    r = torch.quantile(d2[:, -1].double().sqrt(), _SAMPLE_QUANTILE)
+    r = torch.quantile(d2[:, -1].double().sqrt(), quantile)
     return max(float(r) * 1.05, ext * _MIN_CELL)
 
 
@@ -212,11 +229,22 @@ def knn(
         f = 1.0 / span
         d2, i = knn((queries - lo) * f, (refs - lo) * f, k, chunk=chunk, cell=None if cell is None else cell * f)
         return d2.double().mul(span * span).to(d2.dtype), i
-    if cell is None:
-        cell = _pick_cell(queries, refs, k, chunk)
     dist = torch.empty((n, k), dtype=queries.dtype, device=queries.device)
     idx = torch.empty((n, k), dtype=torch.long, device=queries.device)
     pending = torch.arange(n, device=queries.device)
+    if k <= KNN_MAX_K and queries.dtype == torch.float32 and refs.dtype == torch.float32:
+        # the hash grid; the queries it leaves again with twice the radius, until the
+        # radius spans every point (what rounding still leaves goes to the search below)
+        radius = _pick_cell(queries, refs, k, chunk, _GRID_QUANTILE) * _GRID_SLACK
+        while pending.numel() > 0:
+            d_g, i_g, ok = _grid_pass(queries[pending], refs, k, radius, span)
+            dist[pending[ok]], idx[pending[ok]] = d_g[ok], i_g[ok]
+            pending = pending[~ok]
+            if not radius <= 2.0 * max(span, 1e-30):
+                break
+            radius *= 2.0
+    if pending.numel() > 0 and cell is None:
+        cell = _pick_cell(queries, refs, k, chunk)
     # Queries whose k-th candidate lies beyond their block's wall are retried with cells
     # twice as large; once a block spans the whole grid every answer is exact.
     while pending.numel() > 0:
@@ -241,6 +269,48 @@ def knn(
             dist[pending], idx[pending] = d_b, i_b
             break
     return dist, idx
+
+
+def _grid_pass(queries: Tensor, refs: Tensor, k: int, radius: float, span: float) -> tuple[Tensor, Tensor, Tensor]:
+    """First pass of `knn` for float32 and k <= KNN_MAX_K: one warp thread per query scans
+    a hash grid of the refs within `radius` (kernels.grid_knn), on the queries' device
+    without a host round trip. Returns (dist2 [N, k], idx [N, k] long, exact [N] bool);
+    rows not exact hold what the kernel saw and are searched again by the caller."""
+    import warp as wp
+
+    from pd_tool.core.device import init_warp_quietly
+    from pd_tool.drivers.kernels import grid_knn
+
+    init_warp_quietly()
+    n, dev = queries.shape[0], queries.device
+    dist = torch.empty((n, k), dtype=torch.float32, device=dev)
+    idx = torch.empty((n, k), dtype=torch.long, device=dev)
+    exact = torch.empty(n, dtype=torch.int32, device=dev)
+    lo = torch.minimum(refs.min(0).values, queries.min(0).values)
+    hi = torch.maximum(refs.max(0).values, queries.max(0).values)
+    scale = float(torch.maximum(lo.abs(), hi.abs()).max())
+    # The grid keeps cell indices within 2^20 of the origin; farther, the torch search
+    # does everything.
+    if not radius > 0 or (scale + radius) / radius >= 1 << 19:
+        return dist, idx, torch.zeros(n, dtype=torch.bool, device=dev)
+    cells = [max(1, math.ceil(float(e) / radius) + 3) for e in (hi - lo).tolist()]
+    while math.prod(cells) > _GRID_MAX_CELLS:  # a hashed grid: fewer buckets, more candidates
+        cells = [max(1, (c + 1) // 2) for c in cells]
+    # Rounding margin: the grid's cell arithmetic and the float32 distances err by a few
+    # ulps of the coordinates, so only a k-th neighbour this far inside the radius is sure.
+    sure = radius - 8.0 * torch.finfo(torch.float32).eps * max(scale, span)
+    sure2 = sure * sure if sure > 0 else -1.0
+    q32, r32 = queries.contiguous(), refs.contiguous()
+    wdev = str(dev) if dev.type == "cuda" else "cpu"
+    stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
+    with wp.ScopedDevice(wdev), (wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext()):
+        refs_w = wp.from_torch(r32, dtype=wp.vec3)
+        grid = wp.HashGrid(*cells, device=wdev)
+        grid.build(refs_w, radius)
+        wp.launch(grid_knn, dim=n, device=wdev, inputs=[
+            grid.id, refs_w, wp.from_torch(q32, dtype=wp.vec3), k, float(radius), float(sure2),
+            wp.from_torch(dist, dtype=wp.float32), wp.from_torch(idx, dtype=wp.int64), wp.from_torch(exact, dtype=wp.int32)])
+    return dist, idx, exact.bool()
 
 
 def nearest_drivers(points: Tensor, drivers: Tensor, k: int = 8, *, chunk: int | None = None) -> Tensor:

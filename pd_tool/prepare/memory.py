@@ -40,7 +40,9 @@ B_NODE = 32  # grid m (4) + mv (12) + v (12) + fixed (4)
 B_PAIR = 5  # measured: k-NN / k-means (query, candidate) pairs resident per chunk element
 KNN_CHUNK = 1 << 22  # pd_tool.drivers.knn.DEFAULT_CHUNK: pairs held at once on the CPU
 KNN_CHUNK_CUDA = 1 << 24  # pd_tool.drivers.knn.CUDA_CHUNK: ... on a GPU
-B_PAIR_CUDA = 75  # measured: torch's peak per pair, K-Means and nearest drivers of 1M / 3M points, H200
+B_PAIR_CUDA = 75  # measured: torch's peak per pair of the torch search, 1M / 3M points, H200
+KNN_GRID_CELLS = 1 << 22  # pd_tool.drivers.knn._GRID_MAX_CELLS: the hash grid's buckets at most
+KNN_SAMPLE = 256  # pd_tool.drivers.knn._SAMPLE: queries searched by brute force to size the grid
 PREVIEW_PIXELS = 480 * 270  # the bake's automatic preview camera
 # fit
 B_GAUSS_FIT = 1500  # measured: scene on the device, animator, fields' inputs
@@ -68,10 +70,16 @@ class InsufficientMemory(PdToolError):
 
 
 def _knn_workspace(n_points: int, n_drivers: int, gpu: bool) -> float:
-    # k-means assigns every point to its nearest centre and the animator finds 8 drivers per
-    # Gaussian; both hold at most a chunk of (query, candidate) pairs at a time.
-    pairs = max(n_points, 1) * max(n_drivers, 1)
-    return B_PAIR_CUDA * min(KNN_CHUNK_CUDA, pairs) if gpu else B_PAIR * min(KNN_CHUNK, pairs)
+    # K-Means assigns every point to its nearest centre and the animator finds 8 drivers per
+    # Gaussian. The hash-grid pass holds each query's 8 distances and indices, the grid's
+    # buckets and its sorted references; sizing the grid searches a sample by brute force,
+    # a quarter chunk of pairs at a time. The torch search sees only the few queries the
+    # grid leaves, far fewer pairs than a chunk. Buckets: a cell is about a neighbour
+    # distance wide, so a surface of Q references spans about Q^1.5 of them.
+    chunk, per_pair = (KNN_CHUNK_CUDA, B_PAIR_CUDA) if gpu else (KNN_CHUNK, B_PAIR)
+    q = max(n_drivers, 1)
+    grid = 12 * 8 * max(n_points, 1) + 8 * min(KNN_GRID_CELLS, q ** 1.5) + 16 * q
+    return grid + per_pair * min(chunk // 4, KNN_SAMPLE * q)
 
 
 def estimate_bake_memory(

@@ -264,3 +264,27 @@ def test_build_drivers_all_free_all_static_and_bad_mode():
     assert fixed.static.all() and int(fixed.counts.sum()) == 500
     with pytest.raises(DriverError, match="static_drivers"):
         build_drivers(pts, ones, ones, torch.zeros(500, dtype=torch.bool), 0.1, static_drivers="some")
+
+
+@pytest.mark.parametrize("k", [1, 8, 16])
+def test_grid_pass_rows_it_calls_exact_are_exact(device, k):
+    """The hash-grid kernel against the dense search: every row it calls exact is, whatever
+    the radius (a small one leaves many rows to the torch search), and equal distances go
+    to the lower index whatever order the grid visits them in."""
+    knn_mod = sys.modules["pd_tool.drivers.knn"]
+    gen = torch.Generator().manual_seed(6)
+    q, r = torus(3000, gen), torus(500, gen, noise=0.003)
+    d_ref, i_ref = knn_ref(q, r, k)
+    kth = d_ref[:, -1].sqrt()
+    for radius in (float(kth.quantile(0.3)), float(kth.quantile(0.95)) * 1.1, 5.0):
+        d, i, exact = knn_mod._grid_pass(q.to(device), r.to(device), k, radius, 2.6)
+        exact = exact.cpu()
+        assert exact.float().mean() > (0.2 if radius < 1 else 0.999)
+        assert torch.allclose(d.cpu()[exact].double(), d_ref[exact], atol=1e-6, rtol=1e-5)
+        assert (i.cpu()[exact] == i_ref[exact]).float().mean() > 0.999
+        # no row called exact whose k-th neighbour lies beyond the radius
+        assert not (exact & (kth > radius)).any()
+    dup = torch.cat([r[:50], r[:50], r[50:]])  # each of the first 50 twice: ties
+    d, i, _ = knn_mod._grid_pass(r[:50].to(device), dup.to(device), 2, 0.5, 2.6)
+    assert torch.equal(i.cpu(), torch.stack([torch.arange(50), torch.arange(50, 100)], 1))
+    assert (d.cpu() == 0).all()

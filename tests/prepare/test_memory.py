@@ -128,15 +128,20 @@ def test_fit_refuses_a_grid_that_cannot_fit(tmp_path: Path, monkeypatch) -> None
 
 
 def test_the_estimate_counts_the_chunk_the_search_holds() -> None:
-    # the memory estimate's k-NN chunk is the one pd_tool.drivers.knn holds on each device
+    # the memory estimate's k-NN terms are the ones pd_tool.drivers.knn holds on each device
+    import sys
+
     from pd_tool.drivers.knn import CUDA_CHUNK, DEFAULT_CHUNK, default_chunk
     from pd_tool.prepare import memory as M
 
+    knn = sys.modules["pd_tool.drivers.knn"]
     assert default_chunk("cpu") == DEFAULT_CHUNK == M.KNN_CHUNK
     assert default_chunk("cuda:0") == CUDA_CHUNK == M.KNN_CHUNK_CUDA
+    assert knn._GRID_MAX_CELLS == M.KNN_GRID_CELLS and knn._SAMPLE == M.KNN_SAMPLE
     kw = dict(n_gaussians=300_000, n_simulated=300_000, driver_ratio=0.5, grid_dims=(64, 64, 64), frames=31,
               preview_pixels=0, sh_coeffs=1)
     cpu, gpu = M.estimate_bake_memory(device="cpu", **kw), M.estimate_bake_memory(device="cuda", **kw)
-    assert cpu.terms["knn"] == M.B_PAIR * M.KNN_CHUNK
-    assert gpu.terms["knn"] == M.B_PAIR_CUDA * M.KNN_CHUNK_CUDA
+    grid = 12 * 8 * 300_000 + 8 * M.KNN_GRID_CELLS
+    assert grid + M.B_PAIR * M.KNN_CHUNK // 4 < cpu.terms["knn"] < 1.1 * (grid + M.B_PAIR * M.KNN_CHUNK // 4)
+    assert grid + M.B_PAIR_CUDA * M.KNN_CHUNK_CUDA // 4 < gpu.terms["knn"]
     assert gpu.device >= gpu.terms["knn"]  # counted on the device
