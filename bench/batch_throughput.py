@@ -7,6 +7,7 @@ function `pdtool batch` calls.
 
     python bench/batch_throughput.py --device cpu --workers 1,2,4 --json batch.json
     python bench/batch_throughput.py --device cuda --workers 1,2,4      # GPU workers: one per GPU
+    python bench/batch_throughput.py --device cuda --workers 1 --gpus 1,2 --gaussians 100000 --quality default --frames 15
     python bench/batch_throughput.py --ray auto                          # on a running Ray cluster
 """
 from __future__ import annotations
@@ -28,8 +29,8 @@ PRESETS = ["flower", "leafy-plant", "jelly", "rubber-cord"]
 FORCES = ["0,0,1", "0,0,-1", "1,0,0", "-1,0,0", "0,1,0", "0,-1,0", "1,1,0", "-1,-1,0"]
 
 
-def jobs_toml(device: str, gaussians_file: str, frames: int) -> str:
-    args = ["--scene", gaussians_file, "--preset", "{preset}", "--force", "{force}", "--quality", "draft",
+def jobs_toml(device: str, gaussians_file: str, frames: int, quality: str = "draft") -> str:
+    args = ["--scene", gaussians_file, "--preset", "{preset}", "--force", "{force}", "--quality", quality,
             "--frames", str(frames), "--format", "instancer", "--device", device, "out/{name}.usd"]
     return ("[[job]]\nname = \"poke\"\ncommand = \"bake\"\nargs = " + json.dumps(args) + "\n"
             "[job.sweep]\npreset = " + json.dumps(PRESETS) + "\nforce = " + json.dumps(FORCES) + "\n")
@@ -45,6 +46,12 @@ def cpu_name() -> str:
     return platform.processor()
 
 
+def _gpu_names() -> list[str]:
+    import torch
+
+    return [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
@@ -52,6 +59,9 @@ def main() -> None:
     ap.add_argument("--ray", default=None, help="Ray address instead of the local pool (one run)")
     ap.add_argument("--gaussians", type=int, default=600)
     ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--quality", default="draft", help="the bakes' --quality (default: the converged default's cheaper draft)")
+    ap.add_argument("--gpus", default=None, help="--device cuda: comma-separated GPU counts for the local pool "
+                    "(one GPU worker each; default: every visible GPU)")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads per CPU job (0: pdtool's default, cores // workers)")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 300 Gaussians, 2 frames, 1 and 2 workers")
@@ -72,14 +82,15 @@ def main() -> None:
     root = a.keep or Path(tempfile.mkdtemp(prefix="pdtool-batch-bench-"))
     root.mkdir(parents=True, exist_ok=True)
     save_splats(make_plant(a.gaussians, seed=0), root / "plant.ply")
-    runs = [("ray", 0)] if a.ray else [("local", int(w)) for w in a.workers.split(",")]
+    gpus = [None] if a.gpus is None else [int(g) for g in a.gpus.split(",")]
+    runs = [("ray", 0, None)] if a.ray else [("local", int(w), g) for w in a.workers.split(",") for g in gpus]
     rows = []
-    for kind, w in runs:
-        d = root / ("ray" if kind == "ray" else f"w{w}")
+    for kind, w, g in runs:
+        d = root / ("ray" if kind == "ray" else f"w{w}" + ("" if g is None else f"g{g}"))
         d.mkdir(exist_ok=True)
-        (d / "jobs.toml").write_text(jobs_toml(a.device, "../plant.ply", a.frames))
+        (d / "jobs.toml").write_text(jobs_toml(a.device, "../plant.ply", a.frames, a.quality))
         jobs = load_jobs(d / "jobs.toml")
-        backend = RayBackend(a.ray) if kind == "ray" else LocalBackend(w, threads=a.threads or None)
+        backend = RayBackend(a.ray) if kind == "ray" else LocalBackend(w, gpus=g, threads=a.threads or None)
         t0 = time.perf_counter()
         res = run_batch(jobs, CommandLines(batch_parse, batch_run), workers=w or None, backend=backend,
                         show_progress=False, echo=lambda s: None)
@@ -103,6 +114,7 @@ def main() -> None:
               f"warm-up {row['warmup_s']:.1f} s (imports + kernel load), after it {row['steady_jobs_per_min']:.1f} "
               f"jobs/min, load avg {row['load_avg_after']}", flush=True)
     info = {"cpu": cpu_name(), "cores": len(os.sched_getaffinity(0)), "device": a.device,
+            "gpu": _gpu_names() if a.device == "cuda" else None, "quality": a.quality,
             "gaussians": a.gaussians, "frames": a.frames, "threads_per_job": a.threads,
             "load_avg_before": LOAD0, "python": platform.python_version(), "runs": rows}
     if a.json:
