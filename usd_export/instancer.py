@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
-from ._geom import ellipsoid_extent, sphere_extent, wxyz_to_xyzw
+from ._geom import ellipsoid_extent, sphere_extent
 from ._held import Held
 
 
@@ -73,7 +73,7 @@ class InstancerPart:
             self._point_radii: np.ndarray | None = None
 
     def first_frame_defaults(self, positions: np.ndarray, quats: np.ndarray,
-                             sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
+                             sigmas: np.ndarray, xyzw16: np.ndarray) -> list[tuple[Sdf.Path, object]]:
         """Non-animated values that need a frame to compute (point widths)."""
         if self.points is None:
             return []
@@ -81,8 +81,9 @@ class InstancerPart:
         return [(self.widths, Vt.FloatArray.FromNumpy(2.0 * self._point_radii))]
 
     def samples(self, positions: np.ndarray, quats: np.ndarray,
-                sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
-        """Time samples for one frame: positions [N,3] f32, quats [N,4] unit wxyz, sigmas [N,3]."""
+                sigmas: np.ndarray, xyzw16: np.ndarray) -> list[tuple[Sdf.Path, object]]:
+        """Time samples for one frame: positions [N,3] f32, quats [N,4] wxyz (any length),
+        sigmas [N,3], xyzw16 [N,4] the unit quaternions as written (_geom.unit_xyzw_half)."""
         radii, radii_vt = self._radii(sigmas)
         pos_vt = Vt.Vec3fArray.FromNumpy(positions)
         # The extent bounds the unit spheres as instanced, from the float quaternions;
@@ -90,7 +91,7 @@ class InstancerPart:
         # outward float32 rounding margin of the box relative to typical radii.
         out = [
             (self.positions, pos_vt),
-            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats, np.float16))),
+            (self.orientations, Vt.QuathArray.FromNumpy(xyzw16)),
             (self.scales, radii_vt),
             (self.extent, Vt.Vec3fArray.FromNumpy(ellipsoid_extent(positions, quats, radii))),
         ]

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdVol, Vt
 
-from ._geom import SPLAT_SUPPORT_SIGMAS, ellipsoid_extent, sh_degree, wxyz_to_xyzw
+from ._geom import SPLAT_SUPPORT_SIGMAS, ellipsoid_extent, sh_degree
 from ._held import Held
 
 
@@ -52,17 +52,18 @@ class SplatFieldPart:
         self._scales = Held(lambda s: (s * np.float32(SPLAT_SUPPORT_SIGMAS), Vt.Vec3fArray.FromNumpy(s)))
 
     def first_frame_defaults(self, positions: np.ndarray, quats: np.ndarray,
-                             sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
+                             sigmas: np.ndarray, xyzw16: np.ndarray) -> list[tuple[Sdf.Path, object]]:
         return []
 
     def samples(self, positions: np.ndarray, quats: np.ndarray,
-                sigmas: np.ndarray) -> list[tuple[Sdf.Path, object]]:
-        """Time samples for one frame: positions [N,3] f32, quats [N,4] unit wxyz, sigmas [N,3]."""
+                sigmas: np.ndarray, xyzw16: np.ndarray) -> list[tuple[Sdf.Path, object]]:
+        """Time samples for one frame: positions [N,3] f32, quats [N,4] wxyz (any length),
+        sigmas [N,3], xyzw16 [N,4] the unit quaternions as written (_geom.unit_xyzw_half)."""
         support, scales_vt = self._scales(sigmas)
         box = ellipsoid_extent(positions, quats, support)
         return [
             (self.positions, Vt.Vec3fArray.FromNumpy(positions)),
-            (self.orientations, Vt.QuathArray.FromNumpy(wxyz_to_xyzw(quats, np.float16))),
+            (self.orientations, Vt.QuathArray.FromNumpy(xyzw16)),
             (self.scales, scales_vt),
             (self.extent, Vt.Vec3fArray.FromNumpy(box)),
         ]

@@ -29,7 +29,7 @@ from pxr import Kind, Sdf, Usd, UsdGeom
 from pd_tool.core import atomic as _atomic
 from pd_tool.core.errors import UsdExportError
 
-from ._geom import normalize_quats, rgb_to_sh_dc, sh_dc_to_rgb, srgb_to_linear
+from ._geom import normalize_quats, rgb_to_sh_dc, sh_dc_to_rgb, srgb_to_linear, unit_xyzw_half
 from .instancer import InstancerPart
 from .splat_field import SplatFieldPart
 
@@ -302,16 +302,16 @@ class UsdBakeWriter:
             self._w_covered = item[1]
             return
         _, t, positions, quats, sigmas = item
-        quats = normalize_quats(quats)
+        xyzw16 = unit_xyzw_half(quats)  # normalised once for every part
         layer = self._layer
         if self._w_frames == 0:
             si = self._static_idx
-            static = (positions[si], quats[si], sigmas[si]) if len(si) else None
+            static = (positions[si], quats[si], sigmas[si], xyzw16[si]) if len(si) else None
             for part in self._static_parts:  # their only values: defaults, no time samples
                 for p, v in part.first_frame_defaults(*static) + part.samples(*static):
                     layer.GetAttributeAtPath(p).default = v
         mi = self._moving_idx
-        moving = (positions, quats, sigmas) if mi is None else (positions[mi], quats[mi], sigmas[mi])
+        moving = (positions, quats, sigmas, xyzw16) if mi is None else (positions[mi], quats[mi], sigmas[mi], xyzw16[mi])
         if self._w_frames == 0:
             for part in self._parts:
                 for p, v in part.first_frame_defaults(*moving):

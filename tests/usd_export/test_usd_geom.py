@@ -7,7 +7,7 @@ import pytest
 from pd_tool.core.quaternion import quat_to_matrix_np
 from usd_export._geom import (
     ellipsoid_extent, ellipsoid_extent_dense, ellipsoid_half_extents, normalize_quats, rgb_to_sh_dc,
-    sh_dc_to_rgb, sh_degree, sphere_extent, wxyz_to_xyzw, xyzw_to_wxyz,
+    sh_dc_to_rgb, sh_degree, sphere_extent, unit_xyzw_half,
 )
 
 RNG_SEED = 7
@@ -54,6 +54,8 @@ def test_ellipsoid_extent_candidates_equal_dense(spread):
     q = _random_quats(n, rng)
     radii = rng.lognormal(0, 1, (n, 3)).astype(np.float32)
     np.testing.assert_array_equal(ellipsoid_extent(p, q, radii), ellipsoid_extent_dense(p, q, radii))
+    # quaternions of any length are normalised (a frame's orientations arrive as given)
+    np.testing.assert_allclose(ellipsoid_extent(p, 3 * q, radii), ellipsoid_extent(p, q, radii), rtol=1e-6, atol=0)
     # and the box holds every ellipsoid's densely sampled surface
     u = rng.normal(size=(64, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -71,26 +73,22 @@ def test_ellipsoid_extent_contains_centres_and_is_float32_outward():
     assert (p >= box[0]).all() and (p <= box[1]).all()
 
 
-def test_quaternion_order_round_trip_through_vt_and_gf():
+def test_written_orientations_are_unit_xyzw_halves_that_vt_and_gf_read_as_wxyz():
     Vt = pytest.importorskip("pxr.Vt")
     rng = np.random.default_rng(RNG_SEED)
-    wxyz = _random_quats(50, rng)
-    xyzw = wxyz_to_xyzw(wxyz)
-    np.testing.assert_array_equal(xyzw_to_wxyz(xyzw), wxyz)
-    for vt_type, dtype, tol in ((Vt.QuatfArray, np.float32, 0.0), (Vt.QuathArray, np.float16, 1e-3)):
-        cast = wxyz_to_xyzw(wxyz, dtype)  # reordered and cast in one pass
-        assert cast.dtype == dtype
-        np.testing.assert_array_equal(cast, xyzw.astype(dtype))
-        arr = vt_type.FromNumpy(cast)
-        for i in (0, 17, 49):
-            g = arr[i]  # Gf.Quatf / Gf.Quath: real part is w
-            got = np.array([g.GetReal(), *g.GetImaginary()], dtype=np.float64)
-            np.testing.assert_allclose(got, wxyz[i], atol=tol)
-        back = xyzw_to_wxyz(np.asarray(arr).astype(np.float32))
-        np.testing.assert_allclose(back, wxyz, atol=tol)
-    # Gf constructors take w first: Quatf(w, x, y, z) round-trips to FromNumpy's xyzw.
-    g = Vt.QuatfArray([Vt.QuatfArray.FromNumpy(xyzw[:1])[0]])
-    np.testing.assert_array_equal(np.asarray(g), xyzw[:1])
+    wxyz = rng.normal(size=(50, 4)).astype(np.float32) * 2  # not unit: normalised on the way
+    wxyz[7] = 0  # no rotation to normalise: the identity
+    half = unit_xyzw_half(wxyz)
+    assert half.dtype == np.float16
+    # the same values as normalising, reordering and rounding one step at a time
+    np.testing.assert_array_equal(half, normalize_quats(wxyz)[:, [1, 2, 3, 0]].astype(np.float16))
+    unit = normalize_quats(wxyz)
+    arr = Vt.QuathArray.FromNumpy(half)
+    for i in (0, 7, 17, 49):
+        g = arr[i]  # Gf.Quath: real part is w
+        got = np.array([g.GetReal(), *g.GetImaginary()], dtype=np.float64)
+        np.testing.assert_allclose(got, unit[i], atol=1e-3)
+    np.testing.assert_array_equal(unit[7], [1, 0, 0, 0])
 
 
 def test_normalize_handles_zero_and_scale():
