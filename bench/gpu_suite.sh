@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), and the profiles and capture bakes (i); JSON and logs
+# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j) and batch over GPUs (k); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -72,4 +72,17 @@ if [ "$part" = i ]; then
     run sim_profile_$s 120 bench/sim_profile.py --device cuda --scene $s --gaussians 100000 --data $DATA
     run bake_speed_$s 150 bench/bake_speed.py --device cuda --scene $s --gaussians 300000 --data $DATA
   done
+fi
+# the bake at 300k with 3 mm leaves, and 1M-10M Gaussians (docs/benchmarks.md, "Bake speed":
+# setup, wall, memory, the largest scene)
+if [ "$part" = j ]; then
+  run bake_speed_thin 150 bench/bake_speed.py --device cuda --gaussians 300000 --thin
+  for n in 1000000 3000000 10000000; do
+    run bake_scale_$n 300 bench/bake_speed.py --device cuda --gaussians $n --thin
+  done
+fi
+# pdtool batch over every GPU of the machine against one (needs 2 or more GPUs; docs/batch.md)
+if [ "$part" = k ]; then
+  run batch_gpus 400 bench/batch_throughput.py --device cuda --workers 1 --gpus 1,$(nvidia-smi -L | wc -l) \
+    --gaussians 100000 --quality default --frames 15
 fi
