@@ -14,7 +14,8 @@ K-Means (k = 1). A full N x Q distance matrix is never built.
 
 The result is exact either way; equal distances go to the lower index in the first pass.
 
-Memory: at most ``chunk`` (query, candidate) pairs are held at once, plus O(N + Q).
+Memory: at most ``chunk`` (query, candidate) pairs are held at once, plus O(N k + Q) and
+the hash grid's buckets (at most 2^22, 32 MB).
 """
 from __future__ import annotations
 
@@ -310,6 +311,10 @@ def _grid_pass(queries: Tensor, refs: Tensor, k: int, radius: float, span: float
         wp.launch(grid_knn, dim=n, device=wdev, inputs=[
             grid.id, refs_w, wp.from_torch(q32, dtype=wp.vec3), k, float(radius), float(sure2),
             wp.from_torch(dist, dtype=wp.float32), wp.from_torch(idx, dtype=wp.int64), wp.from_torch(exact, dtype=wp.int32)])
+        if stream is not None:
+            # the grid's buffers are freed when it goes out of scope here, possibly on another
+            # stream than the search still reading them; the caller reads the rows next anyway
+            wp.synchronize_stream(stream)
     return dist, idx, exact.bool()
 
 
