@@ -80,11 +80,9 @@ def _init_kmeanspp(points: Tensor, k: int, gen: torch.Generator) -> Tensor:
 
 
 def _assign(points: Tensor, centres: Tensor, chunk: int) -> tuple[Tensor, Tensor]:
-    """Exact nearest centre of every point: (dist2 [N], label [N] long). One hash-grid
-    pass (knn.knn) each iteration: on 200k points and 50k centres it is faster than
-    keeping each centre's 16 nearest centres between iterations and checking only those,
-    which needed a rebuild whenever a centre moved far (five of six iterations on the
-    300k-Gaussian plant) and a host round trip per iteration, with the same labels."""
+    """Exact nearest centre of every point: (dist2 [N], label [N] long), by one full
+    search each iteration (knn.knn's hash-grid pass). Reusing candidate centres between
+    iterations does not pay here (docs/benchmarks.md, "tried for setup")."""
     d2, idx = knn(points, centres, 1, chunk=chunk)
     return d2[:, 0], idx[:, 0]
 
