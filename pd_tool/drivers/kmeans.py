@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from pd_tool.drivers.knn import default_chunk, knn
+from pd_tool.drivers.knn import default_chunk, grid_radius, knn
 from pd_tool.core.errors import PdToolError
 
 DEFAULT_ITERS = 20  # Lloyd iterations at most
@@ -79,11 +79,11 @@ def _init_kmeanspp(points: Tensor, k: int, gen: torch.Generator) -> Tensor:
     return centres
 
 
-def _assign(points: Tensor, centres: Tensor, chunk: int) -> tuple[Tensor, Tensor]:
+def _assign(points: Tensor, centres: Tensor, chunk: int, radius: float) -> tuple[Tensor, Tensor]:
     """Exact nearest centre of every point: (dist2 [N], label [N] long), by one full
-    search each iteration (knn.knn's hash-grid pass). Reusing candidate centres between
-    iterations does not pay here (docs/benchmarks.md, "tried for setup")."""
-    d2, idx = knn(points, centres, 1, chunk=chunk)
+    search each iteration (knn.knn's hash-grid pass, from `radius`). Reusing candidate
+    centres between iterations does not pay here (docs/benchmarks.md, "tried for setup")."""
+    d2, idx = knn(points, centres, 1, chunk=chunk, radius=radius)
     return d2[:, 0], idx[:, 0]
 
 
@@ -176,9 +176,11 @@ def kmeans(
         raise DriverError(f"kmeans: unknown init {init!r}; use 'morton' or 'kmeans++'")
     fixed = _FixedPoint(points)
     chunk = default_chunk(points.device) if chunk is None else chunk
+    # centres keep their spacing from one iteration to the next: size the search once
+    radius = grid_radius(points, centres, 1, chunk)
     labels = None
     for _ in range(max(1, iters)):
-        d2, new = _assign(points, centres, chunk)
+        d2, new = _assign(points, centres, chunk, radius)
         counts = torch.bincount(new, minlength=k)
         new = _reseed_empty(new, d2, counts)
         changed = n if labels is None else int((new != labels).sum())

@@ -199,8 +199,17 @@ def knn_brute(q: Tensor, refs: Tensor, k: int, chunk: int = DEFAULT_CHUNK) -> tu
     return torch.cat(out_d), torch.cat(out_i)
 
 
+def grid_radius(queries: Tensor, refs: Tensor, k: int, chunk: int | None = None) -> float:
+    """The hash-grid pass's first search radius for these points (same units): a brute
+    search of a sample, so a caller that searches similar points again (K-Means' iterations)
+    computes it once and passes it to `knn`."""
+    chunk = default_chunk(queries.device) if chunk is None else chunk
+    return _pick_cell(queries, refs, k, chunk, _GRID_QUANTILE) * _GRID_SLACK
+
+
 def knn(
-    queries: Tensor, refs: Tensor, k: int, *, chunk: int | None = None, cell: float | None = None
+    queries: Tensor, refs: Tensor, k: int, *, chunk: int | None = None, cell: float | None = None,
+    radius: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Exact k nearest reference points of each query point.
 
@@ -209,7 +218,10 @@ def knn(
         refs: [Q, 3] float, same dtype and device; Q >= k.
         k: neighbours per query.
         chunk: (query, candidate) pairs held in memory at once; default: default_chunk.
-        cell: grid cell size; default: about max(2, k/2) refs per occupied cell.
+        cell: grid cell size of the torch search; default: about max(2, k/2) refs per
+            occupied cell.
+        radius: first radius of the hash-grid pass (float32, k <= 16); default:
+            `grid_radius`. Any radius gives the exact answer; a poor one costs time.
     Returns:
         (dist2 [N, k] squared distances ascending, idx [N, k] long indices into refs).
     """
@@ -222,13 +234,15 @@ def knn(
     if not (bool(torch.isfinite(queries).all()) and bool(torch.isfinite(refs).all())):
         raise ValueError("knn: the points hold NaN or inf")
     lo = torch.minimum(refs.min(0).values, queries.min(0).values)
-    span = float((torch.maximum(refs.max(0).values, queries.max(0).values) - lo).max())
+    hi = torch.maximum(refs.max(0).values, queries.max(0).values)
+    span = float((hi - lo).max())
     if span > _SAFE_SPAN or 0.0 < span < 1.0 / _SAFE_SPAN:
         # squared distances overflow (or underflow) float32 here, and with them the cell
         # choice (NaN cells never grow): search in coordinates scaled to the span, which
         # keeps the order of the distances, and scale the distances back
         f = 1.0 / span
-        d2, i = knn((queries - lo) * f, (refs - lo) * f, k, chunk=chunk, cell=None if cell is None else cell * f)
+        d2, i = knn((queries - lo) * f, (refs - lo) * f, k, chunk=chunk, cell=None if cell is None else cell * f,
+                    radius=None if radius is None else radius * f)
         return d2.double().mul(span * span).to(d2.dtype), i
     dist = torch.empty((n, k), dtype=queries.dtype, device=queries.device)
     idx = torch.empty((n, k), dtype=torch.long, device=queries.device)
@@ -236,9 +250,9 @@ def knn(
     if k <= KNN_MAX_K and queries.dtype == torch.float32 and refs.dtype == torch.float32:
         # the hash grid; the queries it leaves again with twice the radius, until the
         # radius spans every point (what rounding still leaves goes to the search below)
-        radius = _pick_cell(queries, refs, k, chunk, _GRID_QUANTILE) * _GRID_SLACK
+        radius = grid_radius(queries, refs, k, chunk) if radius is None else radius
         while pending.numel() > 0:
-            d_g, i_g, ok = _grid_pass(queries[pending], refs, k, radius, span)
+            d_g, i_g, ok = _grid_pass(queries[pending], refs, k, radius, lo, hi)
             dist[pending[ok]], idx[pending[ok]] = d_g[ok], i_g[ok]
             pending = pending[~ok]
             if not radius <= 2.0 * max(span, 1e-30):
@@ -272,11 +286,13 @@ def knn(
     return dist, idx
 
 
-def _grid_pass(queries: Tensor, refs: Tensor, k: int, radius: float, span: float) -> tuple[Tensor, Tensor, Tensor]:
+def _grid_pass(queries: Tensor, refs: Tensor, k: int, radius: float, lo: Tensor, hi: Tensor
+               ) -> tuple[Tensor, Tensor, Tensor]:
     """First pass of `knn` for float32 and k <= KNN_MAX_K: one warp thread per query scans
     a hash grid of the refs within `radius` (kernels.grid_knn), on the queries' device
-    without a host round trip. Returns (dist2 [N, k], idx [N, k] long, exact [N] bool);
-    rows not exact hold what the kernel saw and are searched again by the caller."""
+    without a host round trip. lo, hi [3]: a box holding the queries and the refs (knn's,
+    computed once for all its passes). Returns (dist2 [N, k], idx [N, k] long, exact [N]
+    bool); rows not exact hold what the kernel saw and are searched again by the caller."""
     import warp as wp
 
     from pd_tool.core.device import init_warp_quietly
@@ -287,9 +303,8 @@ def _grid_pass(queries: Tensor, refs: Tensor, k: int, radius: float, span: float
     dist = torch.empty((n, k), dtype=torch.float32, device=dev)
     idx = torch.empty((n, k), dtype=torch.long, device=dev)
     exact = torch.empty(n, dtype=torch.int32, device=dev)
-    lo = torch.minimum(refs.min(0).values, queries.min(0).values)
-    hi = torch.maximum(refs.max(0).values, queries.max(0).values)
     scale = float(torch.maximum(lo.abs(), hi.abs()).max())
+    span = float((hi - lo).max())
     # The grid keeps cell indices within 2^20 of the origin; farther, the torch search
     # does everything.
     if not radius > 0 or (scale + radius) / radius >= 1 << 19:

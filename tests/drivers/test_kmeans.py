@@ -44,6 +44,9 @@ def test_knn_matches_dense_reference(device, k, layout):
         q = torch.cat([torch.rand(2000, 3, generator=gen) * 0.01, 5 + torch.rand(2000, 3, generator=gen), torch.rand(500, 3, generator=gen) * 6])
     d2, idx = knn(q.to(device), r.to(device), k, chunk=1 << 16)
     d2_ref, idx_ref = knn_ref(q, r, k)
+    # a caller's radius far too small (or stale) costs retries, never exactness
+    d2_small, _ = knn(q.to(device), r.to(device), k, chunk=1 << 16, radius=1e-4)
+    assert torch.allclose(d2_small.cpu().double(), d2_ref, atol=1e-6, rtol=1e-5)
     assert torch.allclose(d2.cpu().double(), d2_ref, atol=1e-6, rtol=1e-5)
     # Indices may differ only where distances tie.
     recomputed = ((q[:, None, :] - r[idx.cpu()]) ** 2).sum(-1).double()
@@ -276,8 +279,10 @@ def test_grid_pass_rows_it_calls_exact_are_exact(device, k):
     q, r = torus(3000, gen), torus(500, gen, noise=0.003)
     d_ref, i_ref = knn_ref(q, r, k)
     kth = d_ref[:, -1].sqrt()
+    qd, rd = q.to(device), r.to(device)
+    lo, hi = torch.minimum(qd.min(0).values, rd.min(0).values), torch.maximum(qd.max(0).values, rd.max(0).values)
     for radius in (float(kth.quantile(0.3)), float(kth.quantile(0.95)) * 1.1, 5.0):
-        d, i, exact = knn_mod._grid_pass(q.to(device), r.to(device), k, radius, 2.6)
+        d, i, exact = knn_mod._grid_pass(qd, rd, k, radius, lo, hi)
         exact = exact.cpu()
         assert exact.float().mean() > (0.2 if radius < 1 else 0.999)
         assert torch.allclose(d.cpu()[exact].double(), d_ref[exact], atol=1e-6, rtol=1e-5)
@@ -285,6 +290,7 @@ def test_grid_pass_rows_it_calls_exact_are_exact(device, k):
         # no row called exact whose k-th neighbour lies beyond the radius
         assert not (exact & (kth > radius)).any()
     dup = torch.cat([r[:50], r[:50], r[50:]])  # each of the first 50 twice: ties
-    d, i, _ = knn_mod._grid_pass(r[:50].to(device), dup.to(device), 2, 0.5, 2.6)
+    d, i, _ = knn_mod._grid_pass(r[:50].to(device), dup.to(device), 2, 0.5, dup.min(0).values.to(device),
+                                 dup.max(0).values.to(device))
     assert torch.equal(i.cpu(), torch.stack([torch.arange(50), torch.arange(50, 100)], 1))
     assert (d.cpu() == 0).all()
