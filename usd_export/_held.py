@@ -1,4 +1,5 @@
-"""Per-frame values that rarely change (a bake's constant scales), made once per change."""
+"""Per-frame values that rarely change (a bake's constant scales), made once per change, and
+the comparison of two frames' values that the writer and they share."""
 from __future__ import annotations
 
 from typing import Callable, Generic, TypeVar
@@ -6,6 +7,17 @@ from typing import Callable, Generic, TypeVar
 import numpy as np
 
 T = TypeVar("T")
+
+
+def same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    """np.array_equal for two frames' values of one attribute (same dtype), which sees most
+    changes in a strided thousandth first: a moving frame differs almost everywhere, and a
+    full comparison of 300k points costs about 0.6 ms."""
+    if a.shape != b.shape:
+        return False
+    fa, fb = a.reshape(-1), b.reshape(-1)
+    step = max(1, fa.size // 1024)
+    return bool(np.array_equal(fa[::step], fb[::step]) and np.array_equal(fa, fb))
 
 
 class Held(Generic[T]):
@@ -23,7 +35,7 @@ class Held(Generic[T]):
         self._value: T | None = None
 
     def __call__(self, a: np.ndarray) -> T:
-        if self._key is None or not np.array_equal(self._key, a):
+        if self._key is None or not same_values(self._key, np.asarray(a)):
             self._value = self._make(a)
             self._key = np.array(a, copy=True)
         return self._value  # type: ignore[return-value]

@@ -30,6 +30,7 @@ from pd_tool.core import atomic as _atomic
 from pd_tool.core.errors import UsdExportError
 
 from ._geom import normalize_quats, rgb_to_sh_dc, sh_dc_to_rgb, srgb_to_linear, unit_xyzw_half
+from ._held import same_values
 from .instancer import InstancerPart
 from .splat_field import SplatFieldPart
 
@@ -321,7 +322,7 @@ class UsdBakeWriter:
         for p, v in (s for part in self._parts for s in part.samples(*moving)):
             a = np.asarray(v)  # Vt arrays expose a buffer: no copy
             last = self._w_last.get(p)
-            if last is not None and (last[0] is v or _same(last[1], a)):
+            if last is not None and (last[0] is v or same_values(last[1], a)):
                 continue  # unchanged since the last sample (a part's Held value: the same object): USD holds it
             if last is not None and last[2] < prev:
                 # The value was held (unchanged frames, or hold_frames) up to the previous
@@ -504,17 +505,6 @@ def _unlink_all(paths) -> None:
             p.unlink()
         except OSError:
             pass
-
-
-def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    """np.array_equal for two samples of one attribute (same dtype), which sees most changes
-    in a strided thousandth first: a moving frame differs almost everywhere, and a full
-    comparison of 300k points costs about 0.6 ms."""
-    if a.shape != b.shape:
-        return False
-    fa, fb = a.reshape(-1), b.reshape(-1)
-    step = max(1, fa.size // 1024)
-    return bool(np.array_equal(fa[::step], fb[::step]) and np.array_equal(fa, fb))
 
 
 def _np(a) -> np.ndarray:

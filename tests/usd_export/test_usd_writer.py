@@ -629,7 +629,7 @@ def test_constant_scales_written_once_and_a_change_in_a_reused_buffer_lands(tmp_
 
 
 def test_sample_comparison_sees_a_change_off_its_stride():
-    from usd_export.writer import _same
+    from usd_export._held import same_values as _same
     a = np.random.default_rng(0).normal(size=(5000, 3)).astype(np.float32)
     assert _same(a, a.copy())
     for i in (0, 1, 7, a.size - 1):  # on and off the strided thousandth
