@@ -6,8 +6,10 @@ For each scene and hidden E field:
      three height bands; `smooth`: stiff at the base to soft at the top, 3x stiffer on one
      side; `random`: a seeded smooth random field), the same E range on every scene (every
      scene is scaled to 1 m, as pdtool does);
-  2. two reference videos from a converged simulation (`--reference` cells, every
-     Gaussian a particle, CFL safety 0.25), each an initial push (along x, then y) seen
+  2. two reference videos from a converged simulation (`--reference` cells, CFL safety
+     0.25, every particle split into sub-particles over its Gaussian's extent, `--split` a
+     cell along each axis: one particle per Gaussian is about one a cell on a fine grid, and
+     such particles separate under a push), each an initial push (along x, then y) seen
      from a low view behind the object (azimuth 200, elevation 8 degrees) and from a high
      side view (azimuth 290, elevation 35) that no default was tuned on, with a slight
      blur, 10% less exposure and pixel noise of sigma 2/255;
@@ -79,6 +81,9 @@ class Row:
     scene: str
     field: str
     reference: str  # "converged" or "control (fit's own discretisation)"
+    reference_particles: int = 0  # simulated particles of the reference
+    reference_per_cell: float = math.nan  # of them per occupied cell of its grid
+    reference_check: dict = field(default_factory=dict)  # the truth on --check-reference cells against it
     fit_s: float = math.nan
     median_abs_ln: float = math.nan
     median_ln: float = math.nan  # the fit's level: median ln(E_fit / E_true)
@@ -162,13 +167,26 @@ def degrade(frames: np.ndarray, rng) -> np.ndarray:
     return (np.clip(y, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str):
-    """(prep, drivers, driver E) of one discretisation."""
+def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str,
+               split: int = 0):
+    """(prep, drivers, driver E) of one discretisation: K-Means drivers at `ratio`, or with
+    `split` > 0 every particle split into sub-particles, `split` a cell along each axis
+    (pd_tool.fit.reference.split_particles), each with its particle's E."""
+    from pd_tool.fit.reference import split_particles
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
+    if split > 0:
+        drivers, owner = split_particles(scene, prep, per_cell=split, device=device)
+        return prep, drivers, particle_E(prep, gaussian_E)[owner]
     drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
     return prep, drivers, driver_E(prep, drivers, gaussian_E)
+
+
+def per_cell(prep, drivers) -> float:
+    """Simulated particles per occupied cell of `prep`'s grid."""
+    x = drivers.positions.double().cpu().numpy()
+    return len(x) / len(np.unique(np.floor(x / prep.dx).astype(np.int64), axis=0))
 
 
 def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, frames: int, device: str,
@@ -329,12 +347,47 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         label = "control (the fit's own discretisation)"
     else:
         grid, cfl, ratio = args.reference, 0.25, 1.0
-        label = f"converged ({grid} cells, every Gaussian, CFL 0.25)"
-    t0 = time.perf_counter()
-    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device)
-    videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed)
+        label = (f"converged ({grid} cells, every particle split {args.split} a cell along each axis, CFL 0.25)"
+                 if args.split else f"{grid} cells, every Gaussian one particle, CFL 0.25")
+    split = 0 if args.control else args.split
     size = float(np.ptp(pos, axis=0).max())
-    row = Row(name, kind, label)
+    force = new_force(scene, up)
+
+    def under_new_force(sim_) -> np.ndarray:
+        prep_, drivers_, e_ = sim_
+        return simulate_positions(scene, prep_, drivers_, e_, nu=0.3, seconds=args.seconds, fps=30.0,
+                                  accel=force[0], device=args.device, cfl_safety=0.25,
+                                  duration=NEW_FORCE["duration"], at=force[1], radius=force[2])
+
+    t0 = time.perf_counter()
+    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device, split)
+    # the truth under the new force, at the converged settings whatever the videos used
+    ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device,
+                                                  args.split)
+    row = Row(name, kind, label, reference_particles=len(ref[1].positions), reference_per_cell=per_cell(*ref[:2]))
+    x_true = under_new_force(ref)
+    prep = ref[0]
+    free = np.zeros(scene.count, bool)
+    free[prep.foreground[~prep.static[: prep.count]]] = True
+    # judged where the new force moves the truth: a local push leaves most of the object
+    # still, and a material that does not move at all would score well over all of it
+    moving = free & (np.linalg.norm(x_true - x_true[0], axis=-1).max(axis=0) > MOVING * size)
+    row.seconds["truth"] = time.perf_counter() - t0
+    row.errors["truth peak"] = float(np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1).max() / size)
+    if args.check_reference:  # the truth again on a finer grid: how far from converged it is
+        t0 = time.perf_counter()
+        check = simulation(scene, up, static_below, args.check_reference, 1.0, E_true, args.device, args.split)
+        x_check = under_new_force(check)
+        peak = lambda x: float(np.linalg.norm(x[:, moving] - x[0, moving], axis=-1).max() / size)  # noqa: E731
+        row.reference_check = {
+            "grid": args.check_reference, "particles": len(check[1].positions), "per_cell": per_cell(*check[:2]),
+            "rms": float(np.sqrt((np.linalg.norm(x_check[:, moving] - x_true[:, moving], axis=-1) ** 2).mean()) / size),
+            "peak_ratio": peak(x_check) / max(peak(x_true), 1e-12)}
+        row.seconds["check"] = time.perf_counter() - t0
+    if args.reference_only:
+        return row
+    t0 = time.perf_counter()
+    videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed)
     row.seconds["videos"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     out = folder / "fit.pdmat"
@@ -350,20 +403,6 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         row.median_ln = float(np.median(ln))
         row.shape_abs_ln = float(np.median(np.abs(ln - row.median_ln)))
         row.spearman = spearman(E_fit[sel], E_true[sel])
-    # the truth under the new force, at the converged settings whatever the videos used
-    force = new_force(scene, up)
-    t0 = time.perf_counter()
-    ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device)
-    prep, drivers, e = ref
-    x_true = simulate_positions(scene, prep, drivers, e, nu=0.3, seconds=args.seconds, fps=30.0, accel=force[0],
-                                device=args.device, cfl_safety=0.25, duration=NEW_FORCE["duration"], at=force[1],
-                                radius=force[2])
-    free = np.zeros(scene.count, bool)
-    free[prep.foreground[~prep.static[: prep.count]]] = True
-    # judged where the new force moves the truth: a local push leaves most of the object
-    # still, and a material that does not move at all would score well over all of it
-    moving = free & (np.linalg.norm(x_true - x_true[0], axis=-1).max(axis=0) > MOVING * size)
-    row.seconds["truth"] = time.perf_counter() - t0
     E_uniform = float(FitSettings().init_E)  # `pdtool fit`'s --init-e default
     E_best = float(np.exp(np.mean(np.log(E_true[free]))))
     if sel.sum() > 2:
@@ -407,7 +446,6 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
             for what in ("fitted", "true E"):
                 ratio = row.errors[label_e + suffix] / row.errors[f"{what}, {qname}"]
                 row.ratios[f"{label_e} / {what}, {qname}"] = ratio
-    row.errors["truth peak"] = float(np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1).max() / size)
     return row
 
 
@@ -421,6 +459,14 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=128, help="the converged simulation's grid cells")
     ap.add_argument("--quality", default="default", help="the fit's quality")
     ap.add_argument("--bake-qualities", default="default,final", help="fitted material also baked at these")
+    ap.add_argument("--split", type=int, default=2,
+                    help="the reference's sub-particles per cell along each axis (0: one particle per Gaussian, "
+                         "about one a cell on a fine grid, which separates under a push)")
+    ap.add_argument("--check-reference", type=int, default=0,
+                    help="also simulate the truth on this many cells and report how far it is from the reference "
+                         "(RMS / size, peak ratio): whether the reference has converged (0: no check)")
+    ap.add_argument("--reference-only", action="store_true",
+                    help="only the truth under the new force (and --check-reference): no videos, fit or bakes")
     ap.add_argument("--size", type=int, default=512, help="reference frames' long side, px")
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--seconds", type=float, default=1.5, help="the new force's animation")
@@ -462,6 +508,9 @@ def main() -> None:
                 print(f"{name:6} {kind:7} {row.fit_s:5.0f} {row.median_abs_ln:5.2f} {row.spearman:5.2f}  level "
                       f"{row.median_ln:+.2f} shape {row.shape_abs_ln:.2f} (|ln| of {base})  {errs}  |  {ratios}",
                       flush=True)
+                print(f"       reference {row.reference_particles:,} particles, {row.reference_per_cell:.1f} a cell"
+                      + ("" if not row.reference_check else "; on {grid} cells ({per_cell:.1f} a cell) RMS {rms:.2%}"
+                         " of the size, peak x{peak_ratio:.3f}".format(**row.reference_check)), flush=True)
                 if args.json:  # after every row: a run cut short keeps what it measured
                     import torch
 
