@@ -143,11 +143,13 @@ def even_strip_weights() -> None:
 
 
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
-             thin_grid: int | None = None, fill: str = "auto") -> tuple[np.ndarray, np.ndarray, Run]:
+             thin_grid: int | None = None, fill: str = "auto", split: int = 0) -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps: with
-    `thin_grid`, the grid is raised for thin parts as a bake raises it."""
-    from pd_tool.fit.reference import simulate_positions
+    `thin_grid`, the grid is raised for thin parts as a bake raises it; with `split` > 0
+    every particle is split into sub-particles, `split` a cell along each axis
+    (pd_tool.fit.reference.split_particles), instead of clustered into drivers."""
+    from pd_tool.fit.reference import simulate_positions, split_particles
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=pinned_below(scene, case),
@@ -157,7 +159,8 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
         prep, ratio = finer, finer.connected_ratio(ratio)
     grid = int(prep.options.grid_res)
     t0 = time.perf_counter()
-    drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
+    drivers = (split_particles(scene, prep, per_cell=split, device=device)[0] if split > 0
+               else prep.build_drivers(ratio=ratio, seed=0, device=device))
     d_rest = drivers.positions.double().cpu().numpy()
     # the push is in m/s^2 whatever the scene's units
     accel = tuple(np.asarray(case.push, float) * case.accel / prep.transform.scale)
@@ -174,7 +177,7 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
               extra={"particles_per_cell": prep.n_particles / prep.occupied_cells(),
                      "drivers_per_occupied_cell": len(d_rest) / prep.occupied_cells(),
                      "mass_kg": float(prep.masses.sum()),
-                     "filled_m3": float(prep.volumes[prep.count:].sum())})
+                     "filled_m3": float(prep.volumes[prep.count:].sum()), "split": split})
     return x, moving, run
 
 
@@ -294,6 +297,9 @@ def main() -> None:
                     "GRID:RATIO for another driver ratio, e.g. 24:0.05")
     ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
     ap.add_argument("--reference-cfl", type=float, default=0.25)
+    ap.add_argument("--split", type=int, default=0,
+                    help="the reference's and the check's sub-particles per cell along each axis (0: every Gaussian "
+                         "one particle, which is about one a cell for a scan sparse on the reference's grid)")
     ap.add_argument("--check-grid", type=int, default=0, help="a finer run to show the reference converged (0: none)")
     ap.add_argument("--strip-even-weights", action="store_true",
                     help="the strip's Gaussians share its volume evenly instead of the shell rule's weights "
@@ -353,10 +359,11 @@ def main() -> None:
             ratio = float(r) if r else float(d["driver_ratio"])
             runs[f"grid {g}" + (f" r{r}" if r else "")] = simulate(scene, case, int(g), float(d["cfl_safety"]), ratio,
                                                                    args.device, fill=args.fill)
-        runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device, fill=args.fill)
+        runs["reference"] = simulate(scene, case, args.reference, args.reference_cfl, 1.0, args.device, fill=args.fill,
+                                     split=args.split)
         if args.check_grid:
             runs["check"] = simulate(scene, case, args.check_grid, args.reference_cfl, 1.0, args.device,
-                                     fill=args.fill)
+                                     fill=args.fill, split=args.split)
         beam = swing_end = None
         if name == "strip":  # the first swing from beam theory: a reference no simulation made
             pos = scene.positions.detach().cpu().double().numpy()

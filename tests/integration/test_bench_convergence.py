@@ -57,6 +57,19 @@ def test_a_tiny_strip_through_the_benchmark_compares_with_itself() -> None:
     assert a[0].shape == (int(round(0.25 * conv.FPS)) + 1, 800, 3)
 
 
+def test_a_split_reference_simulates_sub_particles_of_the_same_mass() -> None:
+    from dataclasses import replace
+
+    case = replace(conv.CASES["plant"], seconds=0.1)
+    scene = conv.load_scene("plant", 400)
+    x_one, moving, one = conv.simulate(scene, case, 32, 0.5, 1.0, "cpu")
+    x_split, _, split = conv.simulate(scene, case, 32, 0.5, 1.0, "cpu", split=2)
+    assert split.extra["split"] == 2 and one.extra["split"] == 0
+    assert split.drivers > one.drivers and split.per_cell > one.per_cell
+    assert split.extra["mass_kg"] == pytest.approx(one.extra["mass_kg"])
+    assert x_split.shape == x_one.shape and np.linalg.norm(x_split[-1] - x_split[0], axis=1)[moving].max() > 0
+
+
 def test_even_strip_weights_share_the_strip_volume_evenly(monkeypatch) -> None:
     from pd_tool.prepare import preparation
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene

@@ -92,3 +92,16 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing_or_the_start(tmp_
     assert 0 < err["true E, as fit"] < err["still"], err
     assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
     assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
+
+
+def test_the_reference_splits_its_particles_and_keeps_their_mass_and_E(shared_data) -> None:
+    scene = ft.load_scene("udon", 3000, shared_data)
+    E = ft.truth_field(scene, "-y", "smooth", seed=0)
+    args = (scene, "-y", -1e9, 48, 1.0, E, "cpu")
+    plain, split = ft.simulation(*args), ft.simulation(*args, split=2)
+    prep = split[0]
+    assert ft.per_cell(*split[:2]) > 2 * ft.per_cell(*plain[:2])
+    assert split[1].mass.double().sum().item() == pytest.approx(float(prep.masses.sum()), rel=1e-5)
+    # every particle's sub-particles carry its E: its first one (labels) exactly, all of them within its range
+    assert np.array_equal(split[2][split[1].labels.numpy()], ft.particle_E(prep, E))
+    assert E.min() <= split[2].min() and split[2].max() <= E.max()
