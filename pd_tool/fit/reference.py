@@ -16,6 +16,7 @@ from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.baker import ForceSpec, force_mask
 from pd_tool.core.cameras import Camera
 from pd_tool.core.scene import GaussianScene
+from pd_tool.drivers.build import NEIGHBORS, DriverSet
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E, make_plant
 from pd_tool.materials.presets import fit_simulation, load_preset
@@ -43,7 +44,7 @@ SPLIT_MOST = 4  # split_particles: at most this many along each of a Gaussian's 
 
 
 def split_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int = SPLIT_PER_CELL,
-                    most: int = SPLIT_MOST, device: str | torch.device = "cpu") -> tuple[object, np.ndarray]:
+                    most: int = SPLIT_MOST, device: str | torch.device = "cpu") -> tuple[DriverSet, np.ndarray]:
     """Every simulated particle as one or more simulated sub-particles: a DriverSet whose
     drivers sample each Gaussian's extent, so that a fine reference grid holds several
     particles a cell.
@@ -54,8 +55,9 @@ def split_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int 
     n_a points along each principal axis a, spread over +-1 sigma, with n_a = ceil(2 sigma_a /
     spacing) clipped to [1, most] and spacing dx / per_cell, so a surface splat becomes a
     sheet of points and a thin one stays one layer thick. Its volume and mass are shared
-    evenly; static ones stay static. The fill's interior particles (already per_cell per axis
-    on this grid) stay single. Each Gaussian hangs on its 8 nearest sub-particles, as on
+    evenly; a static one's sub-particles are static, so it pins the nodes nearest to them.
+    The fill's interior particles (already two a cell along each axis on this grid) stay
+    single. Each Gaussian hangs on its 8 nearest sub-particles, as on
     drivers, so pd_tool.bake.animate.GaussianAnimator moves it.
 
     Returns (DriverSet, owner): positions [Q, 3] (simulation metres), volume [Q], mass
@@ -64,7 +66,6 @@ def split_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int 
     sub-particle came from (an index into prep.positions_sim).
     """
     from pd_tool.core.quaternion import quat_to_matrix_np
-    from pd_tool.drivers.build import NEIGHBORS, DriverSet
     from pd_tool.drivers.knn import nearest_drivers
 
     dev = torch.device(device)
