@@ -233,6 +233,17 @@ def new_force(scene, up: str) -> tuple[tuple[float, float, float], tuple[float, 
     return accel, tuple(point.tolist()), NEW_FORCE["radius"] * size, size
 
 
+def scene_counts(text: str) -> dict[str, int]:
+    """--scene-gaussians: "donut=50000,udon=3000" -> {"donut": 50000, "udon": 3000}."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        name, _, count = item.partition("=")
+        if name not in SCENES or not count.isdigit() or int(count) < 1:
+            raise argparse.ArgumentTypeError(f"{item!r}: give SCENE=N with SCENE one of {', '.join(SCENES)}")
+        out[name] = int(count)
+    return out
+
+
 def override_fit_defaults(items: list[str]) -> None:
     """`--set FIELD=VALUE`: `pdtool fit` (run in this process) builds its settings from a
     subclass of FitSettings with these defaults."""
@@ -333,7 +344,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     from pd_tool.materials.presets import fit_simulation, load_preset
 
     up = SCENES[name]
-    scene = load_scene(name, args.gaussians, data=args.data).to(args.device)
+    scene = load_scene(name, args.scene_gaussians.get(name, args.gaussians), data=args.data).to(args.device)
     pos = scene.positions.detach().cpu().double().numpy()
     h = pos @ up_rotation(up)[2]
     static_below = float(h.min() + 0.1 * np.ptp(h))
@@ -456,6 +467,9 @@ def main() -> None:
     ap.add_argument("--scenes", default=None, help=f"comma-separated, of {','.join(SCENES)} (default: all)")
     ap.add_argument("--fields", default=None, help=f"comma-separated, of {','.join(FIELDS)} (default: all)")
     ap.add_argument("--gaussians", type=int, default=30000)
+    ap.add_argument("--scene-gaussians", type=scene_counts, default={}, metavar="SCENE=N[,SCENE=N]",
+                    help="another --gaussians for these scenes, e.g. donut=50000: 20,000 of the donut's 45,624 "
+                         "Gaussians close its shell to 87%%, under the fill's 90%%, so it is simulated hollow")
     ap.add_argument("--reference", type=int, default=128, help="the converged simulation's grid cells")
     ap.add_argument("--quality", default="default", help="the fit's quality")
     ap.add_argument("--bake-qualities", default="default,final", help="fitted material also baked at these")

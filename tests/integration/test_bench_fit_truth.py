@@ -105,3 +105,13 @@ def test_the_reference_splits_its_particles_and_keeps_their_mass_and_E(shared_da
     # every particle's sub-particles carry its E: its first one (labels) exactly, all of them within its range
     assert np.array_equal(split[2][split[1].labels.numpy()], ft.particle_E(prep, E))
     assert E.min() <= split[2].min() and split[2].max() <= E.max()
+
+
+def test_scene_gaussians_parses_counts_per_scene_and_refuses_others() -> None:
+    import argparse
+
+    assert ft.scene_counts("donut=50000,udon=3000") == {"donut": 50000, "udon": 3000}
+    assert ft.scene_counts("") == {}
+    for bad in ("bagel=10", "donut=", "donut=-5", "donut"):
+        with pytest.raises(argparse.ArgumentTypeError, match="SCENE=N"):
+            ft.scene_counts(bad)
