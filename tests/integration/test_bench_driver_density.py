@@ -1,0 +1,25 @@
+"""bench/driver_density.py on a tiny plant: the reference against itself, and three
+discretisations per grid, each with the drivers a cell it claims."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from tests._bench import load_bench
+
+dd = load_bench("driver_density")
+
+
+def test_a_tiny_plant_gives_the_reference_and_three_discretisations_per_grid() -> None:
+    args = SimpleNamespace(gaussians=400, grids=[16], reference=24, per_cell=8, E=3e5, seconds=0.2, device="cpu",
+                           data=None)
+    rows = dd.run_scene("plant", args)
+    assert [r["mode"] for r in rows] == ["reference (split)", "product", "split", "k-means 8 a cell"]
+    ref, product, split, km = rows
+    assert ref["rms"] == 0.0 and ref["peak_ratio"] == pytest.approx(1.0) and ref["peak"] > 0
+    assert split["drivers"] > product["drivers"] and km["per_cell"] > product["per_cell"]
+    assert km["per_cell"] == pytest.approx(8.0, rel=0.35)  # K-Means over the split cloud, 8 a cell
+    for r in rows[1:]:
+        assert np.isfinite(r["rms"]) and r["rms"] > 0 and r["grid"] == 16
