@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j) and batch over GPUs (k); JSON and logs
+# The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j), batch over GPUs (k), and the fit against a split reference
+# with the drivers a cell it needs (l, m); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -85,4 +86,17 @@ fi
 if [ "$part" = k ]; then
   run batch_gpus 400 bench/batch_throughput.py --device cuda --workers 1 --gpus 1,$(nvidia-smi -L | wc -l) \
     --gaussians 100000 --quality default --frames 15
+fi
+# the fit against a split, converged reference (docs/benchmarks.md, "Fit against a converged
+# truth") and the drivers a cell a bake needs ("Driving particles")
+if [ "$part" = l ]; then
+  run fit_truth_reference 200 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA --fields smooth \
+    --reference-only --reference 128 --check-reference 192 --scene-gaussians donut=50000
+  run driver_density 380 bench/driver_density.py --device cuda --gaussians 20000 --grids 64,128 --reference 192 \
+    --data $DATA
+fi
+# one field's rows: FIELD=smooth|region|random, SCENES (about 1.5-4 minutes a scene)
+if [ "$part" = m ]; then
+  run fit_truth_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
+    --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000
 fi
