@@ -37,13 +37,13 @@ def kmeans_over(split, prep, per_cell: int, device: str):
     `prep`'s grid (at most one per sub-particle), and the prepared particles hung on them."""
     import torch
 
-    from pd_tool.drivers.build import DriverSet, build_drivers
+    from pd_tool.drivers.build import DriverSet, build_drivers, driver_count
     from pd_tool.drivers.knn import nearest_drivers
 
     x = split.positions
-    occupied = len(torch.unique(torch.floor(x / prep.dx).long(), dim=0))
-    d = build_drivers(x, split.volume, split.mass, split.static, prep.dx, count=min(per_cell * occupied, len(x)),
-                      seed=0)
+    # driver_count's rule without a ratio: per_cell times the occupied cells, at most len(x)
+    d = build_drivers(x, split.volume, split.mass, split.static, prep.dx,
+                      count=driver_count(x, prep.dx, min_per_cell=per_cell), seed=0)
     points = torch.as_tensor(prep.positions_sim, dtype=torch.float32, device=device)
     near = nearest_drivers(points, d.positions, min(8, len(d.positions)))
     return DriverSet(positions=d.positions, volume=d.volume, mass=d.mass, static=d.static, labels=near[:, 0],
