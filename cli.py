@@ -631,7 +631,8 @@ def select(scene: Path, out: Path, png: Path | None, quality: str, stage: str, g
               help="Animation length in frames instead of --seconds (frame 0 included; ten minutes at most).")
 @click.option("--fps", type=T.FPS, default=30.0, show_default=True, help="Frames per second.")
 @click.option("--quality", default=None,
-              help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio. Default: "
+              help="draft | default | final, or a TOML file: grid resolution, CFL safety, driver ratio, the floor "
+                   "of drivers a cell (min_drivers_per_cell; see `pdtool presets quality`). Default: "
                    "with a fitted material, the fit's own (its E is calibrated to them; another quality matches "
                    "the fit's motion first, see --match-fit); with --preset, default.")
 @click.option("--format", "fmt", type=T.FormatList(), default="both", show_default=True,

@@ -143,24 +143,27 @@ def even_strip_weights() -> None:
 
 
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
-             thin_grid: int | None = None, fill: str = "auto", split: int = 0) -> tuple[np.ndarray, np.ndarray, Run]:
+             thin_grid: int | None = None, fill: str = "auto", split: int = 0,
+             min_per_cell: float | None = None) -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it; with `split` > 0
     every particle is split into sub-particles, `split` a cell along each axis
-    (pd_tool.fit.reference.split_particles), instead of clustered into drivers."""
-    from pd_tool.fit.reference import simulate_positions, split_particles
-    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene, refine_for_thin
+    (pd_tool.prepare.split.split_particles), instead of clustered into drivers; without,
+    the drivers keep a bake's floor a cell (`min_per_cell`, default the product's)."""
+    from pd_tool.fit.reference import simulate_positions
+    from pd_tool.prepare.split import split_particles
+    from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene, refine_for_thin
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=pinned_below(scene, case),
                                                density_kg_m3=case.density, fill=fill))
     finer = refine_for_thin(prep, thin_grid) if thin_grid else None
-    if finer is not None:  # as a bake does: the finer grid, and drivers enough for its cells
-        prep, ratio = finer, finer.connected_ratio(ratio)
+    if finer is not None:  # as a bake does: the finer grid
+        prep = finer
     grid = int(prep.options.grid_res)
     t0 = time.perf_counter()
     drivers = (split_particles(scene, prep, per_cell=split, device=device)[0] if split > 0
-               else prep.build_drivers(ratio=ratio, seed=0, device=device))
+               else prep.build_drivers(ratio=ratio, seed=0, device=device, min_per_cell=MIN_DRIVERS_PER_CELL if min_per_cell is None else min_per_cell))
     d_rest = drivers.positions.double().cpu().numpy()
     # the push is in m/s^2 whatever the scene's units
     accel = tuple(np.asarray(case.push, float) * case.accel / prep.transform.scale)

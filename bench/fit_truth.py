@@ -21,7 +21,9 @@ For each scene and hidden E field:
      --init-e) and the best uniform E (the truth's geometric mean over the moving
      Gaussians, an oracle a user could at best hand-tune to) baked at each quality; and
      the true E put on the fit's drivers (`true E`), baked as fitted and at each bake
-     quality as it is: what an exact recovery of E would score on that discretisation.
+     quality as it is: what an exact recovery of E would score on that discretisation;
+     and the uniform start on the fit's drivers baked as fitted (`uniform start, as fit`):
+     what the fit gained on its own discretisation.
      Where even it is not far below the uniform start, the bake's discretisation limits,
      not E. It is not a bound: a fitted E can absorb part of the discretisation's error;
   5. each bake's positions (read back from its USD) against the converged truth under the
@@ -171,8 +173,8 @@ def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gau
                split: int = 0):
     """(prep, drivers, driver E) of one discretisation: K-Means drivers at `ratio`, or with
     `split` > 0 every particle split into sub-particles, `split` a cell along each axis
-    (pd_tool.fit.reference.split_particles), each with its particle's E."""
-    from pd_tool.fit.reference import split_particles
+    (pd_tool.prepare.split.split_particles), each with its particle's E."""
+    from pd_tool.prepare.split import split_particles
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
@@ -428,8 +430,13 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                for k, e in (("uniform start", E_uniform), ("best uniform", E_best))}
     # the true E on the fit's drivers, baked as the fitted E is (as fit, and at each bake
     # quality as it is): what an exact recovery of E would score on that discretisation
-    truth = truth_material(MaterialFile.load(out), pos, E_true, folder / "truth.pdmat")
-    bakes = {"fitted, as fit": (["--material", str(out)], []), "true E, as fit": (["--material", str(truth)], [])}
+    fitted_file = MaterialFile.load(out)
+    truth = truth_material(fitted_file, pos, E_true, folder / "truth.pdmat")
+    # the uniform start on the fit's drivers: what the fit gained on its own discretisation
+    start = MaterialFile(np.full(len(fitted_file.driver_rest), float(FitSettings().init_E)), fitted_file.driver_v0,
+                         fitted_file.driver_rest, dict(fitted_file.meta), fitted_file.fields).save(folder / "start.pdmat")
+    bakes = {"fitted, as fit": (["--material", str(out)], []), "true E, as fit": (["--material", str(truth)], []),
+             "uniform start, as fit": (["--material", str(start)], [])}
     for qname in args.bake_qualities:
         # the product's bake (matched to the fit's motion first) and the fitted E as it is
         bakes[f"fitted, {qname}"] = (["--material", str(out)], ["--quality", qname])
@@ -455,7 +462,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                 / size)
     fitted = row.errors["fitted, as fit"]
     row.ratios = {"uniform start / fitted": row.errors["uniform start"] / fitted,
-                  "best uniform / fitted": row.errors["best uniform"] / fitted}
+                  "best uniform / fitted": row.errors["best uniform"] / fitted,
+                  "uniform start / fitted, as fit": row.errors["uniform start, as fit"] / fitted}
     for qname in args.bake_qualities:
         # each bake quality against the uniform E baked at that quality
         suffix = "" if qname == args.quality else f", {qname}"

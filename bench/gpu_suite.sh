@@ -92,11 +92,13 @@ fi
 if [ "$part" = l ]; then
   run fit_truth_reference 200 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA --fields smooth \
     --reference-only --reference 128 --check-reference 192 --scene-gaussians donut=50000
-  run driver_density 380 bench/driver_density.py --device cuda --gaussians 20000 --grids 64,128 --reference 192 \
-    --data $DATA
+  run driver_density 300 bench/driver_density.py --device cuda --gaussians 20000 --grids 64,128 --reference 192 \
+    --data $DATA --scenes plant,tree,udon
+  run driver_density_donut50k 200 bench/driver_density.py --device cuda --gaussians 50000 --grids 64,128 \
+    --reference 192 --data $DATA --scenes donut
 fi
 # one field's rows: FIELD=smooth|region|random, SCENES (about 1.5-4 minutes a scene)
 if [ "$part" = m ]; then
   run fit_truth_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
-    --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000
+    --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree,donut} --scene-gaussians donut=50000
 fi

@@ -33,8 +33,8 @@ from pd_tool.materials.file import MaterialFile
 from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import work
 from pd_tool.prepare.memory import PREVIEW_PIXELS, InsufficientMemory, check_memory, estimate_bake_memory
-from pd_tool.prepare.preparation import (WALL_CELLS, Box, PreparedScene, PrepareOptions, prepare_scene,
-                                         refine_for_thin, up_rotation)
+from pd_tool.prepare.preparation import (MIN_DRIVERS_PER_CELL, WALL_CELLS, Box, PreparedScene, PrepareOptions,
+                                         prepare_scene, refine_for_thin, up_rotation)
 from pd_tool.prepare.work import WorkTooLarge
 from pd_tool.render.preview import PREVIEW_SUFFIXES, PreviewError, write_preview
 from pd_tool.render.views import render_image, scene_camera
@@ -390,11 +390,15 @@ class Baker:
         self.frame_dt = 1.0 / s.fps
         self.n_frames = s.frames
         self.ratio = s.driver_ratio if s.driver_ratio is not None else quality_ratio
+        # a floor of drivers a cell, the quality's, unless the ratio is given or the bake simulates as its fit did
+        self.min_per_cell = 0.0 if s.driver_ratio is not None or self.follows_fit else float(
+            load_preset("quality", s.quality or "default").get("min_drivers_per_cell", MIN_DRIVERS_PER_CELL))
         self.preview_pixels = 0 if not self.rendering else (
             camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
         self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
         self.push_s = min(self.force.duration, max(s.seconds - self.force.start, 0.0))
         self.match: MotionMatch | None = None  # the fitted material's match, once made
+        self.drivers_note = ""  # why the drivers were clustered from sub-particles, when they were
         self.work_estimate: work.WorkEstimate | None = None  # the chosen discretisation's, once checked
 
     def _choose_grid(self) -> None:
@@ -403,23 +407,21 @@ class Baker:
         prep, ratio = self.prep, self.ratio
         finer = refine_for_thin(prep, self.thin_grid) if self.settings.refine_thin and self.thin_grid else None
         if finer is not None:
-            # the finer grid's cells need their drivers (an explicit --driver-ratio stands)
-            finer_ratio = finer.connected_ratio(ratio) if self.settings.driver_ratio is None else ratio
             why = None
             try:
-                self._check_cost(finer, finer_ratio)
+                self._check_cost(finer, ratio)
             except InsufficientMemory:
                 why = "need more memory than is available"
             except WorkTooLarge:
                 why = "take longer than --max-minutes allows"
             if why is None:
-                prep, ratio = finer, finer_ratio
+                prep = finer
             else:
                 prep.report.append(f"thin parts: kept the {max(prep.grid_dims)}-cell grid; {max(finer.grid_dims)} "
                                    f"cells would {why} (raise --max-minutes, or use --device cuda)")
         if prep is not finer:
             self._check_cost(prep, ratio)
-        self.prep, self.ratio = prep, ratio
+        self.prep = prep
 
     def _check_cost(self, p: PreparedScene, ratio: float) -> None:
         """Refuse before drivers and simulator a run that cannot fit in memory or would take
@@ -427,8 +429,9 @@ class Baker:
         speed the force can give); keep the estimate as `work_estimate`. Raises
         InsufficientMemory / WorkTooLarge."""
         s, scene, dev = self.settings, self.scene, self.dev
+        drivers = p.floor_ratio(ratio, self.min_per_cell)  # per particle; above 1 where sub-particles drive
         self.memory_estimate = estimate_bake_memory(
-            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=ratio, grid_dims=p.grid_dims,
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=drivers, grid_dims=p.grid_dims,
             frames=self.n_frames, preview_pixels=self.preview_pixels, sh_coeffs=int(scene.sh.shape[1]), device=dev)
         check_memory(self.memory_estimate,
             what="bake", quality=str(s.quality or "the fit's"), driver_ratio=ratio, device=dev,
@@ -436,7 +439,7 @@ class Baker:
                        f"{'the fit (a coarser --quality overrides it)' if self.follows_fit else '--quality'}")
         speed = float(np.linalg.norm(self.force.accel_sim(p))) * self.push_s
         # through the module, so that a test can stand in for the estimate
-        self.work_estimate = work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(ratio * len(p.positions_sim)))),
+        self.work_estimate = work.check_bake_work(p, n_gaussians=scene.count, n_particles=max(1, int(np.ceil(drivers * len(p.positions_sim)))),
                              frames=self.n_frames + self._match_frames(p, ratio), frame_dt=self.frame_dt, E_max=self.E_top,
                              density=self.opts.density_kg_m3, nu=self.nu, speed=speed, cfl_safety=self.cfl_safety,
                              substeps=s.substeps, preview_pixels=self.preview_pixels, device=dev)
@@ -448,6 +451,7 @@ class Baker:
         if fit is None or self.follows_fit or not self.settings.match_fit:
             return False
         return (max(p.grid_dims) != fit["grid_res"] or not np.isclose(ratio, fit["driver_ratio"])
+                or p.splits(ratio, self.min_per_cell)
                 or not np.isclose(self.cfl_safety, self._fit_cfl()))
 
     def _fit_cfl(self) -> float:
@@ -542,7 +546,14 @@ class Baker:
     def _build_simulation(self, material: Material | None, material_file: MaterialFile | None) -> None:
         """Driving particles [Q] with their E (Pa), the solver, and the force on its region."""
         with self._part("drivers"):
-            self.drivers = self.prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev)
+            self.drivers = self.prep.build_drivers(ratio=self.ratio, seed=self.seed, device=self.dev,
+                                                   min_per_cell=self.min_per_cell)
+        if self.prep.splits(self.ratio, self.min_per_cell):
+            self.drivers_note = (
+                f"drivers: {self.min_per_cell:g} in each moving cell, clustered from points spread over each "
+                f"Gaussian's extent: {self.prep.count:,} Gaussians at the quality's {self.ratio:g} drivers per "
+                f"Gaussian give fewer on the {max(self.prep.grid_dims)}-cell grid, and parts a cell apart would "
+                f"separate under a push (min_drivers_per_cell = 0 in a --quality file turns this off)")
         with self._part("solver"):  # a fitted E's match inside is its own part
             self._build_solver(material, material_file)
         self.setup_parts["solver"] -= self.setup_parts.get("match", 0.0)
@@ -721,7 +732,7 @@ class Baker:
         return result
 
     def _report(self) -> list[str]:
-        lines = list(self.prep.report) + ([self.sim_note] if self.sim_note else [])
+        lines = list(self.prep.report) + [note for note in (self.drivers_note, self.sim_note) if note]
         held = self.n_frames - 1 - self.simulated
         if held > 0:
             lines.append(f"at rest after frame {self.simulated}: {held} frames held, not simulated")

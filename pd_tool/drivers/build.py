@@ -98,6 +98,14 @@ class DriverSet:
     def __len__(self) -> int:
         return int(self.positions.shape[0])
 
+    def hung_on(self, points: Tensor, neighbors: int = NEIGHBORS) -> DriverSet:
+        """The same drivers with other particles hung on them: points [M, 3] (simulation
+        units) each on its `neighbors` nearest drivers, labelled by the nearest. For drivers
+        clustered from other points than the ones they move (sub-particles)."""
+        near = nearest_drivers(points, self.positions, min(neighbors, len(self)))
+        return DriverSet(positions=self.positions, volume=self.volume, mass=self.mass, static=self.static,
+                         labels=near[:, 0].clone(), neighbors=near, points_rest=points, counts=self.counts)
+
 
 def build_drivers(
     points_sim: Tensor,

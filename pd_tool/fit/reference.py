@@ -16,7 +16,6 @@ from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.bake.baker import ForceSpec, force_mask
 from pd_tool.core.cameras import Camera
 from pd_tool.core.scene import GaussianScene
-from pd_tool.drivers.build import NEIGHBORS, DriverSet
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E, make_plant
 from pd_tool.materials.presets import fit_simulation, load_preset
@@ -37,68 +36,6 @@ class ReferenceTruth:
     driver_E: np.ndarray
     driver_v0: np.ndarray
     gaussian_E: np.ndarray  # [F] over prep.foreground
-
-
-SPLIT_PER_CELL = 2  # split_particles: sub-particles per grid cell along each axis (8 a cell, as the fill)
-SPLIT_MOST = 4  # split_particles: at most this many along each of a Gaussian's axes
-
-
-def split_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int = SPLIT_PER_CELL,
-                    most: int = SPLIT_MOST, device: str | torch.device = "cpu") -> tuple[DriverSet, np.ndarray]:
-    """Every simulated particle as one or more simulated sub-particles: a DriverSet whose
-    drivers sample each Gaussian's extent, so that a fine reference grid holds several
-    particles a cell.
-
-    MPM with about one particle a cell is not a converged simulation: neighbours a cell
-    apart share no grid node and separate under a push (a scan of 2,000 Gaussians on 128
-    cells puts one particle in 95% of its occupied cells). A Gaussian becomes a lattice of
-    n_a points along each principal axis a, spread over +-1 sigma, with n_a = ceil(2 sigma_a /
-    spacing) clipped to [1, most] and spacing dx / per_cell, so a surface splat becomes a
-    sheet of points and a thin one stays one layer thick. Its volume and mass are shared
-    evenly; a static one's sub-particles are static, so it pins the nodes nearest to them.
-    The fill's interior particles (already two a cell along each axis on this grid) stay
-    single. Each Gaussian hangs on its 8 nearest sub-particles, as on
-    drivers, so pd_tool.bake.animate.GaussianAnimator moves it.
-
-    Returns (DriverSet, owner): positions [Q, 3] (simulation metres), volume [Q], mass
-    [Q], static [Q], neighbors [M, 8] and labels [M] (the first sub-particle of each) over
-    the M = len(prep.positions_sim) particles, counts [Q] ones; owner [Q] the particle each
-    sub-particle came from (an index into prep.positions_sim).
-    """
-    from pd_tool.core.quaternion import quat_to_matrix_np
-    from pd_tool.drivers.knn import nearest_drivers
-
-    dev = torch.device(device)
-    x = np.asarray(prep.positions_sim, np.float64)
-    m_all, f = len(x), prep.count
-    fg = np.asarray(prep.foreground)
-    sigma = scene.scales.detach().cpu().double().numpy()[fg] * prep.transform.scale  # [F, 3] metres
-    axes = np.einsum("ij,njk->nik", prep.transform.R, quat_to_matrix_np(scene.quats.detach().cpu().double().numpy()[fg]))
-    counts = np.clip(np.ceil(2.0 * sigma / (prep.dx / per_cell)), 1, most).astype(np.int64)  # [F, 3]
-    parts, owner = [], []
-    for shape in {tuple(c) for c in counts}:  # one lattice per count triple
-        rows = np.flatnonzero((counts == shape).all(axis=1))
-        grids = [(np.arange(n) + 0.5) / n * 2.0 - 1.0 for n in shape]  # in (-1, 1) sigma
-        u = np.stack(np.meshgrid(*grids, indexing="ij"), -1).reshape(-1, 3)  # [k, 3]
-        local = u[None, :, :] * sigma[rows, None, :]  # [r, k, 3] along the Gaussian's axes
-        parts.append((x[rows, None, :] + np.einsum("rij,rkj->rki", axes[rows], local)).reshape(-1, 3))
-        owner.append(np.repeat(rows, len(u)))
-    parts.append(x[f:])
-    owner.append(np.arange(f, m_all))
-    pos, owner = np.concatenate(parts), np.concatenate(owner)
-    order = np.argsort(owner, kind="stable")  # each particle's sub-particles together, in particle order
-    pos, owner = pos[order], owner[order]
-    per = np.bincount(owner, minlength=m_all)
-    share = 1.0 / per[owner]
-    t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=dev)  # noqa: E731
-    positions = t(pos)
-    static = np.asarray(prep.static, bool)[owner]
-    first = np.concatenate([[0], np.cumsum(per)[:-1]])
-    drivers = DriverSet(positions=positions, volume=t(np.asarray(prep.volumes, np.float64)[owner] * share),
-                        mass=t(np.asarray(prep.masses, np.float64)[owner] * share), static=t(static, torch.bool),
-                        labels=t(first, torch.long), neighbors=nearest_drivers(t(x), positions, min(NEIGHBORS, len(pos))),
-                        points_rest=t(x), counts=torch.ones(len(pos), dtype=torch.long, device=dev))
-    return drivers, owner
 
 
 def push_velocity(points_sim: np.ndarray, static: np.ndarray, direction=(1.0, 0.0, 0.0), speed: float = 0.5) -> np.ndarray:

@@ -31,6 +31,7 @@ _REQUIRED = {
 #   cfl_safety 0.05 - 1: above 1 the substep is unstable; below 0.05 it costs 20x the
 #       substeps for no accuracy the physics benchmarks can see (0.25 vs 0.5: 0.2 points)
 #   driver_ratio 1e-4 - 1: at most one driving particle per simulated Gaussian
+#   min_drivers_per_cell 0 - 64: more than MAX_PER_CELL's 64 add time and no accuracy
 #   fit_*_iters 0 - 10000: the shipped presets use at most 200
 #   radius 0 - 10 (fraction of the object's size), start / duration 0 - 600 s (the longest
 #       animation, pd_tool/cli_types.py), magnitude 0 - 1e6, damping 0 - 1000 1/s
@@ -40,13 +41,17 @@ _RANGES = {
     "fit_material_iters": (0, 10000), "radius": (0.0, 10.0), "start": (0.0, 600.0),
     "duration": (0.0, 600.0), "magnitude": (0.0, 1e6), "damping": (0.0, 1e3),
     "fit_grid_res": (10, 256), "thin_grid_res": (10, 256), "fit_cfl_safety": (0.05, 1.0), "fit_driver_ratio": (1e-4, 1.0),
+    "min_drivers_per_cell": (0.0, 64.0),
 }
 _OPTIONAL = {"materials": {"damping": float},
              # the fit's simulation settings; a quality preset without them fits with its bake settings
              "quality": {"fit_grid_res": int, "fit_cfl_safety": float, "fit_driver_ratio": float,
                          # the bake's grid for a scene with parts thinner than grid_res resolves
                          # (pd_tool.prepare.preparation.refine_for_thin); a preset without it keeps grid_res
-                         "thin_grid_res": int}}
+                         "thin_grid_res": int,
+                         # the bake's floor of drivers in each cell its moving particles occupy
+                         # (PreparedScene.build_drivers); 0 turns it off, a preset without it keeps 8
+                         "min_drivers_per_cell": float}}
 _CHOICES = {"at": ("top", "all")}  # string settings with a fixed set of values
 
 

@@ -19,10 +19,12 @@ from pd_tool.core.arrays import bounds, extent
 from pd_tool.core.errors import PreparationError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import build_drivers
+from pd_tool.drivers.build import MIN_PER_CELL, driver_count
 from pd_tool.prepare.cells import Device, block_sums, cell_components, unique_cells, unique_rows
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
+from pd_tool.prepare.split import split_drivers
 from pd_tool.prepare.thickness import describe_refinement, thin_parts
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -232,18 +234,44 @@ class PreparedScene:
         moving = int((~np.asarray(self.static, bool)).sum())
         return float(self.detached(dx).sum() / max(moving, 1))
 
-    def connected_ratio(self, ratio: float) -> float:
-        """`ratio`, raised where needed so that the drivers number at least
-        MIN_DRIVERS_PER_CELL per occupied cell (at most one per particle). Fewer, and parts of
-        the object hold no driver within a kernel's reach: a pushed driver there has nothing
-        to pull it back and flies off (a 3,000-Gaussian plant poked at its side on 64 cells
-        with 0.23 drivers per occupied cell moved 9x as far as a converged simulation)."""
-        need = MIN_DRIVERS_PER_CELL * self.occupied_cells() / max(self.n_particles, 1)
-        return float(max(ratio, min(1.0, need)))
+    def moving_cells(self) -> int:
+        """Grid cells of this grid that hold a moving (not static) particle."""
+        free = np.asarray(self.positions_sim)[~np.asarray(self.static, bool)]
+        return int(len(unique_cells(np.floor(free / self.dx), device=self.scene.device)[0])) if len(free) else 0
 
-    def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu"):
+    def floor_ratio(self, ratio: float | None, min_per_cell: float) -> float:
+        """Drivers per simulated particle that build_drivers(ratio=ratio,
+        min_per_cell=min_per_cell) makes, about: the ratio's, or min_per_cell drivers in
+        each cell the moving particles occupy where the ratio gives fewer (then above 1
+        where the particles themselves are fewer). For memory and run-time estimates."""
+        n = max(self.n_particles, 1)
+        base = ratio if ratio is not None else MIN_PER_CELL * self.occupied_cells() / n
+        if min_per_cell <= 0:
+            return float(base)
+        return float(max(base, min_per_cell * self.moving_cells() / n))
+
+    def splits(self, ratio: float | None, min_per_cell: float) -> bool:
+        """Whether build_drivers clusters its moving drivers from sub-particles: the ratio
+        gives fewer than min_per_cell drivers a cell the moving particles occupy."""
+        free = ~np.asarray(self.static, bool)
+        if min_per_cell <= 0 or not free.any():
+            return False
+        have = driver_count(torch.as_tensor(np.asarray(self.positions_sim)[free]), self.dx, ratio=ratio)
+        return have < min_per_cell * self.moving_cells()
+
+    def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu",
+                      min_per_cell: float = 0.0):
         """Driving particles (pd_tool.drivers.DriverSet) over every simulated particle,
-        clustered on `device` (K-Means with a driver per Gaussian is slow on a CPU)."""
+        clustered on `device` (K-Means with a driver per Gaussian is slow on a CPU).
+
+        ratio: drivers per particle (None: MIN_PER_CELL a cell). min_per_cell: a floor of
+        moving drivers a cell the moving particles occupy; where the ratio gives fewer,
+        the drivers are clustered from sub-particles sampling each Gaussian's extent
+        (pd_tool.prepare.split.split_drivers), since MPM particles a cell apart separate
+        under a push. 0: no floor (the fit's own discretisation).
+        """
+        if self.splits(ratio, min_per_cell):
+            return split_drivers(self.scene, self, per_cell=int(math.ceil(min_per_cell)), seed=seed, device=device)
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(a, dtype=dtype, device=device)
@@ -575,7 +603,11 @@ DETACHED_NOTE = 0.02
 # particles per occupied cell, and differ by 14% at 4.2 and 2.8; a 3,000-Gaussian plant on
 # 64 cells (2.8) moved a third further than on 48 (4.8).
 MIN_PARTICLES_PER_CELL = 4.0
-MIN_DRIVERS_PER_CELL = 2.0  # PreparedScene.connected_ratio
+# A bake's floor of moving drivers in each cell its moving particles occupy
+# (PreparedScene.build_drivers): the paper's 8. Against a converged reference, a
+# 3,000-Gaussian plant on 48 cells moved 2.4% of its size off with 2.6 drivers a cell
+# clustered from its Gaussians and 0.17% with 8 a cell clustered from sub-particles.
+MIN_DRIVERS_PER_CELL = 8.0
 # a finer grid may hold at most this much more of the moving particles apart from the static
 # ones than the quality's grid does (PreparedScene.detached_share)
 MAX_MORE_DETACHED = 0.01

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from cli import main
 from pd_tool.io import save_splats
 from pd_tool.io.synthetic import POT_TOP, make_plant
+from pd_tool.materials.presets import load_preset
 
 
 @pytest.fixture(scope="module")
@@ -106,9 +107,18 @@ def test_bake_raises_the_grid_for_thin_leaves_unless_told_not_to(thin_plant_ply:
     line = next(x for x in res.output.splitlines() if x.startswith("thin parts:"))
     assert "simulating on 64 cells" in line and "--no-refine-thin keeps 32" in line, line
     assert "x64 grid" in res.output
+    # draft's ratio gives the raised grid's cells too few drivers: the floor's, from sub-particles
+    assert "drivers: 8 in each moving cell" in res.output, res.output
+    driven = int(res.output.split("driven by ")[1].split(" particles")[0].replace(",", ""))
+    draft = load_preset("quality", "draft")
+    (tmp_path / "no_floor.toml").write_text("[no-floor]\n" + "".join(
+        f"{k} = {v}\n" for k, v in {**draft, "min_drivers_per_cell": 0}.items() if k != "note"))
+    common[common.index("draft")] = str(tmp_path / "no_floor.toml")
     res = _bake([*common, "--no-refine-thin", str(tmp_path / "own.usd")], tmp_path)
     assert res.exit_code == 0, res.output
     assert "x32 grid" in res.output and "try " in res.output  # the notice names what would resolve them
+    assert "drivers:" not in res.output  # a quality without the floor keeps its ratio
+    assert int(res.output.split("driven by ")[1].split(" particles")[0].replace(",", "")) < driven / 4
 
 
 def test_a_thin_grid_that_would_run_too_long_falls_back_to_the_quality_grid(thin_plant_ply: Path, tmp_path: Path,

@@ -239,16 +239,29 @@ def test_a_scene_too_sparse_for_a_finer_grid_keeps_its_own() -> None:
     assert sparse.report[-1].startswith("thin parts: kept the 48-cell grid") and "denser capture" in sparse.report[-1]
 
 
-def test_connected_ratio_gives_every_occupied_cell_two_drivers() -> None:
+def test_a_floor_of_drivers_a_cell_clusters_them_from_sub_particles() -> None:
+    """A thin plant of 3,000 Gaussians on 64 cells holds under 8 drivers in each cell its
+    moving particles occupy at the ratio 0.05: the floor clusters 8 a cell from the
+    Gaussians' sub-particles, keeps the mass and hangs every particle on its nearest."""
     from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene
     from pd_tool.io.synthetic import POT_TOP, make_plant
 
     prep = prepare_scene(make_plant(3000, thin=True), PrepareOptions(static_below=POT_TOP, grid_res=64))
-    occupied = prep.occupied_cells()
-    r = prep.connected_ratio(0.05)
-    assert r == pytest.approx(MIN_DRIVERS_PER_CELL * occupied / prep.n_particles)
-    assert len(prep.build_drivers(ratio=r).positions) >= 0.9 * MIN_DRIVERS_PER_CELL * occupied
-    assert prep.connected_ratio(0.99) == 0.99 and prep.connected_ratio(1.0) == 1.0
+    moving = prep.moving_cells()
+    plain = prep.build_drivers(ratio=0.05)
+    assert not prep.splits(0.05, 0) and prep.splits(0.05, MIN_DRIVERS_PER_CELL)
+    floor = prep.build_drivers(ratio=0.05, min_per_cell=MIN_DRIVERS_PER_CELL)
+    n_moving = int((~floor.static).sum())
+    assert n_moving >= 0.9 * MIN_DRIVERS_PER_CELL * moving > 2 * int((~plain.static).sum())
+    assert floor.mass.double().sum().item() == pytest.approx(prep.masses.sum(), rel=1e-5)
+    assert floor.static.any() and len(floor.labels) == prep.n_particles
+    d = ((floor.points_rest[:, None, :] - floor.positions[None, :, :]) ** 2).sum(-1)
+    assert torch.equal(floor.labels, d.argmin(1)) or torch.allclose(
+        d.gather(1, floor.labels[:, None])[:, 0], d.min(1).values)
+    assert prep.floor_ratio(0.05, MIN_DRIVERS_PER_CELL) == pytest.approx(
+        MIN_DRIVERS_PER_CELL * moving / prep.n_particles)
+    # a ratio that already gives the floor is kept as it is
+    assert not prep.splits(1.0, 1.0) and prep.floor_ratio(1.0, 1.0) == 1.0
 
 
 def test_refine_for_thin_leaves_a_scene_without_thin_parts_alone() -> None:

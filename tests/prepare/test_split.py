@@ -1,4 +1,4 @@
-"""pd_tool.fit.reference.split_particles: a fine reference's particles, several a cell."""
+"""pd_tool.prepare.split: sub-particles over each Gaussian's extent, several a cell."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pd_tool.core.scene import GaussianScene
-from pd_tool.fit.reference import split_particles
+from pd_tool.prepare.split import split_particles
 from pd_tool.io.synthetic import POT_TOP, make_plant
 from pd_tool.prepare.preparation import PrepareOptions, SimTransform, prepare_scene
 
