@@ -34,7 +34,7 @@ def test_thin_leaves_move_the_same_at_draft_and_default_with_the_grid_raised() -
     draft's 25%. At this scale (10,000 Gaussians) the particles fill only 64 (draft) and 80
     (default) cells. Against every particle split on 128 cells (H200), default's 80 cells
     read 1.01 of its peak and draft's 64 cells 0.87; without the floor, with about 2 and 0.4
-    drivers a cell, default was 12% of the peak off and draft 15%."""
+    drivers a cell, default is 12% of the peak off (RMS) and draft 15%."""
     from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, MIN_PARTICLES_PER_CELL
 
     case = replace(conv.CASES["plant"], seconds=0.6)
