@@ -190,6 +190,9 @@ class PreparedScene:
     fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
     thin: Any = None  # pd_tool.prepare.thickness.ThinParts of the moving particles at this grid, or None
     grid_free: Any = None  # GridFree: what another grid's preparation takes over (prepare_scene(reuse=))
+    # splits() answers, by (ratio, min_per_cell): a bake asks for its cost estimate, its
+    # drivers and its report, and each answer is two passes over every particle's cell
+    _splits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
     # interior particles added by filling (simulated, never rendered).
@@ -256,8 +259,11 @@ class PreparedScene:
         free = ~np.asarray(self.static, bool)
         if min_per_cell <= 0 or not free.any():
             return False
-        have = driver_count(torch.as_tensor(np.asarray(self.positions_sim)[free]), self.dx, ratio=ratio)
-        return have < min_per_cell * self.moving_cells()
+        key = (ratio, float(min_per_cell))
+        if key not in self._splits:
+            have = driver_count(torch.as_tensor(np.asarray(self.positions_sim)[free]), self.dx, ratio=ratio)
+            self._splits[key] = have < min_per_cell * self.moving_cells()
+        return self._splits[key]
 
     def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu",
                       min_per_cell: float = 0.0):
