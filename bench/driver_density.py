@@ -50,7 +50,7 @@ def run_scene(name: str, args) -> list[dict]:
     static_below = float(h.min() + 0.1 * np.ptp(h))
     size = float(np.ptp(pos, axis=0).max())
     force = new_force(scene, up)
-    ratio = float(load_preset("quality", "default")["driver_ratio"])
+    ratio = args.ratio if args.ratio is not None else float(load_preset("quality", "default")["driver_ratio"])
 
     def prepared(grid: int):
         return prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
@@ -103,6 +103,9 @@ def main() -> None:
     ap.add_argument("--grids", default="64,128", help="comma-separated grid cells")
     ap.add_argument("--reference", type=int, default=192, help="the split reference's grid cells")
     ap.add_argument("--per-cell", type=int, default=8, help="the k-means rows' drivers a cell")
+    ap.add_argument("--ratio", type=float, default=None,
+                    help="the ratio rows' drivers per Gaussian (default: the default quality's driver_ratio; "
+                         "its fit_driver_ratio, 0.1, shows the fit's discretisation)")
     ap.add_argument("--E", type=float, default=3e5, help="uniform Young's modulus, Pa")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
