@@ -170,8 +170,9 @@ def degrade(frames: np.ndarray, rng) -> np.ndarray:
 
 
 def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str,
-               split: int = 0):
-    """(prep, drivers, driver E) of one discretisation: K-Means drivers at `ratio`, or with
+               split: int = 0, min_per_cell: float = 0.0):
+    """(prep, drivers, driver E) of one discretisation: K-Means drivers at `ratio` (at
+    least `min_per_cell` a moving cell, PreparedScene.build_drivers), or with
     `split` > 0 every particle split into sub-particles, `split` a cell along each axis
     (pd_tool.prepare.split.split_particles), each with its particle's E."""
     from pd_tool.prepare.split import split_particles
@@ -181,7 +182,7 @@ def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gau
     if split > 0:
         drivers, owner = split_particles(scene, prep, per_cell=split, device=device)
         return prep, drivers, particle_E(prep, gaussian_E)[owner]
-    drivers = prep.build_drivers(ratio=ratio, seed=0, device=device)
+    drivers = prep.build_drivers(ratio=ratio, seed=0, device=device, min_per_cell=min_per_cell)
     return prep, drivers, driver_E(prep, drivers, gaussian_E)
 
 
@@ -343,7 +344,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     from pd_tool.materials.file import MaterialFile
     from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import up_rotation
-    from pd_tool.materials.presets import fit_simulation, load_preset
+    from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
 
     up = SCENES[name]
     scene = load_scene(name, args.scene_gaussians.get(name, args.gaussians), data=args.data).to(args.device)
@@ -355,8 +356,10 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     scene_path = save_splats(scene.to("cpu"), folder / f"{name}.ply")
     E_true = truth_field(scene, up, kind, args.seed)
     q = load_preset("quality", args.quality)
+    floor = 0.0
     if args.control:
         grid, cfl, ratio = fit_simulation(q)
+        floor = fit_min_per_cell(q)
         label = "control (the fit's own discretisation)"
     else:
         grid, cfl, ratio = args.reference, 0.25, 1.0
@@ -373,7 +376,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                   duration=NEW_FORCE["duration"], at=force[1], radius=force[2])
 
     t0 = time.perf_counter()
-    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device, split)
+    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device, split, floor)
     # the truth under the new force, at the converged settings whatever the videos used
     ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device,
                                                   args.split)

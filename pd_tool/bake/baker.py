@@ -390,9 +390,13 @@ class Baker:
         self.frame_dt = 1.0 / s.fps
         self.n_frames = s.frames
         self.ratio = s.driver_ratio if s.driver_ratio is not None else quality_ratio
-        # a floor of drivers a cell, the quality's, unless the ratio is given or the bake simulates as its fit did
-        self.min_per_cell = 0.0 if s.driver_ratio is not None or self.follows_fit else float(
-            load_preset("quality", s.quality or "default").get("min_drivers_per_cell", MIN_DRIVERS_PER_CELL))
+        # a floor of drivers a cell: the fit's when the bake simulates as its fit did, none when the
+        # ratio is given, else the quality's
+        if self.follows_fit:
+            self.min_per_cell = float(self.fit_sim["min_per_cell"])
+        else:
+            self.min_per_cell = 0.0 if s.driver_ratio is not None else float(
+                load_preset("quality", s.quality or "default").get("min_drivers_per_cell", MIN_DRIVERS_PER_CELL))
         self.preview_pixels = 0 if not self.rendering else (
             camera.width * camera.height if camera is not None else PREVIEW_PIXELS)
         self.E_top = float(material.E) if material is not None else float(np.max(material_file.driver_E))
@@ -450,8 +454,9 @@ class Baker:
         fit = self.fit_sim
         if fit is None or self.follows_fit or not self.settings.match_fit:
             return False
-        return (max(p.grid_dims) != fit["grid_res"] or not np.isclose(ratio, fit["driver_ratio"])
-                or p.splits(ratio, self.min_per_cell)
+        floors_differ = (not np.isclose(self.min_per_cell, fit["min_per_cell"])
+                         and (p.splits(ratio, self.min_per_cell) or p.splits(ratio, fit["min_per_cell"])))
+        return (max(p.grid_dims) != fit["grid_res"] or not np.isclose(ratio, fit["driver_ratio"]) or floors_differ
                 or not np.isclose(self.cfl_safety, self._fit_cfl()))
 
     def _fit_cfl(self) -> float:
@@ -533,7 +538,7 @@ class Baker:
         fit = self.fit_sim
         fit_prep = prepare_scene(self.scene, self.opts.updated(grid_res=int(fit["grid_res"])))
         fit_drivers = fit_prep.build_drivers(ratio=float(fit["driver_ratio"]), seed=int(fit["driver_seed"]),
-                                             device=self.dev)
+                                             device=self.dev, min_per_cell=fit["min_per_cell"])
         fit_E = material_file.E_at(fit_prep.transform.to_scene(fit_drivers.positions.double().cpu().numpy()))
         frames = self._match_window()
         sample = self._match_sample(fit_prep)
@@ -553,7 +558,8 @@ class Baker:
                 f"drivers: {self.min_per_cell:g} in each moving cell, clustered from points spread over each "
                 f"Gaussian's extent: {self.prep.count:,} Gaussians at the quality's {self.ratio:g} drivers per "
                 f"Gaussian give fewer on the {max(self.prep.grid_dims)}-cell grid, and parts a cell apart would "
-                f"separate under a push (min_drivers_per_cell = 0 in a --quality file turns this off)")
+                f"separate under a push " + ("(as the fit did)" if self.follows_fit else
+                                             "(min_drivers_per_cell = 0 in a --quality file turns this off)"))
         with self._part("solver"):  # a fitted E's match inside is its own part
             self._build_solver(material, material_file)
         self.setup_parts["solver"] -= self.setup_parts.get("match", 0.0)
@@ -795,8 +801,9 @@ def _discretisation(settings: BakeSettings, material_file) -> tuple[int, int | N
     if settings.quality is None and fit is not None:
         default = load_preset("quality", "default")
         cfl = fit["cfl_safety"] if fit["cfl_safety"] is not None else float(default["cfl_safety"])
+        floor = f" (at least {fit['min_per_cell']:g} a moving cell)" if fit["min_per_cell"] else ""
         note = (f"simulating as the fit did: {fit['grid_res']}-cell grid, {fit['driver_ratio']:g} driving particles "
-                f"per Gaussian, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
+                f"per Gaussian{floor}, CFL safety {cfl:g} (the fitted E is calibrated to them; --quality overrides)")
         return fit["grid_res"], None, cfl, fit["driver_ratio"], fit["driver_seed"], True, note
     q = load_preset("quality", settings.quality or "default")
     thin = int(q.get("thin_grid_res", q["grid_res"]))

@@ -175,6 +175,7 @@ def fit_simulation_record(result: "FitResult", settings: "FitSettings") -> dict:
         "substeps_floor": settings.substeps,
         "substeps_per_frame": None if substeps is None else [int(substeps[0]), int(substeps[1])],
         "driver_ratio": settings.driver_ratio,
+        "min_drivers_per_cell": settings.min_drivers_per_cell,
         "driver_seed": settings.seed,
         "iterations": {"rounds": settings.rounds, "velocity": settings.velocity_iters,
                        "material": settings.material_iters, "polish": settings.polish_iters,

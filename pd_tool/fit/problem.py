@@ -50,16 +50,19 @@ class FitProblem:
         self.prep = prepare_scene(self.scene, prep_options)
         p = self.prep
         # refuse now, before drivers, simulator and graph, when the fit cannot fit in memory
+        drivers_per_particle = p.floor_ratio(settings.driver_ratio, settings.min_drivers_per_cell)
         check_memory(estimate_fit_memory(
-            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=settings.driver_ratio,
+            n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=drivers_per_particle,
             grid_dims=p.grid_dims,
             frames=[v.num_frames for v in videos], image_pixels=int(videos[0].frames[0].numel() // 3),
             stage1_frames=settings.stage1_frames, device=settings.device),
             what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio, device=settings.device,
             resolution=f"--working-size {settings.working_long_side}")
         # ... or when it would take longer than allowed
-        check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety)
-        self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed, device=self.device)
+        check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety,
+                       drivers_per_particle=drivers_per_particle)
+        self.drivers = p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed, device=self.device,
+                                       min_per_cell=settings.min_drivers_per_cell)
         self.animator = GaussianAnimator(self.scene, p, self.drivers, device=self.device)
         self.videos = videos
         fps = {round(v.fps, 6) for v in videos}

@@ -18,7 +18,7 @@ from pd_tool.core.cameras import Camera
 from pd_tool.core.scene import GaussianScene
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGIONS, REGION_TRUTH_E, make_plant
-from pd_tool.materials.presets import fit_simulation, load_preset
+from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
 from pd_tool.prepare.preparation import PrepareOptions, PreparedScene, prepare_scene
 from pd_tool.render.views import render_image, scene_camera
 from pd_tool.sim import MPMSolver, SimConfig
@@ -101,6 +101,7 @@ def plant_reference_video(
     prepare_options: PrepareOptions,
     region_E: dict[str, float],
     driver_ratio: float,
+    min_per_cell: float = 0.0,
     n_frames: int = 14,
     fps: float = 30.0,
     nu: float = 0.3,
@@ -120,7 +121,7 @@ def plant_reference_video(
     if scene.labels is None:
         raise ValueError("plant_reference_video needs a scene with region labels")
     prep = prepare_scene(scene, prepare_options)
-    drivers = prep.build_drivers(ratio=driver_ratio, seed=seed, device=device)
+    drivers = prep.build_drivers(ratio=driver_ratio, seed=seed, device=device, min_per_cell=min_per_cell)
     labels = scene.labels[prep.foreground]
 
     names = scene.label_names or REGIONS
@@ -152,9 +153,11 @@ def plant_reference_for_fit(
     that quality sees the same discretisation as the video. kwargs: n_frames, fps,
     push_speed, push_direction, device, ..."""
 
-    grid, cfl, ratio = fit_simulation(load_preset("quality", quality))
+    q = load_preset("quality", quality)
+    grid, cfl, ratio = fit_simulation(q)
     return plant_reference_video(out, scene, camera, prepare_options=PrepareOptions(static_below=POT_TOP, grid_res=grid),
-                                 region_E=REGION_TRUTH_E, driver_ratio=ratio, cfl_safety=cfl, **kwargs)
+                                 region_E=REGION_TRUTH_E, driver_ratio=ratio, min_per_cell=fit_min_per_cell(q),
+                                 cfl_safety=cfl, **kwargs)
 
 
 def reference_height(width: int) -> int:

@@ -132,10 +132,11 @@ def run_fit(
         "prepare": p.options.to_dict(),
         "transform": p.transform.to_dict(),
         "nu": s.nu, "density": s.density, "damping": s.damping,
-        "drivers": {"count": int(len(driver_E)), "ratio": s.driver_ratio, "seed": s.seed},
+        "drivers": {"count": int(len(driver_E)), "ratio": s.driver_ratio, "seed": s.seed,
+                    "min_per_cell": s.min_drivers_per_cell},
         # what a bake needs to simulate as the fit did (MaterialFile.fit_simulation)
         "simulation": {"grid_res": int(p.options.grid_res), "driver_ratio": s.driver_ratio, "driver_seed": s.seed,
-                       "cfl_safety": float(pb.cfl_safety)},
+                       "min_drivers_per_cell": s.min_drivers_per_cell, "cfl_safety": float(pb.cfl_safety)},
         "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
         "videos": [str(v.folder) for v in videos],
         "metrics": {

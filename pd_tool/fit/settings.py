@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from pd_tool.materials.presets import fit_simulation, load_preset
+from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
 
 
 @dataclass
@@ -104,6 +104,9 @@ class FitSettings:
     density: float = 1000.0  # kg/m^3
     damping: float = 0.0  # 1/s
     driver_ratio: float | None = None  # None: the quality preset's
+    # drivers in each cell the moving particles occupy, at least (PreparedScene.build_drivers);
+    # None: the quality preset's fit_min_drivers_per_cell
+    min_drivers_per_cell: float | None = None
     working_long_side: int = 256  # px, reference frames are resized to this
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     # Scale each video's render by a gain per colour channel, fitted once at rest (frame 0),
@@ -144,4 +147,8 @@ class FitSettings:
             out.material_iters = int(q["fit_material_iters"])
         if out.driver_ratio is None:
             out.driver_ratio = fit_simulation(q)[2]
+        if out.min_drivers_per_cell is None:
+            out.min_drivers_per_cell = fit_min_per_cell(q)
+        if not 0.0 <= out.min_drivers_per_cell <= 64.0:
+            raise ValueError(f"min_drivers_per_cell must be in [0, 64], got {out.min_drivers_per_cell}")
         return out

@@ -174,7 +174,8 @@ class MaterialFile:
 
     def fit_simulation(self) -> dict[str, Any] | None:
         """How the fit simulated: grid_res (cells along the longest side), driver_ratio,
-        driver_seed and cfl_safety (None in files written before it was recorded); None
+        driver_seed, min_per_cell (the floor of drivers a cell; 0 where the header names
+        none) and cfl_safety (None in files written before it was recorded); None
         when the header does not say (a hand-made file). A bake that simulates the same way
         moves as the fit's model did: the fitted E is calibrated to that discretisation."""
         sim = self.meta.get("simulation")
@@ -182,11 +183,15 @@ class MaterialFile:
         grid = (self.meta.get("prepare") or {}).get("grid_res")
         try:
             if isinstance(sim, dict):
+                floor = float(sim.get("min_drivers_per_cell") or 0.0)
+                if not 0.0 <= floor <= 64.0:  # NaN too: a bake would cluster without bound
+                    raise ValueError(floor)
                 return {"grid_res": int(sim["grid_res"]), "driver_ratio": float(sim["driver_ratio"]),
-                        "driver_seed": int(sim["driver_seed"]), "cfl_safety": float(sim["cfl_safety"])}
+                        "driver_seed": int(sim["driver_seed"]), "cfl_safety": float(sim["cfl_safety"]),
+                        "min_per_cell": floor}
             if isinstance(drivers, dict) and grid is not None:
                 return {"grid_res": int(grid), "driver_ratio": float(drivers["ratio"]),
-                        "driver_seed": int(drivers.get("seed", 0)), "cfl_safety": None}
+                        "driver_seed": int(drivers.get("seed", 0)), "cfl_safety": None, "min_per_cell": 0.0}
         except (KeyError, TypeError, ValueError):
             raise MaterialFileError("material file header has malformed 'simulation' settings; run `pdtool fit` "
                                     "again") from None

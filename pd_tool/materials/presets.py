@@ -41,7 +41,7 @@ _RANGES = {
     "fit_material_iters": (0, 10000), "radius": (0.0, 10.0), "start": (0.0, 600.0),
     "duration": (0.0, 600.0), "magnitude": (0.0, 1e6), "damping": (0.0, 1e3),
     "fit_grid_res": (10, 256), "thin_grid_res": (10, 256), "fit_cfl_safety": (0.05, 1.0), "fit_driver_ratio": (1e-4, 1.0),
-    "min_drivers_per_cell": (0.0, 64.0),
+    "min_drivers_per_cell": (0.0, 64.0), "fit_min_drivers_per_cell": (0.0, 64.0),
 }
 _OPTIONAL = {"materials": {"damping": float},
              # the fit's simulation settings; a quality preset without them fits with its bake settings
@@ -51,7 +51,9 @@ _OPTIONAL = {"materials": {"damping": float},
                          "thin_grid_res": int,
                          # the bake's floor of drivers in each cell its moving particles occupy
                          # (PreparedScene.build_drivers); 0 turns it off, a preset without it keeps 8
-                         "min_drivers_per_cell": float}}
+                         "min_drivers_per_cell": float,
+                         # the same floor in the fit's own simulation; a preset without it keeps 0
+                         "fit_min_drivers_per_cell": float}}
 _CHOICES = {"at": ("top", "all")}  # string settings with a fixed set of values
 
 
@@ -149,6 +151,12 @@ def fit_simulation(quality: dict[str, Any]) -> tuple[int, float, float]:
     return (int(quality.get("fit_grid_res", quality["grid_res"])),
             float(quality.get("fit_cfl_safety", quality["cfl_safety"])),
             float(quality.get("fit_driver_ratio", quality["driver_ratio"])))
+
+
+def fit_min_per_cell(quality: dict[str, Any]) -> float:
+    """The fit's floor of drivers in each cell its moving particles occupy under a quality
+    preset (PreparedScene.build_drivers); 0: the fit's driver ratio alone."""
+    return float(quality.get("fit_min_drivers_per_cell", 0.0))
 
 
 @dataclass(frozen=True)

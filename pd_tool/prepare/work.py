@@ -248,11 +248,14 @@ def check_bake_work(prep, *, n_gaussians: int, n_particles: int, frames: int, fr
     return est
 
 
-def check_fit_work(prep, settings, videos, *, n_gaussians: int, cfl_safety: float) -> WorkEstimate:
+def check_fit_work(prep, settings, videos, *, n_gaussians: int, cfl_safety: float,
+                   drivers_per_particle: float | None = None) -> WorkEstimate:
     """Estimate a fit (pd_tool.fit.problem.FitProblem's preparation `prep`, its resolved
     FitSettings and reference videos) and check it (check_work). The substeps come from
-    the starting E (settings.init_E). Returns the estimate."""
-    q = max(1, int(math.ceil(float(settings.driver_ratio) * len(prep.positions_sim))))
+    the starting E (settings.init_E). drivers_per_particle: with the floor of drivers a
+    cell (PreparedScene.floor_ratio); None: the settings' driver ratio. Returns the estimate."""
+    ratio = settings.driver_ratio if drivers_per_particle is None else drivers_per_particle
+    q = max(1, int(math.ceil(float(ratio) * len(prep.positions_sim))))
     n = cfl_substeps_estimate(videos[0].frame_dt, prep.dx, float(settings.init_E), float(settings.density),
                               float(settings.nu), 0.0, cfl_safety, floor=settings.substeps)
     nodes = math.prod(d + 1 for d in prep.grid_dims)

@@ -244,3 +244,47 @@ def test_report_records_what_the_fit_ran_at(fit_dir: Path, tmp_path: Path) -> No
         assert report["region_gaussians"][name]["simulated"] == int((labels == i).sum())
     for q in ("5", "50", "95"):
         assert report["E_percentiles_pa"][q] == pytest.approx(np.percentile(result.gaussian_E, int(q)))
+
+
+def test_a_fit_with_a_floor_of_drivers_a_cell_is_baked_on_the_same_drivers(fit_dir: Path, tmp_path: Path) -> None:
+    """A quality's fit_min_drivers_per_cell clusters the fit's drivers up to that many in
+    each moving cell; the material file records it, and a bake that simulates as the fit
+    did (no --quality) builds the same drivers, where a floorless rebuild would have fewer."""
+    import torch
+    from click.testing import CliRunner
+
+    from cli import main
+    from pd_tool.fit.run import run_fit
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.io import load_splats
+    from pd_tool.io.synthetic import POT_TOP
+    from pd_tool.materials.file import MaterialFile
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.video.folder import load_reference_video
+
+    quality = tmp_path / "floored.toml"
+    quality.write_text((Path(__file__).resolve().parents[2] / "presets" / "quality.toml").read_text()
+                       .split("[default]")[0].split("[draft]")[1] + "fit_min_drivers_per_cell = 8\n")
+    scene = load_splats(fit_dir / "plant.ply")
+    refs = [load_reference_video(fit_dir / "video", working_size=24)]
+    settings = FitSettings(quality=str(quality), velocity_iters=1, material_iters=1, working_long_side=24).resolved()
+    assert settings.min_drivers_per_cell == 8.0
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = run_fit(scene, fit_dir / "plant.ply", refs, tmp_path / "fit.pdmat",
+                         prepare_options=PrepareOptions(static_below=POT_TOP, up_axis="+z"), settings=settings)
+    finally:
+        torch.set_num_threads(threads)
+    p = result.prep
+    mf = MaterialFile.load(tmp_path / "fit.pdmat")
+    assert mf.fit_simulation()["min_per_cell"] == 8.0
+    q = len(mf.driver_E)
+    assert p.splits(settings.driver_ratio, 8.0)  # 300 Gaussians at 0.1 are far fewer than 8 a cell
+    assert q >= 0.9 * 8 * p.moving_cells()
+    assert len(p.build_drivers(ratio=settings.driver_ratio, seed=settings.seed).positions) < q / 4
+    res = CliRunner().invoke(main, ["bake", "--material", str(tmp_path / "fit.pdmat"), "--force", "0,0,1",
+                                    "--frames", "2", "--device", "cpu", str(tmp_path / "out.usd")],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert "at least 8 a moving cell" in res.output and f"driven by {q:,} particles" in res.output, res.output

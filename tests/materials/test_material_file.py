@@ -77,10 +77,17 @@ def test_fit_simulation_from_the_header(tmp_path: Path) -> None:
     assert m.fit_simulation() is None  # a hand-made file says nothing: bake uses its quality preset
     # files from before "simulation" was recorded: grid and drivers from their own entries
     m.meta.update(prepare={"grid_res": 24}, drivers={"count": 40, "ratio": 0.1, "seed": 3})
-    assert m.fit_simulation() == {"grid_res": 24, "driver_ratio": 0.1, "driver_seed": 3, "cfl_safety": None}
+    assert m.fit_simulation() == {"grid_res": 24, "driver_ratio": 0.1, "driver_seed": 3, "cfl_safety": None,
+                                  "min_per_cell": 0.0}
+    # a header without the fit's floor of drivers a cell was fitted without one
     m.meta["simulation"] = {"grid_res": 32, "driver_ratio": 0.25, "driver_seed": 0, "cfl_safety": 0.4}
     back = MaterialFile.load(m.save(tmp_path / "m.pdmat"))
-    assert back.fit_simulation() == {"grid_res": 32, "driver_ratio": 0.25, "driver_seed": 0, "cfl_safety": 0.4}
-    back.meta["simulation"] = {"grid_res": "many"}
-    with pytest.raises(MaterialFileError, match="malformed 'simulation'"):
-        back.fit_simulation()
+    assert back.fit_simulation() == {"grid_res": 32, "driver_ratio": 0.25, "driver_seed": 0, "cfl_safety": 0.4,
+                                     "min_per_cell": 0.0}
+    back.meta["simulation"]["min_drivers_per_cell"] = 8
+    assert back.fit_simulation()["min_per_cell"] == 8.0
+    for bad in ({"grid_res": "many"}, {**back.meta["simulation"], "min_drivers_per_cell": 1e9},
+                {**back.meta["simulation"], "min_drivers_per_cell": float("nan")}):
+        back.meta["simulation"] = bad
+        with pytest.raises(MaterialFileError, match="malformed 'simulation'"):
+            back.fit_simulation()
