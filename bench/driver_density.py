@@ -31,12 +31,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_truth's scenes and force
 
-MOVING = 0.01  # of the object's size: the Gaussians the reference moves further are judged
-
 
 def run_scene(name: str, args) -> list[dict]:
     """One scene's rows: the reference, then each grid's three discretisations."""
-    from fit_truth import NEW_FORCE, SCENES, load_scene, new_force, per_cell
+    from fit_truth import NEW_FORCE, SCENES, Judge, load_scene, new_force, per_cell
 
     from pd_tool.fit.reference import simulate_positions
     from pd_tool.prepare.split import split_drivers, split_particles
@@ -69,18 +67,12 @@ def run_scene(name: str, args) -> list[dict]:
     ref_prep = prepared(args.reference)
     ref_drivers = split_particles(scene, ref_prep, device=args.device)[0]
     x_ref, seconds = run(ref_prep, ref_drivers)
-    free = np.zeros(scene.count, bool)
-    free[ref_prep.foreground[~ref_prep.static[: ref_prep.count]]] = True
-    moving = free & (np.linalg.norm(x_ref - x_ref[0], axis=-1).max(axis=0) > MOVING * size)
-
-    def peak(x: np.ndarray) -> float:
-        return float(np.linalg.norm(x[:, moving] - x[0, moving], axis=-1).max() / size)
+    judge = Judge.of(ref_prep, x_ref, size)
 
     def row(grid: int, mode: str, prep, drivers, x: np.ndarray, secs: float) -> dict:
-        rms = np.sqrt((np.linalg.norm(x[:, moving] - x_ref[:, moving], axis=-1) ** 2).mean()) / size
         return {"scene": name, "grid": grid, "mode": mode, "drivers": len(drivers.positions),
-                "per_cell": per_cell(prep, drivers), "peak": peak(x), "peak_ratio": peak(x) / max(peak(x_ref), 1e-12),
-                "rms": float(rms), "seconds": secs}
+                "per_cell": per_cell(prep, drivers), "peak": judge.peak(x),
+                "peak_ratio": judge.peak(x) / max(judge.peak(x_ref), 1e-12), "rms": judge.off(x), "seconds": secs}
 
     rows = [row(args.reference, "reference (split)", ref_prep, ref_drivers, x_ref, seconds)]
     for grid in args.grids:

@@ -79,6 +79,36 @@ MOVING = 0.01  # of the object's size: a Gaussian moving less in every video say
 
 
 @dataclass
+class Judge:
+    """A run against the truth under the new force, over the Gaussians the truth moves
+    further than MOVING of the object's size: a local push leaves most of the object still,
+    and a material that does not move at all would score well over all of it."""
+
+    x_true: np.ndarray  # [T, N, 3] scene units
+    free: np.ndarray  # [N] bool: the Gaussians not pinned
+    moving: np.ndarray  # [N] bool: free, and moved further than MOVING by the truth
+    size: float  # the object's size, scene units
+
+    @classmethod
+    def of(cls, prep, x_true: np.ndarray, size: float) -> "Judge":
+        """prep: the truth's PreparedScene (its pinned Gaussians are never judged)."""
+        free = np.zeros(x_true.shape[1], bool)
+        free[prep.foreground[~prep.static[: prep.count]]] = True
+        return cls(x_true, free, free & (np.linalg.norm(x_true - x_true[0], axis=-1).max(axis=0) > MOVING * size),
+                   size)
+
+    def peak(self, x: np.ndarray) -> float:
+        """The largest displacement of a moving Gaussian in x [T, N, 3], / size."""
+        m = self.moving
+        return float(np.linalg.norm(x[:, m] - x[0, m], axis=-1).max() / self.size)
+
+    def off(self, x: np.ndarray) -> float:
+        """RMS over frames and moving Gaussians of x [T, N, 3] against the truth, / size."""
+        m = self.moving
+        return float(np.sqrt((np.linalg.norm(x[:, m] - self.x_true[: len(x)][:, m], axis=-1) ** 2).mean()) / self.size)
+
+
+@dataclass
 class Row:
     scene: str
     field: str
@@ -382,21 +412,9 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                                   args.split)
     row = Row(name, kind, label, reference_particles=len(ref[1].positions), reference_per_cell=per_cell(*ref[:2]))
     x_true = under_new_force(ref)
-    prep = ref[0]
-    free = np.zeros(scene.count, bool)
-    free[prep.foreground[~prep.static[: prep.count]]] = True
-    # judged where the new force moves the truth: a local push leaves most of the object
-    # still, and a material that does not move at all would score well over all of it
-    moving = free & (np.linalg.norm(x_true - x_true[0], axis=-1).max(axis=0) > MOVING * size)
+    judge = Judge.of(ref[0], x_true, size)
+    free, moving, peak, off = judge.free, judge.moving, judge.peak, judge.off
     row.seconds["truth"] = time.perf_counter() - t0
-
-    def peak(x: np.ndarray) -> float:
-        """The largest displacement of a moving Gaussian in x [T, N, 3], / size."""
-        return float(np.linalg.norm(x[:, moving] - x[0, moving], axis=-1).max() / size)
-
-    def off(x: np.ndarray) -> float:
-        """RMS over frames and moving Gaussians of x [T, N, 3] against the truth, / size."""
-        return float(np.sqrt((np.linalg.norm(x[:, moving] - x_true[: len(x)][:, moving], axis=-1) ** 2).mean()) / size)
 
     row.errors["truth peak"] = peak(x_true)
     if args.check_reference:  # the truth again on a finer grid: how far from converged it is
