@@ -193,29 +193,15 @@ def test_e_statistics_without_region_labels_or_names(plant_fit) -> None:
 def test_report_records_what_the_fit_ran_at(fit_dir: Path, tmp_path: Path) -> None:
     """A real (one iteration per stage) fit with the settings as the CLI gives them, most
     left to the quality preset: the report holds the values it resolved to and ran at."""
-    import torch
-
     from pd_tool.fit.outputs import write_fit_outputs
-    from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
-    from pd_tool.video.folder import load_reference_video
-    from pd_tool.io import load_splats
     from pd_tool.materials.file import MaterialFile
-    from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.materials.presets import fit_simulation, load_preset
     from pd_tool.io.synthetic import POT_TOP, REGIONS
 
-    scene = load_splats(fit_dir / "plant.ply")
-    refs = [load_reference_video(fit_dir / "video", working_size=24)]
     settings = FitSettings(quality="draft", velocity_iters=1, material_iters=1, working_long_side=24)
     assert settings.driver_ratio is None  # left to the preset: the report must say what it became
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        result = run_fit(scene, fit_dir / "plant.ply", refs, tmp_path / "fit.pdmat",
-                         prepare_options=PrepareOptions(static_below=POT_TOP, up_axis="+z"), settings=settings)
-    finally:
-        torch.set_num_threads(threads)
+    scene, refs, result = _tiny_fit(fit_dir, tmp_path / "fit.pdmat", settings)
     paths = write_fit_outputs(tmp_path, "fit", scene, result, refs, settings, preview=False)
     report = json.loads(paths["report"].read_text())
     grid, cfl, ratio = fit_simulation(load_preset("quality", "draft"))
@@ -250,32 +236,18 @@ def test_a_fit_with_a_floor_of_drivers_a_cell_is_baked_on_the_same_drivers(fit_d
     """A quality's fit_min_drivers_per_cell clusters the fit's drivers up to that many in
     each moving cell; the material file records it, and a bake that simulates as the fit
     did (no --quality) builds the same drivers, where a floorless rebuild would have fewer."""
-    import torch
     from click.testing import CliRunner
 
     from cli import main
-    from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
-    from pd_tool.io import load_splats
-    from pd_tool.io.synthetic import POT_TOP
     from pd_tool.materials.file import MaterialFile
-    from pd_tool.prepare.preparation import PrepareOptions
-    from pd_tool.video.folder import load_reference_video
 
     quality = tmp_path / "floored.toml"
     quality.write_text((Path(__file__).resolve().parents[2] / "presets" / "quality.toml").read_text()
                        .split("[default]")[0].split("[draft]")[1] + "fit_min_drivers_per_cell = 8\n")
-    scene = load_splats(fit_dir / "plant.ply")
-    refs = [load_reference_video(fit_dir / "video", working_size=24)]
     settings = FitSettings(quality=str(quality), velocity_iters=1, material_iters=1, working_long_side=24).resolved()
     assert settings.min_drivers_per_cell == 8.0
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        result = run_fit(scene, fit_dir / "plant.ply", refs, tmp_path / "fit.pdmat",
-                         prepare_options=PrepareOptions(static_below=POT_TOP, up_axis="+z"), settings=settings)
-    finally:
-        torch.set_num_threads(threads)
+    result = _tiny_fit(fit_dir, tmp_path / "fit.pdmat", settings)[2]
     p = result.prep
     mf = MaterialFile.load(tmp_path / "fit.pdmat")
     assert mf.fit_simulation()["min_per_cell"] == 8.0
@@ -288,3 +260,26 @@ def test_a_fit_with_a_floor_of_drivers_a_cell_is_baked_on_the_same_drivers(fit_d
                              catch_exceptions=False)
     assert res.exit_code == 0, res.output
     assert "at least 8 a moving cell" in res.output and f"driven by {q:,} particles" in res.output, res.output
+
+
+def _tiny_fit(fit_dir: Path, out: Path, settings):
+    """(scene, reference videos, FitResult) of the fit fixture's plant fitted to `out` at
+    24 px on one torch thread (the suite's 2 cores)."""
+    import torch
+
+    from pd_tool.fit.run import run_fit
+    from pd_tool.io import load_splats
+    from pd_tool.io.synthetic import POT_TOP
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.video.folder import load_reference_video
+
+    scene = load_splats(fit_dir / "plant.ply")
+    refs = [load_reference_video(fit_dir / "video", working_size=24)]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return scene, refs, run_fit(scene, fit_dir / "plant.ply", refs, out,
+                                    prepare_options=PrepareOptions(static_below=POT_TOP, up_axis="+z"),
+                                    settings=settings)
+    finally:
+        torch.set_num_threads(threads)
