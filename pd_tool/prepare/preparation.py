@@ -24,7 +24,7 @@ from pd_tool.prepare.cells import Device, block_sums, cell_components, unique_ce
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
-from pd_tool.prepare.split import split_drivers
+from pd_tool.prepare.split import split_drivers, sub_particles
 from pd_tool.prepare.thickness import describe_refinement, thin_parts
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -190,8 +190,9 @@ class PreparedScene:
     fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
     thin: Any = None  # pd_tool.prepare.thickness.ThinParts of the moving particles at this grid, or None
     grid_free: Any = None  # GridFree: what another grid's preparation takes over (prepare_scene(reuse=))
-    # splits() answers, by (ratio, min_per_cell): a bake asks for its cost estimate, its
-    # drivers and its report, and each answer is two passes over every particle's cell
+    # splits() answers by (ratio, min_per_cell), split_count()'s by ("count", min_per_cell): a
+    # bake asks for its cost estimate, its drivers and its report, and each answer is a pass
+    # or two over every particle's (or sub-particle's) cell
     _splits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
@@ -244,14 +245,26 @@ class PreparedScene:
 
     def floor_ratio(self, ratio: float | None, min_per_cell: float) -> float:
         """Drivers per simulated particle that build_drivers(ratio=ratio,
-        min_per_cell=min_per_cell) makes, about: the ratio's, or min_per_cell drivers in
-        each cell the moving particles occupy where the ratio gives fewer (then above 1
+        min_per_cell=min_per_cell) makes, about: the ratio's, or, where the ratio gives
+        fewer than the floor, the moving drivers split_drivers clusters (then above 1
         where the particles themselves are fewer). For memory and run-time estimates."""
         n = max(self.n_particles, 1)
         base = ratio if ratio is not None else MIN_PER_CELL * self.occupied_cells() / n
-        if min_per_cell <= 0:
+        if not self.splits(ratio, min_per_cell):
             return float(base)
-        return float(max(base, min_per_cell * self.moving_cells() / n))
+        return float(max(base, self.split_count(min_per_cell) / n))
+
+    def split_count(self, min_per_cell: float) -> int:
+        """Moving drivers split_drivers clusters for a floor of min_per_cell a cell: that
+        many in each cell the moving sub-particles occupy. They spread over each Gaussian's
+        extent, so a thin part's sub-particles cross 2-3 times the cells of its centres."""
+        key = ("count", float(min_per_cell))
+        if key not in self._splits:
+            sub = sub_particles(self.scene, self)
+            free = sub.positions[~sub.static]
+            self._splits[key] = driver_count(free, self.dx, min_per_cell=int(math.ceil(min_per_cell))) if len(free) \
+                else 0
+        return int(self._splits[key])
 
     def splits(self, ratio: float | None, min_per_cell: float) -> bool:
         """Whether build_drivers clusters its moving drivers from sub-particles: the ratio

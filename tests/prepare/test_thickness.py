@@ -258,8 +258,10 @@ def test_a_floor_of_drivers_a_cell_clusters_them_from_sub_particles() -> None:
     d = ((floor.points_rest[:, None, :] - floor.positions[None, :, :]) ** 2).sum(-1)
     assert torch.equal(floor.labels, d.argmin(1)) or torch.allclose(
         d.gather(1, floor.labels[:, None])[:, 0], d.min(1).values)
-    assert prep.floor_ratio(0.05, MIN_DRIVERS_PER_CELL) == pytest.approx(
-        MIN_DRIVERS_PER_CELL * moving / prep.n_particles)
+    # the estimates' count is the clustering's: the sub-particles spread over each Gaussian's
+    # extent and cross more cells than the Gaussians' centres
+    assert prep.split_count(MIN_DRIVERS_PER_CELL) > 1.2 * MIN_DRIVERS_PER_CELL * moving
+    assert prep.floor_ratio(0.05, MIN_DRIVERS_PER_CELL) * prep.n_particles == pytest.approx(n_moving, rel=0.02)
     # a ratio that already gives the floor is kept as it is
     assert not prep.splits(1.0, 1.0) and prep.floor_ratio(1.0, 1.0) == 1.0
 
