@@ -64,6 +64,8 @@ from usd_export import instance_positions
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_recovery's --set parser
 
+from pd_tool.prepare.split import SPLIT_MOST  # noqa: E402 (the repository is on the path from here)
+
 SCENES = {"plant": "+z", "udon": "-y", "donut": "-y", "tree": "-y"}
 CAPTURES = {"udon": "udon.ply", "donut": "donut_fused.ply", "tree": "tree_100k.splat"}  # under --data
 FIELDS = ("region", "smooth", "random")
@@ -200,17 +202,18 @@ def degrade(frames: np.ndarray, rng) -> np.ndarray:
 
 
 def simulation(scene, up: str, static_below: float, grid: int, ratio: float, gaussian_E: np.ndarray, device: str,
-               split: int = 0, min_per_cell: float = 0.0):
+               split: int = 0, min_per_cell: float = 0.0, most: int = SPLIT_MOST):
     """(prep, drivers, driver E) of one discretisation: K-Means drivers at `ratio` (at
     least `min_per_cell` a moving cell, PreparedScene.build_drivers), or with
-    `split` > 0 every particle split into sub-particles, `split` a cell along each axis
-    (pd_tool.prepare.split.split_particles), each with its particle's E."""
+    `split` > 0 every particle split into sub-particles, `split` a cell along each axis and
+    at most `most` along each of a Gaussian's axes (pd_tool.prepare.split.split_particles),
+    each with its particle's E."""
     from pd_tool.prepare.split import split_particles
     from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
 
     prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=up, static_below=static_below))
     if split > 0:
-        drivers, owner = split_particles(scene, prep, per_cell=split, device=device)
+        drivers, owner = split_particles(scene, prep, per_cell=split, most=most, device=device)
         return prep, drivers, particle_E(prep, gaussian_E)[owner]
     drivers = prep.build_drivers(ratio=ratio, seed=0, device=device, min_per_cell=min_per_cell)
     return prep, drivers, driver_E(prep, drivers, gaussian_E)
@@ -406,10 +409,10 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                   duration=NEW_FORCE["duration"], at=force[1], radius=force[2])
 
     t0 = time.perf_counter()
-    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device, split, floor)
+    sim = simulation(scene, up, static_below, grid, ratio, E_true, args.device, split, floor, args.split_most)
     # the truth under the new force, at the converged settings whatever the videos used
     ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device,
-                                                  args.split)
+                                                  args.split, most=args.split_most)
     row = Row(name, kind, label, reference_particles=len(ref[1].positions), reference_per_cell=per_cell(*ref[:2]))
     x_true = under_new_force(ref)
     judge = Judge.of(ref[0], x_true, size)
@@ -419,7 +422,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     row.errors["truth peak"] = peak(x_true)
     if args.check_reference:  # the truth again on a finer grid: how far from converged it is
         t0 = time.perf_counter()
-        check = simulation(scene, up, static_below, args.check_reference, 1.0, E_true, args.device, args.split)
+        check = simulation(scene, up, static_below, args.check_reference, 1.0, E_true, args.device, args.split,
+                           most=args.split_most)
         x_check = under_new_force(check)
         row.reference_check = {
             "grid": args.check_reference, "particles": len(check[1].positions), "per_cell": per_cell(*check[:2]),
@@ -511,6 +515,9 @@ def main() -> None:
     ap.add_argument("--split", type=int, default=2,
                     help="the reference's sub-particles per cell along each axis (0: one particle per Gaussian, "
                          "about one a cell on a fine grid, which separates under a push)")
+    ap.add_argument("--split-most", type=int, default=SPLIT_MOST,
+                    help="the reference's most sub-particles along each of a Gaussian's axes (a long strand's "
+                         "Gaussians, as udon's, need more than 4 to fill a fine grid)")
     ap.add_argument("--check-reference", type=int, default=0,
                     help="also simulate the truth on this many cells and report how far it is from the reference "
                          "(RMS / size, peak ratio): whether the reference has converged (0: no check)")

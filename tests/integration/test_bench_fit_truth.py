@@ -107,6 +107,8 @@ def test_the_reference_splits_its_particles_and_keeps_their_mass_and_E(shared_da
     # every particle's sub-particles carry its E: its first one (labels) exactly, all of them within its range
     assert np.array_equal(split[2][split[1].labels.numpy()], ft.particle_E(prep, E))
     assert E.min() <= split[2].min() and split[2].max() <= E.max()
+    # udon's strands are Gaussians long beside a fine cell: more sub-particles along their axes fill it
+    assert len(ft.simulation(*args, split=2, most=8)[1].positions) > len(split[1].positions)
 
 
 def test_scene_gaussians_parses_counts_per_scene_and_refuses_others() -> None:
