@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
+from pd_tool.materials.presets import DRIVERS_PER_CELL_RANGE, fit_min_per_cell, fit_simulation, load_preset
 
 
 @dataclass
@@ -149,6 +149,7 @@ class FitSettings:
             out.driver_ratio = fit_simulation(q)[2]
         if out.min_drivers_per_cell is None:
             out.min_drivers_per_cell = fit_min_per_cell(q)
-        if not 0.0 <= out.min_drivers_per_cell <= 64.0:
-            raise ValueError(f"min_drivers_per_cell must be in [0, 64], got {out.min_drivers_per_cell}")
+        lo, hi = DRIVERS_PER_CELL_RANGE
+        if not lo <= out.min_drivers_per_cell <= hi:
+            raise ValueError(f"min_drivers_per_cell must be in [{lo:g}, {hi:g}], got {out.min_drivers_per_cell}")
         return out

@@ -31,6 +31,7 @@ from pd_tool.core.atomic import WRITTEN_BY, atomic_output, check_destination, ch
 from pd_tool.core.errors import MaterialFileError, OutputError
 from pd_tool.core.inputs import MiB, read_small_file
 from pd_tool.drivers import nearest_drivers
+from pd_tool.materials.presets import DRIVERS_PER_CELL_RANGE
 
 FORMAT = "pdtool-material"
 VERSION = 1
@@ -184,7 +185,8 @@ class MaterialFile:
         try:
             if isinstance(sim, dict):
                 floor = float(sim.get("min_drivers_per_cell") or 0.0)
-                if not 0.0 <= floor <= 64.0:  # NaN too: a bake would cluster without bound
+                lo, hi = DRIVERS_PER_CELL_RANGE
+                if not lo <= floor <= hi:  # NaN too: a bake would cluster without bound
                     raise ValueError(floor)
                 return {"grid_res": int(sim["grid_res"]), "driver_ratio": float(sim["driver_ratio"]),
                         "driver_seed": int(sim["driver_seed"]), "cfl_safety": float(sim["cfl_safety"]),

@@ -35,13 +35,16 @@ _REQUIRED = {
 #   fit_*_iters 0 - 10000: the shipped presets use at most 200
 #   radius 0 - 10 (fraction of the object's size), start / duration 0 - 600 s (the longest
 #       animation, pd_tool/cli_types.py), magnitude 0 - 1e6, damping 0 - 1000 1/s
+# drivers a cell a floor may ask for (min_drivers_per_cell, fit_min_drivers_per_cell, and the
+# fit's record of it in a material file): pd_tool.drivers.build's MAX_PER_CELL
+DRIVERS_PER_CELL_RANGE = (0.0, 64.0)
 _RANGES = {
     "E": (1.0, 1e12), "nu": (0.0, 0.499), "density": (1e-3, 1e5), "grid_res": (10, 256),
     "cfl_safety": (0.05, 1.0), "driver_ratio": (1e-4, 1.0), "fit_velocity_iters": (0, 10000),
     "fit_material_iters": (0, 10000), "radius": (0.0, 10.0), "start": (0.0, 600.0),
     "duration": (0.0, 600.0), "magnitude": (0.0, 1e6), "damping": (0.0, 1e3),
     "fit_grid_res": (10, 256), "thin_grid_res": (10, 256), "fit_cfl_safety": (0.05, 1.0), "fit_driver_ratio": (1e-4, 1.0),
-    "min_drivers_per_cell": (0.0, 64.0), "fit_min_drivers_per_cell": (0.0, 64.0),
+    "min_drivers_per_cell": DRIVERS_PER_CELL_RANGE, "fit_min_drivers_per_cell": DRIVERS_PER_CELL_RANGE,
 }
 _OPTIONAL = {"materials": {"damping": float},
              # the fit's simulation settings; a quality preset without them fits with its bake settings
