@@ -24,7 +24,7 @@ from pd_tool.prepare.cells import Device, block_sums, cell_components, unique_ce
 from pd_tool.prepare.fill import PARTICLES_PER_CELL_AXIS, fill_interior, resample_fill
 from pd_tool.prepare.orient import direction, find_base, resolve_up, up_line
 from pd_tool.prepare.outliers import select_outliers
-from pd_tool.prepare.split import split_drivers, sub_particles
+from pd_tool.prepare.split import SubParticles, split_driver_count, split_drivers, sub_particles
 from pd_tool.prepare.thickness import describe_refinement, thin_parts
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -190,10 +190,11 @@ class PreparedScene:
     fill_source: np.ndarray | None = None  # [M] index into the foreground of each filled particle's source
     thin: Any = None  # pd_tool.prepare.thickness.ThinParts of the moving particles at this grid, or None
     grid_free: Any = None  # GridFree: what another grid's preparation takes over (prepare_scene(reuse=))
-    # splits() answers by (ratio, min_per_cell), split_count()'s by ("count", min_per_cell): a
-    # bake asks for its cost estimate, its drivers and its report, and each answer is a pass
-    # or two over every particle's (or sub-particle's) cell
-    _splits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    # what the floor of drivers a cell derives once: splits()' answers by (ratio, min_per_cell),
+    # split_count()'s by ("count", min_per_cell) and the sub-particles by "sub". A bake asks
+    # for its cost estimate, its drivers and its report, and each answer is a pass or two over
+    # every particle's (or sub-particle's) cell
+    _floor: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     # positions_sim/static/volumes/masses hold the F simulated Gaussians first, then the M
     # interior particles added by filling (simulated, never rendered).
@@ -259,12 +260,17 @@ class PreparedScene:
         many in each cell the moving sub-particles occupy. They spread over each Gaussian's
         extent, so a thin part's sub-particles cross 2-3 times the cells of its centres."""
         key = ("count", float(min_per_cell))
-        if key not in self._splits:
-            sub = sub_particles(self.scene, self)
-            free = sub.positions[~sub.static]
-            self._splits[key] = driver_count(free, self.dx, min_per_cell=int(math.ceil(min_per_cell))) if len(free) \
-                else 0
-        return int(self._splits[key])
+        if key not in self._floor:
+            self._floor[key] = split_driver_count(self.sub_particles(), self.dx, int(math.ceil(min_per_cell))) or 0
+        return int(self._floor[key])
+
+    def sub_particles(self) -> SubParticles:
+        """Every simulated particle as sub-particles over its Gaussian's extent
+        (pd_tool.prepare.split.sub_particles), on the CPU; made once, for the estimates'
+        count and the drivers clustered from them."""
+        if "sub" not in self._floor:
+            self._floor["sub"] = sub_particles(self.scene, self)
+        return self._floor["sub"]
 
     def splits(self, ratio: float | None, min_per_cell: float) -> bool:
         """Whether build_drivers clusters its moving drivers from sub-particles: the ratio
@@ -273,10 +279,10 @@ class PreparedScene:
         if min_per_cell <= 0 or not free.any():
             return False
         key = (ratio, float(min_per_cell))
-        if key not in self._splits:
+        if key not in self._floor:
             have = driver_count(torch.as_tensor(np.asarray(self.positions_sim)[free]), self.dx, ratio=ratio)
-            self._splits[key] = have < min_per_cell * self.moving_cells()
-        return self._splits[key]
+            self._floor[key] = have < min_per_cell * self.moving_cells()
+        return self._floor[key]
 
     def build_drivers(self, *, ratio: float | None, seed: int = 0, device: str | torch.device = "cpu",
                       min_per_cell: float = 0.0):
@@ -290,7 +296,8 @@ class PreparedScene:
         under a push. 0: no floor (the fit's own discretisation).
         """
         if self.splits(ratio, min_per_cell):
-            return split_drivers(self.scene, self, per_cell=int(math.ceil(min_per_cell)), seed=seed, device=device)
+            return split_drivers(self.scene, self, per_cell=int(math.ceil(min_per_cell)), seed=seed, device=device,
+                                 sub=self.sub_particles())
 
         def t(a, dtype=torch.float32):
             return torch.as_tensor(a, dtype=dtype, device=device)

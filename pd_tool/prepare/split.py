@@ -47,6 +47,11 @@ class SubParticles:
     def __len__(self) -> int:
         return int(self.positions.shape[0])
 
+    def to(self, device: str | torch.device) -> SubParticles:
+        """The same sub-particles with their tensors on `device`."""
+        return SubParticles(positions=self.positions.to(device), volume=self.volume.to(device),
+                            mass=self.mass.to(device), static=self.static.to(device), owner=self.owner)
+
 
 def sub_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int = SPLIT_PER_CELL,
                   most: int = SPLIT_MOST, device: str | torch.device = "cpu") -> SubParticles:
@@ -105,8 +110,16 @@ def split_particles(scene: GaussianScene, prep: PreparedScene, *, per_cell: int 
     return drivers, sub.owner
 
 
+def split_driver_count(sub: SubParticles, dx: float, per_cell: int = MIN_PER_CELL) -> int | None:
+    """Moving drivers split_drivers clusters from `sub`: `per_cell` in each grid cell (of
+    spacing dx) its moving sub-particles occupy, at most one per sub-particle; None where
+    none moves."""
+    free = sub.positions[~sub.static]
+    return driver_count(free, dx, min_per_cell=per_cell) if len(free) else None
+
+
 def split_drivers(scene: GaussianScene, prep: PreparedScene, *, per_cell: int = MIN_PER_CELL, seed: int = 0,
-                  device: str | torch.device = "cpu") -> DriverSet:
+                  device: str | torch.device = "cpu", sub: SubParticles | None = None) -> DriverSet:
     """Drivers clustered (K-Means) from the sub-particles, `per_cell` in each grid cell the
     moving sub-particles occupy (at most one per sub-particle), with prep's particles hung
     on their nearest drivers. Mass and volume are conserved per driver as in build_drivers.
@@ -114,10 +127,10 @@ def split_drivers(scene: GaussianScene, prep: PreparedScene, *, per_cell: int = 
     Against a converged reference, a 3,000-Gaussian plant on 48 cells moved 2.4% of its size
     off with 2.6 drivers a cell clustered from the Gaussians, and 0.17% with 8 a cell
     clustered from its sub-particles (docs/benchmarks.md, "Driving particles").
+    sub: `sub_particles(scene, prep)` when the caller has them already.
     """
-    sub = sub_particles(scene, prep, device=device)
-    free = sub.positions[~sub.static]
-    count = driver_count(free, prep.dx, min_per_cell=per_cell) if len(free) else None
+    sub = sub_particles(scene, prep, device=device) if sub is None else sub.to(device)
+    count = split_driver_count(sub, prep.dx, per_cell)
     d = build_drivers(sub.positions, sub.volume, sub.mass, sub.static, prep.dx, count=count, seed=seed)
     points = torch.as_tensor(np.asarray(prep.positions_sim), dtype=torch.float32, device=sub.positions.device)
     return d.hung_on(points)
