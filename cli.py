@@ -810,6 +810,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("--init-e", "init_e", type=T.FiniteFloat(1e3, 1e8, unit="Pa"), default=1e6, show_default=True,
               help="Starting Young's modulus, Pa (uniform), within the fitted field's bounds; stage 1 rescales "
                    "it unless --no-level.")
+@click.option("--init-material", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Start from this material file's E (an earlier fit of the same scene) instead of a uniform "
+                   "--init-e: each part takes the E of the nearest part of that fit. With --material-iters 0 "
+                   "--no-level only the initial velocity is fitted, under that E, and the report's final loss "
+                   "says how well that E explains these videos.")
 @click.option("--match-exposure/--no-match-exposure", default=True, show_default=True,
               help="Scale each video's renders by a gain per colour channel, fitted at rest (frame 0), so that the "
                    "camera's exposure and white balance do not count as motion.")
@@ -827,7 +832,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, level: bool, diffusion: float, working_size: int, init_e: float,
-        match_exposure: bool, nu: float, density: float, background: tuple[float, float, float], resume: bool,
+        init_material: Path | None, match_exposure: bool, nu: float, density: float, background: tuple[float, float, float], resume: bool,
         no_preview: bool, seed: int, max_minutes: float, device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.
 
@@ -855,6 +860,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
                                stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
+                               init_material=None if init_material is None else str(init_material),
                                match_exposure=match_exposure, nu=nu, density=density,
                                working_long_side=working_size, background=background, seed=seed,
                                device=resolve_device(device))

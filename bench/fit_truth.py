@@ -38,6 +38,10 @@ the uniform start and the best uniform E.
 `--set FIELD=VALUE` and `--fit-args` try another fit setting on every scene and field (a
 default must hold on all of them).
 
+`--losses` also asks whether the fit's own model prefers the truth: the whole-clip video
+loss under the fitted E, the true E and the uniform start, each with v0 refitted under it
+(`pdtool fit --init-material E --material-iters 0 --no-level`).
+
 `--control` simulates the reference videos with the fit's own grid, CFL safety and driver
 ratio instead: the inverse crime, kept as a labelled control so that its size stays
 visible. Targets at default quality: new-force error at least 3x below the uniform start
@@ -127,6 +131,10 @@ class Row:
     moving_share: float = math.nan
     errors: dict = field(default_factory=dict)  # bake name -> RMS / object size
     ratios: dict = field(default_factory=dict)  # "uniform start / fitted" etc.
+    # --losses: the fit's whole-clip video loss under an E, with v0 fitted under that E:
+    # "fitted" (the fit's own v0), and the fitted E, the true E and the uniform start, each
+    # with v0 refitted by stage 1 alone
+    losses: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)  # wall time per step
 
 
@@ -460,6 +468,20 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     # the uniform start on the fit's drivers: what the fit gained on its own discretisation
     start = MaterialFile(np.full(len(fitted_file.driver_rest), float(FitSettings().init_E)), fitted_file.driver_v0,
                          fitted_file.driver_rest, dict(fitted_file.meta), fitted_file.fields).save(folder / "start.pdmat")
+    if args.losses:
+        # Does the fit's own model prefer the truth? v0 refitted under each E (stage 1 alone,
+        # no level), then the whole-clip loss: the truth scoring above the fitted E means the
+        # model's discretisation or v0 field, not the optimiser, pulls E away from it
+        row.losses["fitted"] = float(fitted_file.meta["metrics"]["loss_final"])
+        for key, start_args in (("fitted, v0 refitted", ["--init-material", str(out)]),
+                                ("true E", ["--init-material", str(truth)]), ("uniform start", [])):
+            t0 = time.perf_counter()
+            again = folder / f"loss_{key.split(',')[0].replace(' ', '_')}.pdmat"
+            cli(["fit", str(scene_path), *map(str, videos), "-o", str(again), "--quality", args.quality, "--up", up,
+                 "--static-below", f"{static_below:.9g}", "--device", args.device, "--no-preview",
+                 "--material-iters", "0", "--no-level", *start_args])
+            row.losses[key] = float(MaterialFile.load(again).meta["metrics"]["loss_final"])
+            row.seconds[f"loss {key}"] = time.perf_counter() - t0
     bakes = {"fitted, as fit": (["--material", str(out)], []), "true E, as fit": (["--material", str(truth)], []),
              "uniform start, as fit": (["--material", str(start)], [])}
     for qname in args.bake_qualities:
@@ -530,6 +552,10 @@ def main() -> None:
                     help="override a FitSettings default of `pdtool fit`, e.g. --set driver_residual=false "
                          "(repeatable; the CLI's own flags still win)")
     ap.add_argument("--fit-args", default="", help="extra `pdtool fit` flags, e.g. '--diffusion 0.2'")
+    ap.add_argument("--losses", action="store_true",
+                    help="also the fit's whole-clip video loss under the fitted E, the true E and the uniform start, "
+                         "each with v0 refitted under it (three more stage-1 fits a row): does the fit's own "
+                         "model prefer the truth?")
     ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -564,6 +590,9 @@ def main() -> None:
                 print(f"{name:6} {kind:7} {row.fit_s:5.0f} {row.median_abs_ln:5.2f} {row.spearman:5.2f}  level "
                       f"{row.median_ln:+.2f} shape {row.shape_abs_ln:.2f} (|ln| of {base})  {errs}  |  {ratios}",
                       flush=True)
+                if row.losses:
+                    print("       whole-clip loss: " + "  ".join(f"{k} {v:.5f}" for k, v in row.losses.items()),
+                          flush=True)
                 print(f"       reference {row.reference_particles:,} particles, {row.reference_per_cell:.1f} a cell"
                       + ("" if not row.reference_check else "; on {grid} cells ({per_cell:.1f} a cell) RMS {rms:.2%}"
                          " of the size, peak x{peak_ratio:.3f}".format(**row.reference_check)), flush=True)

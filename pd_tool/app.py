@@ -64,7 +64,8 @@ class FitDone:
 def check_fit_destinations(job: FitJob) -> None:
     """Before a fit runs: its side outputs and the last-fit record replace only pdtool's
     own files, and a material file nobody named (SCENE.pdmat) only a pdtool material file."""
-    inputs = {"SCENE": job.scene, **{f"VIDEO {i}": v for i, v in enumerate(job.videos)}}
+    inputs = {"SCENE": job.scene, **{f"VIDEO {i}": v for i, v in enumerate(job.videos)},
+              "--init-material": job.settings.init_material}
     check_outputs({"--out": job.out}, {}, inputs)
     if not job.out_named and (job.out.exists() or job.out.is_symlink()) and not is_material_file(job.out):
         raise OutputError(f"{job.out}: exists and is not a pdtool material file, which the fit would replace; move "

@@ -19,6 +19,7 @@ from pd_tool.fit.diffusion import diffuse, diffusion_fractions
 from pd_tool.fit.fields import MaterialField, VelocityField
 from pd_tool.fit.losses import frame_loss
 from pd_tool.fit.settings import FitSettings
+from pd_tool.materials.file import MaterialFile
 from pd_tool.materials.presets import fit_simulation, load_preset
 from pd_tool.prepare.memory import check_memory, estimate_fit_memory
 from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
@@ -115,6 +116,14 @@ class FitProblem:
         the field's bounds): the inverse of driver_E's squash, for a stage that fits E per
         driver outside the field (calibrate). Needs driver_residual."""
         self.log_e_residual.copy_(torch.logit(self._unit(log_e)) - torch.logit(self._unit(self.material(self.x_norm))))
+
+    @torch.no_grad()
+    def start_from(self, material: MaterialFile) -> None:
+        """Start from a fitted material's E: each driver takes the E of the material's
+        nearest driver (MaterialFile.E_at), kept inside the field's bounds."""
+        rest = self.prep.transform.to_scene(self.x_rest.double().cpu().numpy())
+        log_e = torch.log(torch.as_tensor(material.E_at(rest), dtype=torch.float32, device=self.device))
+        self.set_driver_log_E(log_e.clamp(self.material.log_e_min, self.material.log_e_max))
 
     def residual_penalty(self) -> torch.Tensor:
         """FitSettings.residual_smoothness times the mean squared residual difference

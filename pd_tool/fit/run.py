@@ -17,7 +17,7 @@ import torch
 
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import DriverSet
-from pd_tool.fit.problem import FitProblem
+from pd_tool.fit.problem import FitProblem, sequence_loss
 from pd_tool.fit.refusals import FitLearnsNothing, check_fit_can_learn, check_learned, check_videos_can_teach
 from pd_tool.fit.resume import (
     check_checkpoint_destination,
@@ -43,7 +43,9 @@ class FitResult:
     driver_E: np.ndarray  # [Q] Pa, as written to the material file
     driver_v0: np.ndarray  # [Q, 3] m/s, the first video's fitted initial velocity
     gaussian_E: np.ndarray  # [F] per simulated Gaussian (its driver's E)
-    losses: dict[str, list[float]]  # per stage, one per iteration; "stage1_level": the folded levels, nats
+    # per stage, one per iteration; "stage1_level": the folded levels, nats; "final": the
+    # whole-clip loss of the result, one number
+    losses: dict[str, list[float]]
     seconds: dict[str, float]
     prep: PreparedScene
     drivers: DriverSet
@@ -84,7 +86,13 @@ def run_fit(
         raise FitLearnsNothing("--velocity-iters 0 and --material-iters 0 leave nothing to fit (the material file "
                                "would hold the starting E); give at least one iteration")
     check_checkpoint_destination(out, ckpt_path)
+    start = None
+    if s.init_material is not None:  # read and checked before any work
+        start = MaterialFile.load(s.init_material)
+        start.check_scene(scene_path, s.init_material)
     pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
+    if start is not None:
+        pb.start_from(start)
     check_videos_can_teach(videos)
     check_fit_can_learn(pb)
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
@@ -117,6 +125,9 @@ def run_fit(
     # ---- result
     with torch.no_grad():
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
+        # the whole-clip loss, every frame simulated from rest in one go: what the fitted E and
+        # v0 explain of the videos, on the same footing whatever the stages ran
+        losses["final"] = [float(sequence_loss(pb, pb.driver_E(), v0s, None))]
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
     try:
@@ -144,6 +155,7 @@ def run_fit(
             "loss_velocity_last": losses["velocity"][-1] if losses["velocity"] else None,
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
+            "loss_final": losses["final"][0],
             "skipped_material_steps": skipped,
             "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
             "calibration": None if calibration is None else {

@@ -95,6 +95,11 @@ class FitSettings:
     tv_weight: float = 1e-4
     loss_lambda: float = 0.1
     init_E: float = 1e6  # Pa, the uniform starting value (and the baseline it is compared with)
+    # A material file (.pdmat) of the same scene to start from instead of the uniform init_E:
+    # each driver takes its nearest fitted driver's E (a warm start). With material_iters 0 and
+    # stage1_level off only v0 is fitted, under that E, and losses["final"] says how well that
+    # E explains the videos (bench/fit_truth.py --losses compares the truth's E with the fit's).
+    init_material: str | None = None
     E_min: float = 1e3  # Pa, bounds of the material field
     E_max: float = 1e8
     velocity_scale: float = 1.0  # m/s per unit of the velocity field's output
@@ -139,6 +144,8 @@ class FitSettings:
             raise ValueError(f"calibrate_clusters must be at least 1, got {out.calibrate_clusters}")
         if out.stage1_level and not out.driver_residual:
             raise ValueError("stage1_level folds its offset into the per-driver residuals; keep driver_residual on")
+        if out.init_material is not None and not out.driver_residual:
+            raise ValueError("init_material sets the per-driver residuals; keep driver_residual on")
         if out.calibrate_iters and not out.driver_residual:
             raise ValueError("calibration folds its offsets into the per-driver residuals; keep driver_residual on")
         if out.velocity_iters is None:
