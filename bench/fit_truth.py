@@ -63,12 +63,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from usd_export import instance_positions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # fit_recovery's --set parser
 
-from pd_tool.prepare.split import SPLIT_MOST  # noqa: E402 (the repository is on the path from here)
+# the repository is on the path from here: its own packages, not an installed copy's
+from pd_tool.prepare.split import SPLIT_MOST  # noqa: E402
+from usd_export import instance_positions  # noqa: E402
 
 SCENES = {"plant": "+z", "udon": "-y", "donut": "-y", "tree": "-y"}
 CAPTURES = {"udon": "udon.ply", "donut": "donut_fused.ply", "tree": "tree_100k.splat"}  # under --data
