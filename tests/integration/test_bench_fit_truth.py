@@ -79,7 +79,7 @@ def test_set_gives_the_fits_settings_other_defaults_and_refuses_unknown_fields(m
 def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, shared_data) -> None:
     out = tmp_path / "ft.json"
     run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--quick", "--scenes", "udon",
-                          "--data", str(shared_data), "--json", str(out)], capture_output=True, text=True)
+                          "--losses", "--data", str(shared_data), "--json", str(out)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-3000:]
     row = json.loads(out.read_text())["rows"][0]
     err = row["errors"]
@@ -94,6 +94,13 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert 0 < err["true E, as fit"] < err["still"], err
     assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
     assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
+    # --losses: the whole-clip loss under each E, v0 refitted. The fit lowered its own
+    # loss below the uniform start's, and refitting v0 under the fitted E finds about it again
+    loss = row["losses"]
+    assert set(loss) == {"fitted", "fitted, v0 refitted", "true E", "uniform start"}, loss
+    assert all(0 < v < 1 for v in loss.values()), loss
+    assert loss["fitted"] < loss["uniform start"] and loss["fitted, v0 refitted"] < loss["uniform start"], loss
+    assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
 
 
 def test_the_reference_splits_its_particles_and_keeps_their_mass_and_E(shared_data) -> None:
