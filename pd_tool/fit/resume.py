@@ -178,6 +178,8 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     folds = rnd + (stage == "material") if s.stage1_level else 0
     if folds:
         lengths["stage1_level"] = folds
+    if mi > 0 and (rnd > 0 or stage == "material"):
+        lengths["start"] = 1  # the whole-clip loss when the first stage 2 began
     losses = state["losses"]
     if not isinstance(losses, dict) or set(losses) != set(lengths):
         raise bad(f"its loss histories are not {', '.join(sorted(lengths))}")

@@ -43,8 +43,9 @@ class FitResult:
     driver_E: np.ndarray  # [Q] Pa, as written to the material file
     driver_v0: np.ndarray  # [Q, 3] m/s, the first video's fitted initial velocity
     gaussian_E: np.ndarray  # [F] per simulated Gaussian (its driver's E)
-    # per stage, one per iteration; "stage1_level": the folded levels, nats; "final": the
-    # whole-clip loss of the result, one number
+    # per stage, one per iteration; "stage1_level": the folded levels, nats; "start" and
+    # "final": the whole-clip loss when stage 2 starts (absent without stage 2) and of the
+    # result, one number each
     losses: dict[str, list[float]]
     seconds: dict[str, float]
     prep: PreparedScene
@@ -61,6 +62,18 @@ class FitResult:
     settings: FitSettings | None = None
     cfl_safety: float | None = None
     substeps: tuple[int, int] | None = None
+
+
+def whole_clip_note(losses: dict[str, list[float]]) -> str | None:
+    """The report's line when stage 2 ended with a higher whole-clip loss than it started
+    from (losses["start"], losses["final"]), else None. Stage 2 follows one-frame gradients,
+    which can lower every step's loss while the clip as a whole drifts away (the donut of
+    bench/fit_truth.py)."""
+    start, final = losses.get("start"), losses.get("final")
+    if not start or not final or not final[0] > start[0]:
+        return None
+    return (f"stage 2 raised the whole-clip loss ({start[0]:.4f} -> {final[0]:.4f}): these videos constrain E weakly; "
+            f"another video, of another push or from another side, gives the fit more to go on")
 
 
 def run_fit(
@@ -128,6 +141,7 @@ def run_fit(
         # the whole-clip loss, every frame simulated from rest in one go: what the fitted E and
         # v0 explain of the videos, on the same footing whatever the stages ran
         losses["final"] = [float(sequence_loss(pb, pb.driver_E(), v0s, None))]
+        begun = losses.get("start")  # stage 2's start, on the same footing
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()
     try:
@@ -155,6 +169,7 @@ def run_fit(
             "loss_velocity_last": losses["velocity"][-1] if losses["velocity"] else None,
             "loss_material_first": losses["material"][0] if losses["material"] else None,
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
+            "loss_start": begun[0] if begun else None,
             "loss_final": losses["final"][0],
             "skipped_material_steps": skipped,
             "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
@@ -172,6 +187,9 @@ def run_fit(
     mf.save(out)
     remove_own_checkpoint(ckpt_path)
     report = list(p.report)
+    note = whole_clip_note(losses)
+    if note:
+        report.append(note)
     for i, g in enumerate(pb.gains):
         if float((g - 1.0).abs().max()) > 0.02:  # a camera that differs visibly from the splat's colours
             report.append(f"video {i}: exposure matched at rest, gain {' / '.join(f'{x:.2f}' for x in g.tolist())} "

@@ -249,6 +249,10 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             sc.load_state_dict(ckpt["scheduler" + suffix])
         start = ckpt["iteration"]
     skipped = 0
+    if start == 0 and rnd == 0 and s.material_iters > 0:
+        # the whole-clip loss stage 2 starts from, against which the fit's final one is read
+        with torch.no_grad():
+            losses["start"] = [float(sequence_loss(pb, pb.driver_E(), v0s, None))]
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
             save("material", 0, optimizers, losses, rnd)

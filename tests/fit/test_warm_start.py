@@ -64,6 +64,28 @@ def test_the_final_loss_is_the_whole_clip_loss_of_what_was_fitted(fit_dir: Path,
     assert again == pytest.approx(first.losses["final"][0], rel=1e-3)
 
 
+def test_stage_2_s_start_is_recorded_on_the_final_loss_s_footing(first_fit) -> None:
+    """losses["start"] is the whole-clip loss when stage 2 starts, under the E stage 1 left
+    (the uniform start times its level) and stage 1's v0, in the material file's metrics too."""
+    from pd_tool.materials.file import MaterialFile
+
+    folder, first = first_fit
+    start = first.losses["start"]
+    assert len(start) == 1 and 0 < start[0] < 1
+    assert MaterialFile.load(folder / "first.pdmat").meta["metrics"]["loss_start"] == start[0]
+    # two stage-2 steps from that start: the whole clip moved
+    assert first.losses["final"][0] != start[0]
+
+
+def test_the_report_says_when_stage_2_raised_the_whole_clip_loss() -> None:
+    from pd_tool.fit.run import whole_clip_note
+
+    note = whole_clip_note({"start": [0.0257], "final": [0.0333]})
+    assert note is not None and "0.0257 -> 0.0333" in note and "another video" in note
+    assert whole_clip_note({"start": [0.03], "final": [0.02]}) is None
+    assert whole_clip_note({"final": [0.02]}) is None  # no stage 2: nothing to compare
+
+
 def test_a_warm_start_is_refused_for_another_scene_or_as_the_output(fit_dir: Path, first_fit, tmp_path: Path) -> None:
     """One line, exit 2, nothing written: a material fitted to another scene file, and an
     output that would replace the material the fit starts from."""
