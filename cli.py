@@ -883,17 +883,16 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
     result, side, estimate = done.result, done.side, done.estimate
     import numpy as np
 
+    from pd_tool.fit.run import whole_clip_text
+
     for line in result.report:
         click.echo(line)
     if estimate is not None:
         click.echo(f"work estimate about {estimate.describe()} on {estimate.device} (--max-minutes {max_minutes:g})")
-    L = result.losses
-    # the whole-clip loss (every frame from rest) when stage 2 starts and at the end: the
-    # stages' own losses are on other footings (stage 1's first frames, stage 2's one-frame steps)
-    clip = " -> ".join(f"{L[k][0]:.4f}" for k in ("start", "final") if L.get(k))
     E = result.gaussian_E
     click.echo(f"wrote {out}: {len(result.driver_E):,} drivers, E median {np.median(E):.3g} Pa "
-               f"(5%-95%: {np.percentile(E, 5):.3g}-{np.percentile(E, 95):.3g}), whole-clip loss {clip}, "
+               f"(5%-95%: {np.percentile(E, 5):.3g}-{np.percentile(E, 95):.3g}), "
+               f"whole-clip loss {whole_clip_text(result.losses)}, "
                f"{sum(result.seconds.values()):.0f} s")
     for kind, path in side.items():
         click.echo(f"  {kind:<12} {path}")

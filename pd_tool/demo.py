@@ -19,6 +19,7 @@ from pd_tool.core.atomic import check_replaceable_folder, folder_mark, mark_fold
 from pd_tool.core.cameras import auto_camera
 from pd_tool.fit.settings import FitSettings
 from pd_tool.fit.reference import plant_reference_for_fit
+from pd_tool.fit.run import whole_clip_text
 from pd_tool.io import load_splats, save_splats
 from pd_tool.io.synthetic import POT_TOP, REGION_TRUTH_E, REGIONS, make_plant
 from pd_tool.prepare import PrepareOptions
@@ -124,8 +125,7 @@ def run_demo(out_dir: str | Path, *, quality: str = "default", device: str = "cp
             recovered[name] = float(np.median(result.gaussian_E[sel]))
     truth_moving = {k: v for k, v in REGION_TRUTH_E.items() if k in recovered}
     lines = [
-        f"fit   {fit_s:6.1f} s  ({len(result.driver_E)} drivers, loss "
-        f"{(result.losses['velocity'] or [float('nan')])[0]:.4f} -> {(result.losses['material'] or [float('nan')])[-1]:.4f})",
+        f"fit   {fit_s:6.1f} s  ({len(result.driver_E)} drivers, whole-clip loss {whole_clip_text(result.losses)})",
         "E     " + "  ".join(f"{k} {recovered[k]:.3g} Pa (truth {truth_moving[k]:.3g})" for k in recovered),
         f"bake  {bres.seconds_elapsed:6.1f} s  ({bres.frames} frames, {bres.substeps_per_frame} substeps/frame)",
     ]

@@ -64,6 +64,13 @@ class FitResult:
     substeps: tuple[int, int] | None = None
 
 
+def whole_clip_text(losses: dict[str, list[float]]) -> str:
+    """"START -> FINAL" of the whole-clip loss (FINAL alone without stage 2), for the lines
+    the CLI and the demo print: the stages' own losses are on other footings (stage 1's
+    first frames, stage 2's one-frame steps)."""
+    return " -> ".join(f"{losses[k][0]:.4f}" for k in ("start", "final") if losses.get(k))
+
+
 def whole_clip_note(losses: dict[str, list[float]]) -> str | None:
     """The report's line when stage 2 ended with a higher whole-clip loss than it started
     from (losses["start"], losses["final"]), else None. Stage 2 follows one-frame gradients,
