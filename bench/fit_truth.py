@@ -42,6 +42,10 @@ default must hold on all of them).
 loss under the fitted E, the true E and the uniform start, each with v0 refitted under it
 (`pdtool fit --init-material E --material-iters 0 --no-level`).
 
+`--fit-grid N` and `--fit-floor K` fit on N cells with at least K drivers a moving cell (a
+quality file derived from `--quality`): the fit's discretisation, against which the loss can
+or cannot tell the true E from a uniform one.
+
 `--control` simulates the reference videos with the fit's own grid, CFL safety and driver
 ratio instead: the inverse crime, kept as a labelled control so that its size stays
 visible. Targets at default quality: new-force error at least 3x below the uniform start
@@ -310,6 +314,23 @@ def override_fit_defaults(items: list[str]) -> None:
         "FitSettings", [(k, names[k].type, dataclasses.field(default=v)) for k, v in overrides.items()], bases=(base,))
 
 
+def fit_quality(quality: str, grid: int, floor: float | None, folder: Path) -> str:
+    """A quality file in `folder`: `quality` with the fit on `grid` cells (0: as it is) and
+    `floor` drivers a moving cell (None: as it is); its path. The bakes at a named quality
+    are unchanged."""
+    from pd_tool.materials.presets import load_preset
+
+    q = {k: v for k, v in load_preset("quality", quality).items() if k != "name"}
+    if grid:
+        q["fit_grid_res"] = grid
+    if floor is not None:
+        q["fit_min_drivers_per_cell"] = floor
+    path = Path(folder) / f"fit{grid or ''}_floor{floor if floor is not None else ''}.toml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in q.items()))
+    return str(path)
+
+
 def cli(args: list[str]) -> None:
     from click.testing import CliRunner
 
@@ -553,6 +574,10 @@ def main() -> None:
                     help="override a FitSettings default of `pdtool fit`, e.g. --set driver_residual=false "
                          "(repeatable; the CLI's own flags still win)")
     ap.add_argument("--fit-args", default="", help="extra `pdtool fit` flags, e.g. '--diffusion 0.2'")
+    ap.add_argument("--fit-grid", type=int, default=0,
+                    help="fit on this many cells instead of --quality's fit_grid_res (0: the quality's)")
+    ap.add_argument("--fit-floor", type=float, default=None,
+                    help="the fit's floor of drivers a moving cell instead of --quality's fit_min_drivers_per_cell")
     ap.add_argument("--losses", action="store_true",
                     help="also the fit's whole-clip video loss under the fitted E, the true E and the uniform start, "
                          "each with v0 refitted under it (three more stage-1 fits a row): does the fit's own "
@@ -569,6 +594,8 @@ def main() -> None:
         args.gaussians, args.quality = 3000, "draft"
         args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
+    if args.fit_grid or args.fit_floor is not None:
+        args.quality = fit_quality(args.quality, args.fit_grid, args.fit_floor, args.keep or Path(tempfile.mkdtemp()))
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
 
     from pd_tool.core.device import init_warp_quietly

@@ -126,3 +126,16 @@ def test_scene_gaussians_parses_counts_per_scene_and_refuses_others() -> None:
     for bad in ("bagel=10", "donut=", "donut=-5", "donut"):
         with pytest.raises(argparse.ArgumentTypeError, match="SCENE=N"):
             ft.scene_counts(bad)
+
+
+def test_fit_quality_changes_only_the_fit_s_grid_and_floor(tmp_path: Path) -> None:
+    from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
+
+    base = load_preset("quality", "default")
+    q = load_preset("quality", ft.fit_quality("default", 64, 8.0, tmp_path))
+    assert fit_simulation(q) == (64, base["fit_cfl_safety"], base["fit_driver_ratio"])
+    assert fit_min_per_cell(q) == 8.0 and fit_min_per_cell(base) == 0.0
+    assert {k: v for k, v in q.items() if not k.startswith("fit_") and k != "name"} == \
+        {k: v for k, v in base.items() if not k.startswith("fit_") and k != "name"}
+    assert fit_simulation(load_preset("quality", ft.fit_quality("default", 0, 4.0, tmp_path)))[0] == \
+        base["fit_grid_res"]
