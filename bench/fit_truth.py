@@ -594,8 +594,6 @@ def main() -> None:
         args.gaussians, args.quality = 3000, "draft"
         args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
-    if args.fit_grid or args.fit_floor is not None:
-        args.quality = fit_quality(args.quality, args.fit_grid, args.fit_floor, args.keep or Path(tempfile.mkdtemp()))
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
 
     from pd_tool.core.device import init_warp_quietly
@@ -608,6 +606,8 @@ def main() -> None:
         args.keep.mkdir(parents=True)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = args.keep or tmp
+        if args.fit_grid or args.fit_floor is not None:  # the fit's discretisation, from a derived quality file
+            args.quality = fit_quality(args.quality, args.fit_grid, args.fit_floor, Path(tmp))
         for name in args.scenes.split(","):
             for kind in args.fields.split(","):
                 row = run_case(name, kind, args, Path(tmp))
