@@ -315,7 +315,7 @@ def override_fit_defaults(items: list[str]) -> None:
 
 
 def fit_quality(quality: str, grid: int, floor: float | None, folder: Path) -> str:
-    """A quality file in `folder`: `quality` with the fit on `grid` cells (0: as it is) and
+    """A quality file in the existing `folder`: `quality` with the fit on `grid` cells (0: as it is) and
     `floor` drivers a moving cell (None: as it is); its path. The bakes at a named quality
     are unchanged."""
     from pd_tool.materials.presets import load_preset
@@ -326,7 +326,6 @@ def fit_quality(quality: str, grid: int, floor: float | None, folder: Path) -> s
     if floor is not None:
         q["fit_min_drivers_per_cell"] = floor
     path = Path(folder) / f"fit{grid or ''}_floor{floor if floor is not None else ''}.toml"
-    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in q.items()))
     return str(path)
 
@@ -464,10 +463,16 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     t0 = time.perf_counter()
     videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed)
     row.seconds["videos"] = time.perf_counter() - t0
+
+    def fit(material: Path, *extra: str) -> None:
+        """`pdtool fit` of the videos to `material`, as the row's fit runs (--fit-args), then `extra`."""
+        cli(["fit", str(scene_path), *map(str, videos), "-o", str(material), "--quality", args.quality, "--up", up,
+             "--static-below", f"{static_below:.9g}", "--device", args.device, "--no-preview",
+             *args.fit_args.split(), *extra])
+
     t0 = time.perf_counter()
     out = folder / "fit.pdmat"
-    cli(["fit", str(scene_path), *map(str, videos), "-o", str(out), "--quality", args.quality, "--up", up,
-         "--static-below", f"{static_below:.9g}", "--device", args.device, "--no-preview", *args.fit_args.split()])
+    fit(out)
     row.fit_s = time.perf_counter() - t0
     E_fit = MaterialFile.load(out).E_at(pos)
     sel = moved > MOVING * size
@@ -499,9 +504,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                 ("true E", ["--init-material", str(truth)]), ("uniform start", [])):
             t0 = time.perf_counter()
             again = folder / f"loss_{key.split(',')[0].replace(' ', '_')}.pdmat"
-            cli(["fit", str(scene_path), *map(str, videos), "-o", str(again), "--quality", args.quality, "--up", up,
-                 "--static-below", f"{static_below:.9g}", "--device", args.device, "--no-preview",
-                 "--material-iters", "0", "--no-level", *start_args])
+            fit(again, "--material-iters", "0", "--no-level", *start_args)
             row.losses[key] = float(MaterialFile.load(again).meta["metrics"]["loss_final"])
             row.seconds[f"loss {key}"] = time.perf_counter() - t0
     bakes = {"fitted, as fit": (["--material", str(out)], []), "true E, as fit": (["--material", str(truth)], []),

@@ -203,3 +203,10 @@ def sequence_loss(pb: FitProblem, E: torch.Tensor, v0s: list[torch.Tensor], hori
             total = total + pb.frame_loss(i, k, pb.render(i, state[0]))
             count += 1
     return total / max(count, 1)
+
+
+@torch.no_grad()
+def whole_clip_loss(pb: FitProblem, v0s: list[torch.Tensor]) -> float:
+    """sequence_loss under the current driver E with no gradient horizon: every frame of
+    every video simulated from rest in one go (FitResult.losses "start" and "final")."""
+    return float(sequence_loss(pb, pb.driver_E(), v0s, None))

@@ -17,7 +17,7 @@ import torch
 
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import DriverSet
-from pd_tool.fit.problem import FitProblem, sequence_loss
+from pd_tool.fit.problem import FitProblem, whole_clip_loss
 from pd_tool.fit.refusals import FitLearnsNothing, check_fit_can_learn, check_learned, check_videos_can_teach
 from pd_tool.fit.resume import (
     check_checkpoint_destination,
@@ -106,13 +106,13 @@ def run_fit(
         raise FitLearnsNothing("--velocity-iters 0 and --material-iters 0 leave nothing to fit (the material file "
                                "would hold the starting E); give at least one iteration")
     check_checkpoint_destination(out, ckpt_path)
-    start = None
-    if s.init_material is not None:  # read and checked before any work
-        start = MaterialFile.load(s.init_material)
-        start.check_scene(scene_path, s.init_material)
+    warm = None  # the material a warm start begins from, read and checked before any work
+    if s.init_material is not None:
+        warm = MaterialFile.load(s.init_material)
+        warm.check_scene(scene_path, s.init_material)
     pb = FitProblem(scene, videos, prepare_options or PrepareOptions(), s)  # refuses what cannot fit in memory
-    if start is not None:
-        pb.start_from(start)
+    if warm is not None:
+        pb.start_from(warm)
     check_videos_can_teach(videos)
     check_fit_can_learn(pb)
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
@@ -147,7 +147,7 @@ def run_fit(
         v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         # the whole-clip loss, every frame simulated from rest in one go: what the fitted E and
         # v0 explain of the videos, on the same footing whatever the stages ran
-        losses["final"] = [float(sequence_loss(pb, pb.driver_E(), v0s, None))]
+        losses["final"] = [whole_clip_loss(pb, v0s)]
         begun = losses.get("start")  # stage 2's start, on the same footing
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()

@@ -22,7 +22,7 @@ from typing import Any, Callable
 
 import torch
 
-from pd_tool.fit.problem import FitProblem, sequence_loss
+from pd_tool.fit.problem import FitProblem, sequence_loss, whole_clip_loss
 from pd_tool.fit.schedule import make_optimizer, make_tensor_optimizer
 from pd_tool.fit.settings import FitSettings
 
@@ -251,8 +251,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
     skipped = 0
     if start == 0 and rnd == 0 and s.material_iters > 0:
         # the whole-clip loss stage 2 starts from, against which the fit's final one is read
-        with torch.no_grad():
-            losses["start"] = [float(sequence_loss(pb, pb.driver_E(), v0s, None))]
+        losses["start"] = [whole_clip_loss(pb, v0s)]
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
             save("material", 0, optimizers, losses, rnd)
