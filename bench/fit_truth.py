@@ -46,6 +46,9 @@ loss under the fitted E, the true E and the uniform start, each with v0 refitted
 quality file derived from `--quality`): the fit's discretisation, against which the loss can
 or cannot tell the true E from a uniform one.
 
+`--clean` writes the reference videos as rendered, without the camera's blur, exposure
+change and noise.
+
 `--control` simulates the reference videos with the fit's own grid, CFL safety and driver
 ratio instead: the inverse crime, kept as a labelled control so that its size stays
 visible. Targets at default quality: new-force error at least 3x below the uniform start
@@ -239,9 +242,10 @@ def per_cell(prep, drivers) -> float:
 
 
 def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, frames: int, device: str,
-                     seed: int) -> tuple[list[Path], np.ndarray]:
-    """Write the two reference videos; returns their folders and each Gaussian's largest
-    displacement in them [N] (scene units)."""
+                     seed: int, clean: bool = False) -> tuple[list[Path], np.ndarray]:
+    """Write the two reference videos (as rendered with `clean`, else degraded as a camera
+    would); returns their folders and each Gaussian's largest displacement in them [N]
+    (scene units)."""
     from pd_tool.core.cameras import auto_camera
     from pd_tool.video.folder import write_video_folder
     from pd_tool.fit.reference import push_velocity, simulate_reference
@@ -260,7 +264,8 @@ def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, f
                                                                            speed=PUSH_SPEED),
                                     cam, n_frames=frames, fps=30.0, nu=0.3, cfl_safety=cfl, device=device,
                                     displacement=moved)
-        out.append(write_video_folder(folder / f"video{k}", degrade(images, rng), cam, 30.0, overwrite=True))
+        frames_out = images if clean else degrade(images, rng)
+        out.append(write_video_folder(folder / f"video{k}", frames_out, cam, 30.0, overwrite=True))
     return out, moved
 
 
@@ -461,7 +466,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     if args.reference_only:
         return row
     t0 = time.perf_counter()
-    videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed)
+    videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed,
+                                     args.clean)
     row.seconds["videos"] = time.perf_counter() - t0
 
     def fit(material: Path, *extra: str) -> None:
@@ -586,6 +592,9 @@ def main() -> None:
                          "each with v0 refitted under it (three more stage-1 fits a row): does the fit's own "
                          "model prefer the truth?")
     ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
+    ap.add_argument("--clean", action="store_true",
+                    help="reference videos as rendered: no blur, exposure change or noise (with --losses: does "
+                         "the camera's degradation, or the model, let the fit prefer another E to the truth?)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")

@@ -25,14 +25,15 @@ from pd_tool.fit.checkpoint import (
 )
 from pd_tool.fit.problem import FitProblem
 from pd_tool.fit.settings import FitSettings
-from pd_tool.fit.stages import Optimizers, stage_optimizers
+from pd_tool.fit.stages import Kept, Optimizers, measure_points, stage_optimizers
 from pd_tool.materials.file import scene_fingerprint
 
 
 def save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, optimizers: Optimizers,
-                    losses: dict[str, list[float]], rnd: int = 0) -> None:
-    """Write the fit's state after `it` iterations of `stage` in round `rnd` (the file
-    format: pd_tool/fit/checkpoint.py; what it must hold: check_checkpoint)."""
+                    losses: dict[str, list[float]], rnd: int = 0, kept: Kept | None = None) -> None:
+    """Write the fit's state after `it` iterations of `stage` in round `rnd`, with the state
+    stage 2 keeps so far (`kept`, keep_best_every) (the file format:
+    pd_tool/fit/checkpoint.py; what it must hold: check_checkpoint)."""
     state: dict[str, Any] = {
         "stage": stage, "iteration": it, "round": rnd,
         "material": pb.material.state_dict(), "velocities": pb.velocities.state_dict(),
@@ -43,6 +44,8 @@ def save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, optimizers:
     }
     for suffix, (opt, sched) in optimizers.items():
         state["optimizer" + suffix], state["scheduler" + suffix] = opt.state_dict(), sched.state_dict()
+    if kept is not None:
+        state.update(kept.to_state())
     write_checkpoint(path, state, getattr(pb, "resume_key", {}))  # run_fit sets the key; a bare FitProblem has none
 
 
@@ -147,6 +150,10 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     optimizers = stage_optimizers(pb, s, stage)
     want = {"stage", "iteration", "round", "material", "velocities", "residual", "level", "losses", "torch_rng"}
     want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
+    points = measure_points(s)
+    keeping = stage == "material" and bool(points)
+    if keeping:
+        want |= {"kept_material", "kept_velocities", "kept_residual", "kept_at"}
     if set(state) != want:
         missing, unknown = sorted(want - set(state)), sorted(map(str, set(state) - want))
         raise bad(f"it lacks {', '.join(missing)}" if missing else f"it holds unknown entries {', '.join(unknown)}")
@@ -167,6 +174,14 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     tensor("residual", state["residual"], pb.log_e_residual.detach())
     tensor("level", state["level"], pb.log_e_level.detach())
     tensor("torch_rng", state["torch_rng"], torch.get_rng_state())
+    if keeping:  # the state stage 2 keeps so far, measured at its start or a measure point up to `it`
+        module("kept_material", state["kept_material"], pb.material.state_dict())
+        module("kept_velocities", state["kept_velocities"], pb.velocities.state_dict())
+        tensor("kept_residual", state["kept_residual"], pb.log_e_residual.detach())
+        tensor("kept_at", state["kept_at"], torch.zeros(2, dtype=torch.float64))
+        at = float(state["kept_at"][1])
+        if at not in [0, *(p for p in points if p <= it)]:
+            raise bad(f"kept_at names iteration {at:g}, where this fit measures at 0 and {points} up to {it}")
     for suffix, (opt, sched) in optimizers.items():
         _check_optimizer(bad, "optimizer" + suffix, state["optimizer" + suffix], opt, sched, it, tensor)
         _check_scheduler(bad, "scheduler" + suffix, state["scheduler" + suffix], sched, it)
@@ -180,6 +195,10 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         lengths["stage1_level"] = folds
     if mi > 0 and (rnd > 0 or stage == "material"):
         lengths["start"] = 1  # the whole-clip loss when the first stage 2 began
+    if points:  # keep_best_every: each stage 2's measures (its start, then `points`), and each finished one's keep
+        lengths["whole_clip"] = rnd * (1 + len(points)) + (1 + sum(p <= it for p in points) if keeping else 0)
+        lengths["kept"] = rnd
+    lengths = {k: n for k, n in lengths.items() if n > 0 or k in ("velocity", "material")}
     losses = state["losses"]
     if not isinstance(losses, dict) or set(losses) != set(lengths):
         raise bad(f"its loss histories are not {', '.join(sorted(lengths))}")

@@ -28,7 +28,7 @@ from pd_tool.fit.resume import (
     save_checkpoint,
 )
 from pd_tool.fit.settings import FitSettings
-from pd_tool.fit.stages import ProgressFn, calibrate, fit_round
+from pd_tool.fit.stages import ProgressFn, calibrate, fit_round, measure_points
 from pd_tool.materials.file import MaterialFile, scene_fingerprint
 from pd_tool.prepare.preparation import PreparedScene, PrepareOptions
 from pd_tool.video.folder import ReferenceVideo
@@ -71,16 +71,25 @@ def whole_clip_text(losses: dict[str, list[float]]) -> str:
     return " -> ".join(f"{losses[k][0]:.4f}" for k in ("start", "final") if losses.get(k))
 
 
-def whole_clip_note(losses: dict[str, list[float]]) -> str | None:
-    """The report's line when stage 2 ended with a higher whole-clip loss than it started
-    from (losses["start"], losses["final"]), else None. Stage 2 follows one-frame gradients,
-    which can lower every step's loss while the clip as a whole drifts away (the donut of
-    bench/fit_truth.py)."""
+def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None) -> str | None:
+    """The report's line when stage 2 raised the whole-clip loss, else None: when the last
+    round kept an earlier state than its last (losses["kept"], keep_best_every of the fit's
+    settings `s`), or, keeping none, ended above its start (losses["start"],
+    losses["final"]). Stage 2 follows one-frame gradients, which can lower every step's loss
+    while the clip as a whole drifts away (the donut of bench/fit_truth.py)."""
+    weak = "these videos constrain E weakly; another video, of another push or from another side, gives the fit more to go on"
+    kept, measures = losses.get("kept"), losses.get("whole_clip")
+    points = measure_points(s) if s is not None else []
+    if kept and measures and points and kept[-1] < points[-1]:
+        at = int(kept[-1])
+        last_round = measures[-1 - len(points):]  # its start, then each measure point
+        where = "the E stage 1 left" if at == 0 else f"the E of its iteration {at}"
+        return (f"stage 2 raised the whole-clip loss ({min(last_round):.4f} at its best, {last_round[-1]:.4f} at its "
+                f"end): the fit keeps {where}; {weak}")
     start, final = losses.get("start"), losses.get("final")
-    if not start or not final or not final[0] > start[0]:
+    if kept or not start or not final or not final[0] > start[0]:
         return None
-    return (f"stage 2 raised the whole-clip loss ({start[0]:.4f} -> {final[0]:.4f}): these videos constrain E weakly; "
-            f"another video, of another push or from another side, gives the fit more to go on")
+    return f"stage 2 raised the whole-clip loss ({start[0]:.4f} -> {final[0]:.4f}): {weak}"
 
 
 def run_fit(
@@ -178,6 +187,8 @@ def run_fit(
             "loss_material_last": losses["material"][-1] if losses["material"] else None,
             "loss_start": begun[0] if begun else None,
             "loss_final": losses["final"][0],
+            # keep_best_every: the stage-2 iteration whose state the last round kept (0: its start)
+            "kept_iteration": int(losses["kept"][-1]) if losses.get("kept") else None,
             "skipped_material_steps": skipped,
             "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
             "calibration": None if calibration is None else {
@@ -194,7 +205,7 @@ def run_fit(
     mf.save(out)
     remove_own_checkpoint(ckpt_path)
     report = list(p.report)
-    note = whole_clip_note(losses)
+    note = whole_clip_note(losses, s)
     if note:
         report.append(note)
     for i, g in enumerate(pb.gains):

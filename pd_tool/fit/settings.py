@@ -36,6 +36,12 @@ class FitSettings:
     # wins where E rises above what the floor allows (a fixed count would blow up there).
     substeps: int | None = None
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
+    # Stage 2 steps on one-frame gradients, which can lower every step's loss while the clip
+    # as a whole drifts away (on the donut of bench/fit_truth.py one of two runs ended above
+    # its start). Every this many stage-2 iterations, and at its end, the whole-clip loss is
+    # measured, and the round keeps the state that scored lowest, its start included. Each
+    # measure costs about one stage-2 iteration's forward pass. 0: keep the last state.
+    keep_best_every: int = 10
     # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
     # the fastest, as a bake does). MPM loses energy in every transfer, so the count sets the
     # model's damping; with the maximum, a few outlying stiff drivers set it for the whole
@@ -130,6 +136,8 @@ class FitSettings:
         out = FitSettings(**asdict(self))
         if out.rounds < 1:
             raise ValueError(f"rounds must be at least 1, got {out.rounds}")
+        if out.keep_best_every < 0:
+            raise ValueError(f"keep_best_every must be at least 0 (0: off), got {out.keep_best_every}")
         if out.polish_iters < 0:
             raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
         if not 0.0 < out.cfl_quantile <= 1.0:

@@ -7,7 +7,8 @@
 2. material: v0 frozen (or refined, `refine_velocity`); optimise the shared E field and the
    per-driver residuals over all frames, each frame simulated from the detached state of
    the previous one (a `material_horizon`-frame gradient horizon), the last `polish_iters`
-   iterations through every frame;
+   iterations through every frame; every `keep_best_every` iterations the whole clip is
+   simulated again, and the stage ends in the state that explained it best (`Kept`);
 3. calibration (`calibrate_iters`): a few whole-clip numbers, one log-E offset per
    stiffness cluster of the fitted field and one speed gain per video, fitted with the
    exact gradient through every frame.
@@ -30,8 +31,64 @@ ProgressFn = Callable[[str, int, int, float], None]  # stage, iteration, total, 
 # A stage's optimisers and learning-rate schedules by checkpoint suffix (see stage_optimizers)
 Optimizers = dict[str, tuple[Any, Any]]
 # Called when a checkpoint is due: (stage, iterations done, the stage's optimisers, the loss
-# histories, round)
-CheckpointFn = Callable[[str, int, Optimizers, dict[str, list[float]], int], None]
+# histories, round, the state stage 2 keeps so far or None)
+CheckpointFn = Callable[[str, int, Optimizers, dict[str, list[float]], int, "Kept | None"], None]
+
+
+def measure_points(s: FitSettings) -> list[int]:
+    """The stage-2 iterations after which a round measures its whole-clip loss for
+    keep_best_every (the last always; none when it is 0)."""
+    n, every = s.material_iters, s.keep_best_every
+    return [k for k in range(1, n + 1) if k % every == 0 or k == n] if every > 0 else []
+
+
+class Kept:
+    """The stage-2 state with the lowest whole-clip loss measured so far in a round
+    (keep_best_every): the E field's weights, the residuals and the velocity fields (which
+    move only with refine_velocity), the loss and the stage-2 iteration it was measured
+    after (0: the stage's start)."""
+
+    def __init__(self, material: dict, velocities: dict, residual: torch.Tensor, loss: float, iteration: int):
+        self.material, self.velocities, self.residual = material, velocities, residual
+        self.loss, self.iteration = loss, iteration
+
+    @classmethod
+    def of(cls, pb: FitProblem, loss: float, iteration: int) -> "Kept":
+        def copy(sd: dict) -> dict:
+            return {k: v.detach().clone() for k, v in sd.items()}
+        return cls(copy(pb.material.state_dict()), copy(pb.velocities.state_dict()), pb.log_e_residual.detach().clone(),
+                   loss, iteration)
+
+    def offer(self, pb: FitProblem, loss: float, iteration: int) -> None:
+        """Keep pb's state instead when `loss` is finite and lower (or the kept one is not finite)."""
+        if math.isfinite(loss) and not loss >= self.loss:
+            better = Kept.of(pb, loss, iteration)
+            self.material, self.velocities, self.residual = better.material, better.velocities, better.residual
+            self.loss, self.iteration = loss, iteration
+
+    def restore(self, pb: FitProblem) -> None:
+        with torch.no_grad():
+            pb.material.load_state_dict(self.material)
+            pb.velocities.load_state_dict(self.velocities)
+            pb.log_e_residual.copy_(self.residual)
+
+    def to_state(self) -> dict[str, Any]:
+        """Checkpoint entries (pd_tool.fit.resume)."""
+        return {"kept_material": self.material, "kept_velocities": self.velocities, "kept_residual": self.residual,
+                "kept_at": torch.tensor([self.loss, float(self.iteration)], dtype=torch.float64)}
+
+    @classmethod
+    def from_state(cls, state: dict, device: torch.device | str) -> "Kept":
+        loss, iteration = state["kept_at"].tolist()
+        return cls({k: v.to(device) for k, v in state["kept_material"].items()},
+                   {k: v.to(device) for k, v in state["kept_velocities"].items()},
+                   state["kept_residual"].to(device), loss, int(iteration))
+
+
+def current_v0s(pb: FitProblem) -> list[torch.Tensor]:
+    """Each video's initial driver velocities [Q, 3] m/s, detached."""
+    with torch.no_grad():
+        return [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
 
 
 def _clip_and_step(params: list[torch.Tensor], opt: Any, sched: Any, clip: float) -> bool:
@@ -229,15 +286,14 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         if progress:
             progress("velocity" + tag, it + 1, s.velocity_iters, loss)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.velocity_iters:
-            save("velocity", it + 1, optimizers, losses, rnd)
+            save("velocity", it + 1, optimizers, losses, rnd, None)
     if s.stage1_level and (ckpt is None or ckpt["stage"] == "velocity"):
         losses.setdefault("stage1_level", []).append(fold_level(pb))
     seconds["velocity"] = seconds.get("velocity", 0.0) + time.perf_counter() - t0
 
     # ---- stage 2: material (v0 frozen, or refined at a lower rate)
     t0 = time.perf_counter()
-    with torch.no_grad():
-        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
+    v0s = current_v0s(pb)
     optimizers = stage_optimizers(pb, s, "material")
     opt, sched = optimizers[""]
     opt_r, sched_r = optimizers.get("_r", (None, None))
@@ -249,12 +305,21 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             sc.load_state_dict(ckpt["scheduler" + suffix])
         start = ckpt["iteration"]
     skipped = 0
-    if start == 0 and rnd == 0 and s.material_iters > 0:
-        # the whole-clip loss stage 2 starts from, against which the fit's final one is read
-        losses["start"] = [whole_clip_loss(pb, v0s)]
+    kept = None
+    points = measure_points(s)
+    if ckpt is not None and ckpt["stage"] == "material" and points:
+        kept = Kept.from_state(ckpt, pb.device)
+    elif start == 0 and s.material_iters > 0 and (rnd == 0 or points):
+        first = whole_clip_loss(pb, v0s)
+        if rnd == 0:
+            # the whole-clip loss stage 2 starts from, against which the fit's final one is read
+            losses["start"] = [first]
+        if points:
+            kept = Kept.of(pb, first, 0)
+            losses.setdefault("whole_clip", []).append(first)
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
-            save("material", 0, optimizers, losses, rnd)
+            save("material", 0, optimizers, losses, rnd, kept)
         horizon = None if it >= s.material_iters - s.polish_iters else s.material_horizon
         loss = material_iteration(pb, None if s.refine_velocity else v0s, horizon)
         if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
@@ -268,7 +333,15 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         losses["material"].append(loss)
         if progress:
             progress("material" + tag, it + 1, s.material_iters, loss)
+        if kept is not None and it + 1 in points:
+            measured = whole_clip_loss(pb, current_v0s(pb) if s.refine_velocity else v0s)
+            losses["whole_clip"].append(measured)
+            kept.offer(pb, measured, it + 1)
         if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            save("material", it + 1, optimizers, losses, rnd)
+            save("material", it + 1, optimizers, losses, rnd, kept)
+    if kept is not None:
+        if kept.iteration != s.material_iters:
+            kept.restore(pb)
+        losses.setdefault("kept", []).append(float(kept.iteration))
     seconds["material"] = seconds.get("material", 0.0) + time.perf_counter() - t0
     return skipped

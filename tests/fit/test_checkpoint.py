@@ -313,6 +313,9 @@ RESUME_CASES = [
      ": scheduler is not this fit's learning-rate schedule"),
     ("step count", lambda g, m: _craft(g[0], lambda st: st["optimizer"]["state"][0].__setitem__(
         "step", torch.tensor(1e9))), ": optimizer has a step count outside 1-1"),
+    ("kept state", lambda g, m: _craft(g[0], _pop("kept_residual")), ": it lacks kept_residual"),
+    ("kept iteration", lambda g, m: _craft(g[0], _set("kept_at", torch.tensor([0.01, 7.0], dtype=torch.float64))),
+     r": kept_at names iteration 7, where this fit measures at 0 and \[2\] up to 1"),
     ("loss history", lambda g, m: _craft(g[0], lambda st: st["losses"].__setitem__(
         "material", torch.zeros(5, dtype=torch.float64))), r": losses\.material is torch\.float64 \[5\]"),
 ]

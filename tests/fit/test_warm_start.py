@@ -80,7 +80,7 @@ def test_stage_2_s_start_is_recorded_on_the_final_loss_s_footing(first_fit) -> N
 def test_the_report_says_when_stage_2_raised_the_whole_clip_loss() -> None:
     from pd_tool.fit.run import whole_clip_note, whole_clip_text
 
-    note = whole_clip_note({"start": [0.0257], "final": [0.0333]})
+    note = whole_clip_note({"start": [0.0257], "final": [0.0333]})  # a fit that keeps no best state
     assert note is not None and "0.0257 -> 0.0333" in note and "another video" in note
     assert whole_clip_note({"start": [0.03], "final": [0.02]}) is None
     assert whole_clip_note({"final": [0.02]}) is None  # no stage 2: nothing to compare

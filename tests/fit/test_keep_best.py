@@ -1,0 +1,63 @@
+"""Stage 2 keeps the state that explained the whole clip best (keep_best_every): a step that
+lowers the one-frame losses can still raise the whole clip's."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_outputs import _tiny_fit
+
+
+def _fit(fit_dir: Path, out: Path, **kw):
+    from pd_tool.fit.settings import FitSettings
+
+    settings = FitSettings(quality="draft", velocity_iters=1, material_iters=3, working_long_side=24,
+                           stage1_level=False, **kw)
+    return _tiny_fit(fit_dir, out, settings)[2]
+
+
+def test_an_overshooting_stage_2_ends_in_its_best_measured_state(fit_dir: Path, tmp_path: Path) -> None:
+    """Steps of a nat of E overshoot: the whole-clip loss measured after each iteration rises
+    above an earlier one's, the fit returns the E of the lowest, and says so in its report;
+    with keep_best_every 0 the same fit ends in its last state."""
+    from pd_tool.materials.file import MaterialFile
+
+    kept = _fit(fit_dir, tmp_path / "kept.pdmat", keep_best_every=1, lr_material=1.0, lr_residual=1.0)
+    last = _fit(fit_dir, tmp_path / "last.pdmat", keep_best_every=0, lr_material=1.0, lr_residual=1.0)
+    measures = kept.losses["whole_clip"]
+    assert len(measures) == 4 and measures[0] == kept.losses["start"][0]  # the start, then after each iteration
+    best = int(np.argmin(measures))
+    assert best < 3 and measures[-1] > measures[best], f"no overshoot to test: {measures}"
+    assert kept.losses["kept"] == [float(best)]
+    # the fit ends where it measured its best: the same loss, simulated again
+    assert kept.losses["final"][0] == pytest.approx(measures[best], rel=1e-4)
+    # the last state's loss is the keeping fit's last measure, higher than the kept one
+    assert last.losses["final"][0] == pytest.approx(measures[-1], rel=1e-4) and last.losses["final"][0] > measures[best]
+    assert "kept" not in last.losses and "whole_clip" not in last.losses
+    if best == 0:  # the stage's start: E as stage 1 left it, the uniform start
+        np.testing.assert_allclose(kept.driver_E, np.full_like(kept.driver_E, 1e6), rtol=1e-5)
+    assert not np.allclose(kept.driver_E, last.driver_E)
+    mf = MaterialFile.load(tmp_path / "kept.pdmat")
+    assert mf.meta["metrics"]["kept_iteration"] == best
+    assert any("stage 2 raised the whole-clip loss" in line and "the fit keeps" in line for line in kept.report)
+
+
+def test_measure_points_and_the_note() -> None:
+    from pd_tool.fit.run import whole_clip_note
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.fit.stages import measure_points
+
+    assert measure_points(FitSettings(material_iters=40, keep_best_every=10)) == [10, 20, 30, 40]
+    assert measure_points(FitSettings(material_iters=15, keep_best_every=10)) == [10, 15]
+    assert measure_points(FitSettings(material_iters=15, keep_best_every=0)) == []
+    s = FitSettings(material_iters=15, keep_best_every=10)
+    note = whole_clip_note({"whole_clip": [0.03, 0.02, 0.04], "kept": [10.0], "start": [0.03], "final": [0.02]}, s)
+    assert note is not None and "0.0200 at its best, 0.0400 at its end" in note and "iteration 10" in note
+    note = whole_clip_note({"whole_clip": [0.03, 0.05, 0.04], "kept": [0.0], "start": [0.03], "final": [0.03]}, s)
+    assert note is not None and "the E stage 1 left" in note
+    assert whole_clip_note({"whole_clip": [0.03, 0.02, 0.01], "kept": [15.0], "start": [0.03], "final": [0.01]},
+                           s) is None
+    with pytest.raises(ValueError, match="keep_best_every"):
+        FitSettings(keep_best_every=-1).resolved()
