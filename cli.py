@@ -795,6 +795,10 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="The last N stage-2 iterations back-propagate through every frame, which lowers the loss "
                    "that the one-frame horizon stops short of. A lower loss moved the recovery benchmark "
                    "better with one video and worse with two; see docs/fitting.md.")
+@click.option("--keep-best", type=T.BoundedInt(0, 10000), default=10, show_default=True,
+              help="Every N stage-2 iterations, and at the stage's end, simulate every frame of the videos "
+                   "again and end in the state that explained them best, stage 2's start included: one-frame "
+                   "steps can each improve while the clip as a whole drifts. 0 keeps the last state.")
 @click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
@@ -831,7 +835,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
-        rounds: int, horizon: int, polish: int, level: bool, diffusion: float, working_size: int, init_e: float,
+        rounds: int, horizon: int, polish: int, keep_best: int, level: bool, diffusion: float, working_size: int,
+        init_e: float,
         init_material: Path | None, match_exposure: bool, nu: float, density: float,
         background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int, max_minutes: float,
         device: str, **prep_kw) -> None:
@@ -860,7 +865,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 
         settings = FitSettings(quality=quality, velocity_iters=velocity_iters, material_iters=material_iters,
                                rounds=rounds, material_horizon=horizon or None, polish_iters=polish,
-                               stage1_level=level, residual_diffusion=diffusion, init_E=init_e,
+                               keep_best_every=keep_best, stage1_level=level, residual_diffusion=diffusion,
+                               init_E=init_e,
                                init_material=None if init_material is None else str(init_material),
                                match_exposure=match_exposure, nu=nu, density=density,
                                working_long_side=working_size, background=background, seed=seed,

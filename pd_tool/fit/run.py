@@ -77,7 +77,8 @@ def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None
     settings `s`), or, keeping none, ended above its start (losses["start"],
     losses["final"]). Stage 2 follows one-frame gradients, which can lower every step's loss
     while the clip as a whole drifts away (the donut of bench/fit_truth.py)."""
-    weak = "these videos constrain E weakly; another video, of another push or from another side, gives the fit more to go on"
+    weak = ("these videos constrain E weakly; another video, of another push or from another side, gives the fit "
+            "more to go on")
     kept, measures = losses.get("kept"), losses.get("whole_clip")
     points = measure_points(s) if s is not None else []
     if kept and measures and points and kept[-1] < points[-1]:

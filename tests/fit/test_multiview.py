@@ -41,7 +41,7 @@ def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
             "fit", str(tmp_path / "plant.ply"), str(tmp_path / "a"), str(tmp_path / "b"), "-o",
             str(tmp_path / "fit.pdmat"), "--static-below", str(POT_TOP), "--quality", "draft",
             "--velocity-iters", "25", "--material-iters", "2", "--rounds", "2", "--horizon", "2", "--polish", "1",
-            "--no-level", "--diffusion", "0.05", "--working-size", "32", "--no-preview",
+            "--keep-best", "1", "--no-level", "--diffusion", "0.05", "--working-size", "32", "--no-preview",
             "--device", "cpu"], catch_exceptions=False)
     finally:
         torch.set_num_threads(threads)
@@ -67,6 +67,10 @@ def test_two_videos_share_E_and_keep_their_own_v0(tmp_path: Path) -> None:
     assert mf.meta["settings"]["rounds"] == 2
     assert mf.meta["settings"]["material_horizon"] == 2  # --horizon 2 reached stage 2
     assert mf.meta["settings"]["polish_iters"] == 1  # and --polish 1
+    # --keep-best 1: each round measured its start and both iterations, and kept one of them
+    assert mf.meta["settings"]["keep_best_every"] == 1
+    assert len(report["losses"]["whole_clip"]) == 2 * 3 and len(report["losses"]["kept"]) == 2
+    assert mf.meta["metrics"]["kept_iteration"] == report["losses"]["kept"][-1] in (0, 1, 2)
     assert mf.meta["settings"]["stage1_level"] is False  # and --no-level: the paper's stage 1, no level
     assert mf.meta["settings"]["residual_diffusion"] == 0.05  # and --diffusion
     assert "stage1_level" not in report["losses"] and mf.meta["metrics"]["stage1_levels"] is None

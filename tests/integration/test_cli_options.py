@@ -70,6 +70,7 @@ CASES = {
         ("--rounds", ["0", "21"]),
         ("--horizon", ["-1", "1025"]),
         ("--polish", ["-1", "10001"]),
+        ("--keep-best", ["-1", "10001"]),
         ("--diffusion", NON_FINITE + ["-0.1", "11"]),
         ("--working-size", ["15", "4097"]),
         ("--init-e", NON_FINITE + ["0", "999", "1e9"]),

@@ -65,8 +65,9 @@ _OPTION_TARGETS = {
               "--substeps", "--seed", "--max-minutes", "--foreground-box", "--static-box", "--static-below",
               "--min-opacity", "--meters-per-unit", "--preview", "--frames-out", "--quality", "--interaction"]),
     "fit": (["{scene}", "{tmp}"], ["--fps", "--velocity-iters", "--material-iters", "--rounds", "--horizon", "--polish",
-                                   "--diffusion", "--working-size", "--init-e", "--nu", "--density", "--background",
-                                   "--seed", "--max-minutes", "-o", "--meters-per-unit", "--static-box"]),
+                                   "--keep-best", "--diffusion", "--working-size", "--init-e", "--nu", "--density",
+                                   "--background", "--seed", "--max-minutes", "-o", "--meters-per-unit",
+                                   "--static-box"]),
     "select": (["{scene}", "-o", "{tmp}/s.ply"], ["--grid-res", "--png", "-o", "--static-below", "--foreground-box"]),
 }
 _NUMBERS = st.one_of(
