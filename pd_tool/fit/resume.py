@@ -25,7 +25,7 @@ from pd_tool.fit.checkpoint import (
 )
 from pd_tool.fit.problem import FitProblem
 from pd_tool.fit.settings import FitSettings
-from pd_tool.fit.stages import Kept, Optimizers, measure_points, stage_optimizers
+from pd_tool.fit.stages import Kept, Optimizers, stage_optimizers
 from pd_tool.materials.file import scene_fingerprint
 
 
@@ -68,10 +68,12 @@ def _foreign_checkpoint(path: Path, what: str) -> PdToolError:
 
 def _checkpoint_max_bytes(pb: FitProblem, s: FitSettings) -> int:
     """The largest checkpoint this fit writes, with room to spare: every trained tensor
-    with two Adam moments (x3, x4 for the slack), the loss histories, the header."""
+    with two Adam moments and stage 2's kept copy (x4, x5 for the slack), the loss
+    histories (the whole-clip measures among them), the header."""
     tensors = [*pb.material.parameters(), *pb.velocities.parameters(), pb.log_e_residual, pb.log_e_level]
     weights = sum(t.numel() * t.element_size() for t in tensors)
-    return 4 * weights + 8 * s.rounds * (s.velocity_iters + s.material_iters + 2) + MAX_HEADER_BYTES + (1 << 20)
+    entries = s.rounds * (s.velocity_iters + s.material_iters + len(s.measure_points()) + 4)
+    return 5 * weights + 8 * entries + MAX_HEADER_BYTES + (1 << 20)
 
 
 def load_checkpoint(path: Path, pb: FitProblem, s: FitSettings) -> dict | None:
@@ -150,10 +152,10 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     optimizers = stage_optimizers(pb, s, stage)
     want = {"stage", "iteration", "round", "material", "velocities", "residual", "level", "losses", "torch_rng"}
     want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
-    points = measure_points(s)
+    points = s.measure_points()
     keeping = stage == "material" and bool(points)
     if keeping:
-        want |= {"kept_material", "kept_velocities", "kept_residual", "kept_at"}
+        want |= set(Kept.ENTRIES)
     if set(state) != want:
         missing, unknown = sorted(want - set(state)), sorted(map(str, set(state) - want))
         raise bad(f"it lacks {', '.join(missing)}" if missing else f"it holds unknown entries {', '.join(unknown)}")

@@ -28,7 +28,7 @@ from pd_tool.fit.resume import (
     save_checkpoint,
 )
 from pd_tool.fit.settings import FitSettings
-from pd_tool.fit.stages import ProgressFn, calibrate, fit_round, measure_points
+from pd_tool.fit.stages import ProgressFn, calibrate, current_v0s, fit_round
 from pd_tool.materials.file import MaterialFile, scene_fingerprint
 from pd_tool.prepare.preparation import PreparedScene, PrepareOptions
 from pd_tool.video.folder import ReferenceVideo
@@ -80,12 +80,13 @@ def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None
     weak = ("these videos constrain E weakly; another video, of another push or from another side, gives the fit "
             "more to go on")
     kept, measures = losses.get("kept"), losses.get("whole_clip")
-    points = measure_points(s) if s is not None else []
+    points = s.measure_points() if s is not None else []
     if kept and measures and points and kept[-1] < points[-1]:
         at = int(kept[-1])
         last_round = measures[-1 - len(points):]  # its start, then each measure point
+        best = last_round[[0, *points].index(at)]
         where = "the E stage 1 left" if at == 0 else f"the E of its iteration {at}"
-        return (f"stage 2 raised the whole-clip loss ({min(last_round):.4f} at its best, {last_round[-1]:.4f} at its "
+        return (f"stage 2 raised the whole-clip loss ({best:.4f} at its best, {last_round[-1]:.4f} at its "
                 f"end): the fit keeps {where}; {weak}")
     start, final = losses.get("start"), losses.get("final")
     if kept or not start or not final or not final[0] > start[0]:
@@ -153,8 +154,8 @@ def run_fit(
         seconds["calibrate"] = time.perf_counter() - t0
 
     # ---- result
+    v0s = current_v0s(pb)
     with torch.no_grad():
-        v0s = [pb.driver_v0(i).detach() for i in range(len(videos))]
         # the whole-clip loss, every frame simulated from rest in one go: what the fitted E and
         # v0 explain of the videos, on the same footing whatever the stages ran
         losses["final"] = [whole_clip_loss(pb, v0s)]

@@ -129,6 +129,12 @@ class FitSettings:
     device: str = "cpu"
     checkpoint_every: int = 5  # iterations between checkpoints (bounded loss of work on a kill)
 
+    def measure_points(self) -> list[int]:
+        """The stage-2 iterations after which a round measures its whole-clip loss for
+        keep_best_every (the last always; none when it is 0); of resolved settings."""
+        n, every = int(self.material_iters or 0), self.keep_best_every
+        return [k for k in range(1, n + 1) if k % every == 0 or k == n] if every > 0 else []
+
     def resolved(self) -> FitSettings:
         """These settings with every default filled in from the quality preset; ValueError
         (one line) for a value out of range or a combination the fit cannot run."""

@@ -35,13 +35,6 @@ Optimizers = dict[str, tuple[Any, Any]]
 CheckpointFn = Callable[[str, int, Optimizers, dict[str, list[float]], int, "Kept | None"], None]
 
 
-def measure_points(s: FitSettings) -> list[int]:
-    """The stage-2 iterations after which a round measures its whole-clip loss for
-    keep_best_every (the last always; none when it is 0)."""
-    n, every = s.material_iters, s.keep_best_every
-    return [k for k in range(1, n + 1) if k % every == 0 or k == n] if every > 0 else []
-
-
 class Kept:
     """The stage-2 state with the lowest whole-clip loss measured so far in a round
     (keep_best_every): the E field's weights, the residuals and the velocity fields (which
@@ -62,9 +55,7 @@ class Kept:
     def offer(self, pb: FitProblem, loss: float, iteration: int) -> None:
         """Keep pb's state instead when `loss` is finite and lower (or the kept one is not finite)."""
         if math.isfinite(loss) and not loss >= self.loss:
-            better = Kept.of(pb, loss, iteration)
-            self.material, self.velocities, self.residual = better.material, better.velocities, better.residual
-            self.loss, self.iteration = loss, iteration
+            vars(self).update(vars(Kept.of(pb, loss, iteration)))
 
     def restore(self, pb: FitProblem) -> None:
         with torch.no_grad():
@@ -72,8 +63,10 @@ class Kept:
             pb.velocities.load_state_dict(self.velocities)
             pb.log_e_residual.copy_(self.residual)
 
+    ENTRIES = ("kept_material", "kept_velocities", "kept_residual", "kept_at")  # its checkpoint entries
+
     def to_state(self) -> dict[str, Any]:
-        """Checkpoint entries (pd_tool.fit.resume)."""
+        """Checkpoint entries, ENTRIES (pd_tool.fit.resume)."""
         return {"kept_material": self.material, "kept_velocities": self.velocities, "kept_residual": self.residual,
                 "kept_at": torch.tensor([self.loss, float(self.iteration)], dtype=torch.float64)}
 
@@ -195,7 +188,7 @@ def calibrate(pb: FitProblem, s: FitSettings, progress: ProgressFn | None = None
     """
     with torch.no_grad():
         E0 = pb.driver_E().detach()
-        v0s = [pb.driver_v0(i).detach() for i in range(len(pb.videos))]
+    v0s = current_v0s(pb)
     moving = ~pb.static
     labels = torch.full((len(E0),), s.calibrate_clusters, dtype=torch.long, device=pb.device)  # static: no offset
     if moving.any():
@@ -306,7 +299,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         start = ckpt["iteration"]
     skipped = 0
     kept = None
-    points = measure_points(s)
+    points = s.measure_points()
     if ckpt is not None and ckpt["stage"] == "material" and points:
         kept = Kept.from_state(ckpt, pb.device)
     elif start == 0 and s.material_iters > 0 and (rnd == 0 or points):

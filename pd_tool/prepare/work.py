@@ -157,11 +157,14 @@ def estimate_bake_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, f
 
 def estimate_fit_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, frames: list[int], image_pixels: int,
                       substeps: int, velocity_iters: int, material_iters: int, rounds: int = 1,
-                      stage1_frames: int = 3, calibrate_iters: int = 0, device: str = "cpu") -> WorkEstimate:
+                      stage1_frames: int = 3, calibrate_iters: int = 0, whole_clips: int = 0,
+                      device: str = "cpu") -> WorkEstimate:
     """Seconds of `pd_tool.fit.run.run_fit`.
 
     Each iteration of stage 1 simulates and renders the first `stage1_frames` frames of
-    every video, forward and backward; each of stage 2 (and of calibration) every frame.
+    every video, forward and backward; each of stage 2 (and of calibration) every frame;
+    each of the `whole_clips` whole-clip measures every frame, forward only (counted at the
+    forward-and-backward cost, an upper bound).
 
     Args:
         n_gaussians: Gaussians rendered per frame.
@@ -171,6 +174,7 @@ def estimate_fit_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, fr
         image_pixels: width * height of the resized reference frames.
         substeps: substeps per frame.
         velocity_iters, material_iters, rounds, stage1_frames, calibrate_iters: FitSettings'.
+        whole_clips: whole-clip losses measured (stage 2's start and keep-best measures, the result).
         device: "cpu" or "cuda[:i]".
     """
     k = costs_for(device)
@@ -179,7 +183,7 @@ def estimate_fit_work(*, n_gaussians: int, n_particles: int, grid_nodes: int, fr
                  + k.fit_frame)
     s1 = sum(min(stage1_frames, max(t - 1, 0)) for t in frames)
     s2 = sum(max(t - 1, 0) for t in frames)
-    frame_evals = rounds * (velocity_iters * s1 + material_iters * s2) + calibrate_iters * s2
+    frame_evals = rounds * (velocity_iters * s1 + material_iters * s2) + (calibrate_iters + whole_clips) * s2
     terms = {"setup": k.setup + k.setup_gaussian * n_gaussians, "iterate": float(frame_evals) * per_frame}
     summary = (f"{frame_evals:,} simulated frames (forward and backward) x {substeps:,} substeps x "
                f"{n_particles:,} particles, {n_gaussians:,} Gaussians rendered at {image_pixels:,} px")
@@ -264,7 +268,8 @@ def check_fit_work(prep, settings, videos, *, n_gaussians: int, cfl_safety: floa
         image_pixels=int(videos[0].frames[0].numel() // 3), substeps=n,
         velocity_iters=int(settings.velocity_iters), material_iters=int(settings.material_iters),
         rounds=int(settings.rounds), stage1_frames=int(settings.stage1_frames),
-        calibrate_iters=int(settings.calibrate_iters), device=str(settings.device))
+        calibrate_iters=int(settings.calibrate_iters),
+        whole_clips=int(settings.rounds) * (len(settings.measure_points()) + 1) + 1, device=str(settings.device))
     check_work(est, fixes="lower --quality, --working-size or the iterations (--velocity-iters, --material-iters), "
-                          "or use fewer frames")
+                          "measure less often (--keep-best), or use fewer frames")
     return est

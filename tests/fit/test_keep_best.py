@@ -47,14 +47,16 @@ def test_an_overshooting_stage_2_ends_in_its_best_measured_state(fit_dir: Path, 
 def test_measure_points_and_the_note() -> None:
     from pd_tool.fit.run import whole_clip_note
     from pd_tool.fit.settings import FitSettings
-    from pd_tool.fit.stages import measure_points
 
-    assert measure_points(FitSettings(material_iters=40, keep_best_every=10)) == [10, 20, 30, 40]
-    assert measure_points(FitSettings(material_iters=15, keep_best_every=10)) == [10, 15]
-    assert measure_points(FitSettings(material_iters=15, keep_best_every=0)) == []
+    assert FitSettings(material_iters=40, keep_best_every=10).measure_points() == [10, 20, 30, 40]
+    assert FitSettings(material_iters=15, keep_best_every=10).measure_points() == [10, 15]
+    assert FitSettings(material_iters=15, keep_best_every=0).measure_points() == []
     s = FitSettings(material_iters=15, keep_best_every=10)
     note = whole_clip_note({"whole_clip": [0.03, 0.02, 0.04], "kept": [10.0], "start": [0.03], "final": [0.02]}, s)
     assert note is not None and "0.0200 at its best, 0.0400 at its end" in note and "iteration 10" in note
+    # a start that came out NaN: the kept measure, not min()'s NaN
+    note = whole_clip_note({"whole_clip": [float("nan"), 0.02, 0.04], "kept": [10.0], "final": [0.02]}, s)
+    assert note is not None and "0.0200 at its best" in note
     note = whole_clip_note({"whole_clip": [0.03, 0.05, 0.04], "kept": [0.0], "start": [0.03], "final": [0.03]}, s)
     assert note is not None and "the E stage 1 left" in note
     assert whole_clip_note({"whole_clip": [0.03, 0.02, 0.01], "kept": [15.0], "start": [0.03], "final": [0.01]},

@@ -32,7 +32,7 @@ def inputs(tmp_path_factory):
 
 
 def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0,
-         rounds: int = 1, level: bool = False):
+         rounds: int = 1, level: bool = False, keep: int = 10):
     from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import PrepareOptions
@@ -45,22 +45,25 @@ def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool
             raise Interrupt
 
     settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
-                           checkpoint_every=1, seed=seed, rounds=rounds, stage1_level=level)
+                           checkpoint_every=1, seed=seed, rounds=rounds, stage1_level=level, keep_best_every=keep)
     return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=settings, progress=progress, resume=resume)
 
 
-@pytest.mark.parametrize("rounds,stop_at,level", [(1, ("velocity", 2), False), (1, ("material", 2), False),
-                                                  (2, ("velocity 2/2", 2), False), (2, ("material 2/2", 1), False),
-                                                  (1, ("velocity", 2), True), (2, ("material 2/2", 1), True)])
-def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, stop_at, level: bool) -> None:
+@pytest.mark.parametrize("rounds,stop_at,level,keep", [
+    (1, ("velocity", 2), False, 10), (1, ("material", 2), False, 10), (2, ("velocity 2/2", 2), False, 10),
+    (2, ("material 2/2", 1), False, 10), (1, ("velocity", 2), True, 10), (2, ("material 2/2", 1), True, 10),
+    # a whole-clip measure after every stage-2 iteration: the checkpoint carries a kept state mid-stage
+    (1, ("material", 2), False, 1), (2, ("material 2/2", 2), True, 1)])
+def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, stop_at, level: bool,
+                                           keep: int) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the promise is for a fixed thread count
     try:
-        full = _fit(inputs, tmp_path / "full.pdmat", rounds=rounds, level=level)
+        full = _fit(inputs, tmp_path / "full.pdmat", rounds=rounds, level=level, keep=keep)
         out = tmp_path / "cut.pdmat"
         with pytest.raises(Interrupt):
-            _fit(inputs, out, stop_at=stop_at, rounds=rounds, level=level)
+            _fit(inputs, out, stop_at=stop_at, rounds=rounds, level=level, keep=keep)
         from pd_tool.fit.checkpoint import read_checkpoint
 
         _, ckpt = read_checkpoint(out.with_name(out.name + ".ckpt"), max_bytes=1 << 30)
@@ -74,8 +77,8 @@ def test_resume_mid_stage_is_bit_identical(inputs, tmp_path: Path, rounds: int, 
 
             with pytest.raises(PdToolError, match=r"cut.pdmat.ckpt: the checkpoint belongs to another fit "
                                                   r"\(settings differs\); delete it, or fit without --resume$"):
-                _fit(inputs, out, resume=True, seed=1, rounds=rounds, level=level)
-        resumed = _fit(inputs, out, resume=True, rounds=rounds, level=level)
+                _fit(inputs, out, resume=True, seed=1, rounds=rounds, level=level, keep=keep)
+        resumed = _fit(inputs, out, resume=True, rounds=rounds, level=level, keep=keep)
     finally:
         torch.set_num_threads(threads)
     assert not out.with_name(out.name + ".ckpt").exists()

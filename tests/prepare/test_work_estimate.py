@@ -50,7 +50,7 @@ def test_fit_estimate_grows_with_every_count() -> None:
     t = estimate_fit_work(**base).seconds
     for key, more in (("n_gaussians", 30_000), ("n_particles", 3_000), ("grid_nodes", 65**3), ("frames", [12, 12]),
                       ("image_pixels", 512 * 512), ("substeps", 300), ("velocity_iters", 300),
-                      ("material_iters", 200), ("rounds", 2), ("calibrate_iters", 10)):
+                      ("material_iters", 200), ("rounds", 2), ("calibrate_iters", 10), ("whole_clips", 5)):
         assert estimate_fit_work(**{**base, key: more}).seconds > t, key
 
 
