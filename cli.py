@@ -836,8 +836,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
         fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, keep_best: int, level: bool, diffusion: float, working_size: int,
-        init_e: float,
-        init_material: Path | None, match_exposure: bool, nu: float, density: float,
+        init_e: float, init_material: Path | None, match_exposure: bool, nu: float, density: float,
         background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int, max_minutes: float,
         device: str, **prep_kw) -> None:
     """Estimate the stiffness field of SCENE from reference VIDEOS of it moving.

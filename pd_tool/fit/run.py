@@ -71,6 +71,16 @@ def whole_clip_text(losses: dict[str, list[float]]) -> str:
     return " -> ".join(f"{losses[k][0]:.4f}" for k in ("start", "final") if losses.get(k))
 
 
+def kept_measure(losses: dict[str, list[float]], s: FitSettings) -> float | None:
+    """The whole-clip loss measured of the state the last round kept (losses["whole_clip"] at
+    losses["kept"], keep_best_every of the fit's settings `s`), None when none was kept."""
+    kept, measures, points = losses.get("kept"), losses.get("whole_clip"), s.measure_points()
+    if not kept or not measures or not points:
+        return None
+    last_round = measures[-1 - len(points):]  # its start, then each measure point
+    return last_round[[0, *points].index(int(kept[-1]))]
+
+
 def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None) -> str | None:
     """The report's line when stage 2 raised the whole-clip loss, else None: when the last
     round kept an earlier state than its last (losses["kept"], keep_best_every of the fit's
@@ -79,15 +89,13 @@ def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None
     while the clip as a whole drifts away (the donut of bench/fit_truth.py)."""
     weak = ("these videos constrain E weakly; another video, of another push or from another side, gives the fit "
             "more to go on")
-    kept, measures = losses.get("kept"), losses.get("whole_clip")
-    points = s.measure_points() if s is not None else []
-    if kept and measures and points and kept[-1] < points[-1]:
+    kept = losses.get("kept")
+    best = kept_measure(losses, s) if s is not None else None
+    if best is not None and kept[-1] < s.measure_points()[-1]:
         at = int(kept[-1])
-        last_round = measures[-1 - len(points):]  # its start, then each measure point
-        best = last_round[[0, *points].index(at)]
         where = "the E stage 1 left" if at == 0 else f"the E of its iteration {at}"
-        return (f"stage 2 raised the whole-clip loss ({best:.4f} at its best, {last_round[-1]:.4f} at its "
-                f"end): the fit keeps {where}; {weak}")
+        return (f"stage 2 raised the whole-clip loss ({best:.4f} at its best, {losses['whole_clip'][-1]:.4f} at "
+                f"its end): the fit keeps {where}; {weak}")
     start, final = losses.get("start"), losses.get("final")
     if kept or not start or not final or not final[0] > start[0]:
         return None
@@ -157,8 +165,10 @@ def run_fit(
     v0s = current_v0s(pb)
     with torch.no_grad():
         # the whole-clip loss, every frame simulated from rest in one go: what the fitted E and
-        # v0 explain of the videos, on the same footing whatever the stages ran
-        losses["final"] = [whole_clip_loss(pb, v0s)]
+        # v0 explain of the videos, on the same footing whatever the stages ran. The state stage
+        # 2 kept was measured already, unless calibration moved E since.
+        measured = kept_measure(losses, s) if s.calibrate_iters == 0 else None
+        losses["final"] = [measured if measured is not None else whole_clip_loss(pb, v0s)]
         begun = losses.get("start")  # stage 2's start, on the same footing
         driver_E = pb.driver_E().double().cpu().numpy()
         v0_mean = torch.stack(v0s).mean(0).cpu().numpy()

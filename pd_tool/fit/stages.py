@@ -41,6 +41,8 @@ class Kept:
     move only with refine_velocity), the loss and the stage-2 iteration it was measured
     after (0: the stage's start)."""
 
+    ENTRIES = ("kept_material", "kept_velocities", "kept_residual", "kept_at")  # its checkpoint entries
+
     def __init__(self, material: dict, velocities: dict, residual: torch.Tensor, loss: float, iteration: int):
         self.material, self.velocities, self.residual = material, velocities, residual
         self.loss, self.iteration = loss, iteration
@@ -62,8 +64,6 @@ class Kept:
             pb.material.load_state_dict(self.material)
             pb.velocities.load_state_dict(self.velocities)
             pb.log_e_residual.copy_(self.residual)
-
-    ENTRIES = ("kept_material", "kept_velocities", "kept_residual", "kept_at")  # its checkpoint entries
 
     def to_state(self) -> dict[str, Any]:
         """Checkpoint entries, ENTRIES (pd_tool.fit.resume)."""
