@@ -1,14 +1,19 @@
 """torch.autograd bridge over the warp MPM: one frame per Function, checkpoint-and-recompute.
 
-Forward runs a frame's substeps without a tape, in place, and saves only the frame's input
-state. Backward recomputes the frame from that state, keeping one checkpoint every
-`config.segment` substeps, then replays each segment in reverse under a wp.Tape with a
-separate array per substep (warp's adjoints read the arrays' current values, so in-place
-updates under a tape would silently give wrong gradients). Peak memory is therefore the
-frame-boundary states plus one segment's tape, whatever the number of frames.
+A frame run with gradients stores each substep's particle state and grid in a slot of
+`config.keep_budget_mb`, and its backward runs the adjoint kernels over them in reverse.
+Where the budget is spent (or with the taped reference backward), the forward runs the
+substeps in place and saves only the frame's input state; the backward then recomputes the
+frame from it, keeping one checkpoint every `config.segment` substeps, and reverses each
+segment (the taped reference under a wp.Tape with a separate array per substep: warp's
+adjoints read the arrays' current values, so in-place updates under a tape would silently
+give wrong gradients). Without slots, peak memory is the frame-boundary states plus one
+segment's stores, whatever the number of frames.
 """
 from __future__ import annotations
 
+import itertools
+import weakref
 from contextlib import contextmanager
 from typing import Sequence
 
@@ -86,6 +91,53 @@ def initial_state(x: torch.Tensor, v: torch.Tensor | None = None) -> State:
     return x, v, C, F
 
 
+class _KeptFrame:
+    """A slot for one frame's forward values: `capacity` + 1 particle states and `capacity`
+    grids, written by forward_frame and read by backward_frame's adjoint instead of a
+    recompute. A slot is held by one frame of the autograd graph (`owner`, a weak reference
+    to that frame's _Claim), and free again after the frame's backward or once the graph
+    that held it is gone. `clean`: the grids' mass and momentum are zero, as the recompute
+    kernels need them (the adjoint leaves them so; a forward without a backward does not)."""
+
+    _serials = itertools.count()
+
+    def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
+        self.capacity = capacity
+        self.states = [ParticleState.zeros(n, device) for _ in range(capacity + 1)]
+        self.grids = [GridArrays.alloc(geo, device) for _ in range(capacity)]
+        self.serial = next(self._serials)  # graph keys: ids of freed slots are reused
+        self.owner: weakref.ref | None = None
+        self.clean = True
+
+    def free(self) -> bool:
+        return self.owner is None or self.owner() is None
+
+    def scrub(self) -> None:
+        """Zero the grids' mass and momentum, left by a forward whose backward never ran."""
+        if not self.clean:
+            for g in self.grids:
+                g.mmv.zero_()
+            self.clean = True
+
+
+class _Claim:
+    """What one autograd frame holds of a slot; the slot is free once this is collected."""
+
+    __slots__ = ("slot", "__weakref__")
+
+    def __init__(self, slot: _KeptFrame) -> None:
+        self.slot = slot
+        slot.owner = weakref.ref(self)
+
+    def take(self) -> _KeptFrame | None:
+        """The slot if it is still this frame's, released for the next forward."""
+        slot, self.slot = self.slot, None
+        if slot is None or slot.owner is None or slot.owner() is not self:
+            return None
+        slot.owner = None
+        return slot
+
+
 class DiffSim:
     """Differentiable MPM for a fixed particle set (the fit's simulation).
 
@@ -127,6 +179,7 @@ class DiffSim:
         self.cuda_graph = True
         self._graphs: dict = {}
         self._stream = None  # CUDA stream of graph launches (see _stream_scope)
+        self._kept: list[_KeptFrame] = []  # slots of forward values (config.keep_budget_mb)
 
     def forces(self, forces: Sequence[Force]) -> ForceArrays:
         return ForceArrays.build(list(forces), self.n, self.device)
@@ -153,8 +206,10 @@ class DiffSim:
                                      f"expected {shape} torch.float32 on {self.torch_device}")
         if substeps < 1:
             raise SimConfigError(f"DiffSim.frame: substeps={substeps}, need >= 1")
+        graded = torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, E))
+        claim = self._claim_kept(int(substeps)) if graded else None
         return _FrameFunction.apply(x, v, C, F, E, self, float(frame_dt), int(substeps), fa,
-                                    float(t0), int(frame_index))
+                                    float(t0), int(frame_index), claim)
 
     # ------------------------------------------------------------------ internals
     def _grid_cache(self) -> GridArrays:
@@ -187,14 +242,55 @@ class DiffSim:
         many as fit in config.segment_budget_mb, at most the frame."""
         if self.config.segment is not None:
             return max(1, int(self.config.segment))
-        per_substep = self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
         budget = self.config.segment_budget_mb
         if budget is None:
-            budget = 2048.0
-            dev = wp.get_device(self.device)
-            if dev.is_cuda and getattr(dev, "free_memory", None):
-                budget = max(budget, 0.25 * dev.free_memory / 2**20)
-        return int(min(substeps, max(1, budget * 2**20 // per_substep)))
+            budget = max(2048.0, self._free_quarter_mb())
+        return int(min(substeps, max(1, budget * 2**20 // self._substep_bytes())))
+
+    def _substep_bytes(self) -> int:
+        # one stored substep: a particle state (u, v, C, G) and a grid (mmv, v)
+        return self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
+
+    def _free_quarter_mb(self) -> float:
+        dev = wp.get_device(self.device)
+        if dev.is_cuda and getattr(dev, "free_memory", None):
+            return 0.25 * dev.free_memory / 2**20
+        return 0.0
+
+    def _keep_budget_bytes(self) -> float:
+        budget = getattr(self, "_keep_budget", None)
+        if budget is None:
+            budget = self.config.keep_budget_mb
+            if budget is None:
+                budget = self._free_quarter_mb() if wp.get_device(self.device).is_cuda else 1024.0
+            # fixed at the first frame: the free memory read later would count this sim's own slots
+            budget = self._keep_budget = budget * 2**20
+        return budget
+
+    def _claim_kept(self, substeps: int) -> "_Claim | None":
+        """A free slot for a frame of `substeps`, growing or adding one within the budget;
+        None when the budget is spent or the backward would not read it (the taped
+        reference, or a frame longer than one segment)."""
+        if self.config.backward != "adjoint" or self.segment_length(substeps) < substeps:
+            return None
+        free = [k for k in self._kept if k.free()]
+        fits = [k for k in free if k.capacity >= substeps]
+        if fits:
+            slot = min(fits, key=lambda k: k.capacity)
+            slot.scrub()
+            return _Claim(slot)
+        per = self._substep_bytes()
+        held = sum(k.capacity * per for k in self._kept)
+        drop = max(free, key=lambda k: k.capacity) if free else None
+        if held - (drop.capacity * per if drop else 0) + substeps * per > self._keep_budget_bytes():
+            return None
+        if drop is not None:
+            # grown: a larger slot replaces the largest free one, and its graphs go with it
+            self._kept.remove(drop)
+            self._graphs = {k: g for k, g in self._graphs.items() if k[-1] != drop.serial}
+        slot = _KeptFrame(self.n, self.geo, substeps, self.device)
+        self._kept.append(slot)
+        return _Claim(slot)
 
     def _lists(self, binned: bool):
         # The fast path's cell lists on CUDA; unbinned, a one-particle set that no kernel reads.
@@ -214,12 +310,19 @@ class DiffSim:
         pool = getattr(self, "_adj_pool", None)
         if pool is None or len(pool[1]) < count:
             self._graphs = {}  # captured graphs point into the old pool
-            z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
             pool = self._adj_pool = (
                 [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
                 [GridArrays.alloc(self.geo, self.device) for _ in range(count)],
-                (z(wp.vec4), z(wp.vec4)))
+                self._adjoint_grid())
         return pool
+
+    def _adjoint_grid(self) -> tuple[wp.array, wp.array]:
+        # the grid cotangents (adj_grid_v, adj_mmv); adj_grid_v starts zeroed and is left zeroed
+        grid = getattr(self, "_adj_grid", None)
+        if grid is None:
+            z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
+            grid = self._adj_grid = (z(wp.vec4), z(wp.vec4))
+        return grid
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
         # count + 1 particle states and count grids with gradients, for one taped segment.
@@ -409,17 +512,19 @@ class _SortedFrame:
 
 class _FrameFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index):
+    def forward(ctx, x, v, C, F, E, sim: DiffSim, frame_dt, substeps, forces, t0, frame_index, claim):
         x_out, v_out, C_out, F_out = (torch.empty_like(t) for t in (x, v, C, F))
         # torch-side copies (contiguous) before the scope: the simulator's stream waits for them
         args = (_vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()))
         outs = (_vec3(x_out), _vec3(v_out), _mat33(C_out), _mat33(F_out))
+        kept = claim.slot if claim is not None else None
         with _stream_scope(sim):
-            stats = forward_frame(sim, *args, forces, t0, frame_dt, substeps, *outs)
+            stats = forward_frame(sim, *args, forces, t0, frame_dt, substeps, *outs, kept=kept)
             stats = stats.numpy().copy()  # one sync per frame for the guard
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
+        ctx.claim = claim
         return x_out, v_out, C_out, F_out
 
     @staticmethod
@@ -430,47 +535,63 @@ class _FrameFunction(torch.autograd.Function):
                           for g, t in ((gx, x), (gv, v), (gC, C), (gF, F)))
         args = (_vec3(x), _vec3(v), _mat33(C), _mat33(F), wp.from_torch(E.detach().contiguous()))
         cot = (_vec3(gx), _vec3(gv), _mat33(gC), _mat33(gF))
+        # the stored forward values are read once: a second backward (retain_graph) recomputes
+        kept = ctx.claim.take() if ctx.claim is not None else None
         with _stream_scope(sim):
-            grads = backward_frame(sim, *args, ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, *cot)
+            grads = backward_frame(sim, *args, ctx.forces, ctx.t0, ctx.frame_dt, ctx.substeps, *cot, kept=kept)
         # after the scope: torch's stream now waits for the simulator's
         grad_x, grad_v, grad_C, grad_F, grad_E = (wp.to_torch(g).clone() for g in grads)
-        return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None
+        return grad_x + gx, grad_v, grad_C, grad_F, grad_E, None, None, None, None, None, None, None
 
 
 def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
                   forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
-                  x_out: wp.array, v_out: wp.array, C_out: wp.array, F_out: wp.array) -> wp.array:
+                  x_out: wp.array, v_out: wp.array, C_out: wp.array, F_out: wp.array,
+                  kept: _KeptFrame | None = None) -> wp.array:
     """One frame without a tape on warp arrays (the bridge's forward; the benchmark's too).
 
     Writes the end state to the *_out arrays (input order) and returns the guard's stats
-    array (read it once, after the frame). On CUDA the substeps replay a captured graph
-    keyed by (substeps, dt, forces): every array they touch is a kept buffer."""
+    array (read it once, after the frame). With `kept` (a slot of at least `substeps`), each
+    substep's state and grid are stored there for backward_frame; without, the substeps run
+    in place. On CUDA the substeps replay a captured graph keyed by (substeps, dt, forces,
+    slot): every array they touch is a kept buffer."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
-    st = buf["state"]
+    st = buf["state"] if kept is None else kept.states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
+
+    def run() -> None:
+        if kept is None:
+            sim.run_untaped(sctx, substeps, dt, st)
+        else:
+            recompute_segment(sctx, dt, 0, kept.states[: substeps + 1], kept.grids[:substeps],
+                              sim._lists(sim.binned), sim.binned)
+
+    if kept is not None:
+        kept.clean = False
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
-        key = ("forward", substeps, dt, forces.n, sim.binned)
+        key = ("forward", substeps, dt, forces.n, sim.binned, None if kept is None else kept.serial)
         graph = sim._graphs.get(key)
         if graph is None:
             with wp.ScopedCapture(device=dev) as cap:
-                sim.run_untaped(sctx, substeps, dt, st)
+                run()
             graph = sim._graphs[key] = cap.graph
         wp.capture_launch(graph)
     else:
-        sim.run_untaped(sctx, substeps, dt, st)
+        run()
+    end = st if kept is None else kept.states[substeps]
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
-        fr.order, base, st.u, st.v, st.C, st.G, x_out, v_out, C_out, F_out])
+        fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
     return sctx.stats
 
 
 def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
                    forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
-                   gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
+                   gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array, kept: _KeptFrame | None = None):
     """Adjoint of one frame on warp arrays (used by the autograd bridge and the benchmark).
 
     Inputs are the frame's start state and the cotangents of its end state (gu = cotangent
@@ -478,10 +599,12 @@ def backward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.ar
     (grad_x through the stencil and stress only, grad_v, grad_C, grad_F, grad_E); the caller
     adds the direct term gx of x_out = x + u to grad_x. The input arrays are not modified.
     `sim.config.backward` picks the hand-written adjoint kernels or the taped replay.
+    `kept`: the slot forward_frame stored this frame in (same inputs), read instead of a
+    recompute and left ready for another forward.
     """
     if sim.config.backward == "tape":
         return backward_frame_taped(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF)
-    return backward_frame_adjoint(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF)
+    return backward_frame_adjoint(sim, x, v, C, F, E, forces, t0, frame_dt, substeps, gu, gv, gC, gF, kept)
 
 
 def _checkpoints(sim: DiffSim, sctx: SubstepContext, v: wp.array, C: wp.array, G: wp.array,
@@ -502,19 +625,23 @@ def _checkpoints(sim: DiffSim, sctx: SubstepContext, v: wp.array, C: wp.array, G
 
 def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.array, E: wp.array,
                            forces: ForceArrays, t0: float, frame_dt: float, substeps: int,
-                           gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array):
+                           gu: wp.array, gv: wp.array, gC: wp.array, gF: wp.array,
+                           kept: _KeptFrame | None = None):
     """backward_frame with the hand-written adjoint kernels (adjoint.py): per segment, a
     recompute that stores each substep's particle state and grid, then the substeps'
-    adjoints in reverse."""
+    adjoints in reverse; with `kept`, the adjoints alone over the forward's stores."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
-    seg = sim.segment_length(substeps)
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
-    states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
+    if kept is not None:
+        seg, states, grids, adj_grid = substeps, kept.states, kept.grids, sim._adjoint_grid()
+    else:
+        seg = sim.segment_length(substeps)
+        states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
     single = seg >= substeps
-    # one segment: the start state goes straight into the pool's first state
-    st0 = states[0] if single else buf["state"]
+    # one segment recomputed: the start state goes straight into the pool's first state
+    st0 = states[0] if single and kept is None else buf["state"]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st0)
     sctx = fr.context(base, E_sorted, t0)
     binned = sim.binned
@@ -540,20 +667,23 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
             del ck
 
         def segment(k0=k0, k1=k1):
-            recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
+            if kept is None:
+                recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
             adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], (adj_st, buf["adj_E"]),
                             adj_grid, lists, binned)
 
         if not use_graph:
             segment()
             continue
-        key = (k0, k1 - k0, dt, forces.n, binned)
+        key = (k0, k1 - k0, dt, forces.n, binned, None if kept is None else kept.serial)
         graph = sim._graphs.get(key)
         if graph is None:
             with wp.ScopedCapture(device=dev) as cap:
                 segment()
             graph = sim._graphs[key] = cap.graph
         wp.capture_launch(graph)
+    if kept is not None:
+        kept.clean = True  # grid_adjoint zeroed the grids' mass and momentum
     grads = tuple(wp.empty_like(a) for a in (gu,) + adj[1:])
     wp.launch(_scatter_gradients, dim=n, device=dev, inputs=[fr.order, adj[0], gu_sorted, *adj[1:], *grads])
     return grads

@@ -55,6 +55,11 @@ class SimConfig:
             quarter of the GPU's free memory on CUDA, 2048 MB on the CPU.
         backward: "adjoint" (hand-written reverse kernels, adjoint.py) or "tape" (warp's
             generated adjoints replayed under a wp.Tape; slower, kept as the reference).
+        keep_budget_mb: memory in which the differentiable forward stores each substep's
+            state and grid of the frames it runs with gradients, so that their backward
+            skips the recompute (with "adjoint" only; a frame that does not fit is
+            recomputed as before); None = a quarter of the GPU's free memory on CUDA,
+            1024 MB on the CPU; 0 = always recompute.
     """
 
     grid_res: int = 64
@@ -71,6 +76,7 @@ class SimConfig:
     segment: int | None = None
     segment_budget_mb: float | None = None
     backward: str = "adjoint"
+    keep_budget_mb: float | None = None
 
     def validate(self) -> None:
         if self.grid_res < 4:
@@ -91,6 +97,8 @@ class SimConfig:
             raise SimConfigError(f"SimConfig.segment={self.segment}: must be >= 1 substeps or None (auto)")
         if self.backward not in ("adjoint", "tape"):
             raise SimConfigError(f"SimConfig.backward={self.backward!r}: use 'adjoint' or 'tape'")
+        if self.keep_budget_mb is not None and not self.keep_budget_mb >= 0:
+            raise SimConfigError(f"SimConfig.keep_budget_mb={self.keep_budget_mb}: must be >= 0 MB or None (auto)")
         if self.damping < 0:
             raise SimConfigError(f"SimConfig.damping={self.damping}: must be >= 0 (1/s)")
 

@@ -52,19 +52,21 @@ def random_state(x, static, rng, near_rest: bool):
     return xt, v, C, F, E
 
 
-@pytest.mark.parametrize("backward", ["adjoint", "adjoint-binned", "tape"])
+@pytest.mark.parametrize("backward", ["adjoint", "adjoint-binned", "adjoint-kept", "tape"])
 @pytest.mark.parametrize("near_rest", [True, False])
 def test_frame_gradients_match_float64_twin(device, near_rest, backward):
     """All five gradients of one frame (7 substeps, segments of 3: two checkpoints plus a
     remainder) against torch autograd through the float64 twin, same random cotangents, for
-    the hand-written adjoint (atomics, or cell lists as on CUDA) and the taped replay.
+    the hand-written adjoint (atomics, or cell lists as on CUDA; or over the substeps the
+    forward stored, without a recompute) and the taped replay.
     This also catches in-place updates under the tape, which corrupt later substeps."""
     if device != "cpu":
         pytest.skip("the differentiable path takes torch tensors; the CPU torch build is installed")
     x, static, vol, rng = scene()
     n = len(x)
-    cfg = SimConfig(grid_res=8, gravity=(0, 0, -9.81), damping=1.0, segment=3,
-                    backward="tape" if backward == "tape" else "adjoint")
+    kept = backward == "adjoint-kept"
+    cfg = SimConfig(grid_res=8, gravity=(0, 0, -9.81), damping=1.0, segment=None if kept else 3,
+                    keep_budget_mb=None if kept else 0, backward="tape" if backward == "tape" else "adjoint")
     sim = DiffSim(vol, vol * 1000, static, cfg, device="cpu")
     sim.binned = backward == "adjoint-binned"
     frame_dt, substeps = 7e-3, 7
@@ -73,6 +75,7 @@ def test_frame_gradients_match_float64_twin(device, near_rest, backward):
     out = sim.frame(tuple(ins[:4]), ins[4], frame_dt, substeps, [push])
     cot = [torch.randn_like(t) for t in out]
     grads = torch.autograd.grad(sum((o * c).sum() for o, c in zip(out, cot)), ins)
+    assert len(sim._kept) == int(kept)
 
     ins64 = [t.detach().double().requires_grad_() for t in ins]
 
@@ -203,7 +206,8 @@ MEMORY_SCRIPT = textwrap.dedent("""
     x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     static = x[:, 2] < 10.5 * dx
     vol = np.full(len(x), h ** 3)
-    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=24, gravity=(0, 0, -9.81), segment=30))
+    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=24, gravity=(0, 0, -9.81), segment=30,
+                                                     keep_budget_mb=float(sys.argv[2])))
     E = torch.full((len(x),), 2e4, requires_grad=True)
     v0 = torch.zeros(len(x), 3, requires_grad=True)
 
@@ -224,23 +228,26 @@ MEMORY_SCRIPT = textwrap.dedent("""
 @pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc peak RSS reset")
 def test_backward_memory_does_not_grow_with_frames(tmp_path):
     """Peak resident memory above the warmed-up baseline of a 20-frame full-BPTT backward is
-    within 1.5x of a 2-frame one (each in a fresh process). Without checkpointing the taped
-    substeps (30 per frame, a 25^3 grid each, ~0.9 MB) would grow it ~10x."""
+    within 1.5x of a 2-frame one (each in a fresh process) when the forward stores no
+    substeps (keep_budget_mb 0). Without checkpointing the stored substeps (30 per frame, a
+    25^3 grid each, ~0.9 MB) would grow it ~10x. With a budget of 60 MB for stored frames
+    (two frames' substeps) the 20-frame peak grows by at most that budget."""
     script = tmp_path / "mem.py"
     script.write_text(MEMORY_SCRIPT)
     root = Path(__file__).resolve().parents[2]
     peaks = {}
-    for frames in (2, 20):
+    for frames, budget in ((2, 0), (20, 0), (20, 60)):
         # A fixed mmap threshold makes glibc return freed blocks to the OS, so the warm-up
         # frame's freed tape does not hide the measured run's allocations.
         env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
-        res = subprocess.run([sys.executable, str(script), str(frames)], capture_output=True, text=True,
-                             cwd=root, timeout=600, env=env)
+        res = subprocess.run([sys.executable, str(script), str(frames), str(budget)], capture_output=True,
+                             text=True, cwd=root, timeout=600, env=env)
         assert res.returncode == 0, res.stderr[-2000:]
-        peaks[frames] = json.loads(res.stdout.strip().splitlines()[-1])["peak_bytes"]
-    assert peaks[2] > 5e6  # the measurement sees the taped segment's arrays (~27 MB)
+        peaks[frames, budget] = json.loads(res.stdout.strip().splitlines()[-1])["peak_bytes"]
+    assert peaks[2, 0] > 5e6  # the measurement sees the stored segment's arrays (~27 MB)
     print(peaks)
-    assert peaks[20] <= 1.5 * peaks[2], peaks
+    assert peaks[20, 0] <= 1.5 * peaks[2, 0], peaks
+    assert peaks[20, 60] <= 1.5 * peaks[2, 0] + 60 * 2**20, peaks
 
 
 def test_frame_rejects_wrong_inputs():

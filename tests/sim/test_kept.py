@@ -1,0 +1,145 @@
+"""Frames stored by the differentiable forward (SimConfig.keep_budget_mb): the backward over
+them must give exactly what the recompute gives, within the budget, whatever happens to the
+autograd graph between forward and backward."""
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+import pytest
+import torch
+
+from pd_tool.sim import DiffSim, Force, SimConfig, SimConfigError, initial_state, simulate_frames
+
+FRAME_DT = 1 / 60
+
+
+def block(seed: int = 0):
+    """A 0.25 m block of 1,728 particles on a 16-cell grid, its lowest layer static."""
+    dx = 1 / 16
+    h = dx / 2
+    axes = [np.arange(6 * dx + 0.5 * h, 9 * dx, h)] * 3
+    x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    static = x[:, 2] < 6.5 * dx
+    vol = np.full(len(x), h**3)
+    rng = np.random.default_rng(seed)
+    E = torch.tensor(rng.uniform(2e4, 6e4, len(x)), dtype=torch.float32)
+    push = Force(mask=x[:, 0] > 7.5 * dx, accel=(4.0, 1.0, 2.0), t_start=0.0, t_end=0.02)
+    return x, static, vol, E, push
+
+
+def run(sim: DiffSim, x, E0, push, substeps, frames: int = 3, horizon=None, backward: bool = True):
+    """Forward `frames` frames (substeps: an int or one per frame) and the gradients of a
+    loss on every frame's positions and velocities: (last state, dE, dv0)."""
+    E = E0.clone().requires_grad_()
+    v0 = torch.zeros(len(x), 3)
+    v0[:, 0] = 0.2
+    v0.requires_grad_()
+    state = initial_state(torch.tensor(x, dtype=torch.float32), v0)
+    per = [substeps] * frames if isinstance(substeps, int) else list(substeps)
+    out = []
+    for f, n in enumerate(per):
+        if horizon is not None and f > 0 and f % horizon == 0:
+            state = tuple(t.detach() for t in state)
+        state = sim.frame(state, E, FRAME_DT, n, [push], f * FRAME_DT, frame_index=f)
+        out.append(state)
+    if not backward:
+        return out
+    loss = sum((s[0] ** 2).sum() + 0.1 * (s[1] ** 2).sum() for s in out)
+    dE, dv = torch.autograd.grad(loss, [E, v0], allow_unused=True)
+    dv = torch.zeros_like(v0) if dv is None else dv
+    return [t.detach() for t in out[-1]], dE, dv
+
+
+def sim_for(static, vol, budget, binned: bool = False) -> DiffSim:
+    sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=16, gravity=(0, 0, -9.81), keep_budget_mb=budget))
+    sim.binned = binned
+    return sim
+
+
+def assert_same(a, b) -> None:
+    for name, p, q in zip(("end x", "end v", "end C", "end F"), a[0], b[0]):
+        assert torch.equal(p, q), name
+    assert torch.equal(a[1], b[1]), "dE"
+    assert torch.equal(a[2], b[2]), "dv0"
+
+
+@pytest.mark.parametrize("binned", [False, True])
+@pytest.mark.parametrize("horizon", [None, 2])
+def test_stored_frames_give_the_recompute_s_gradients(binned, horizon):
+    """Every frame stored, against none: the same end state and gradients bit for bit (on
+    the CPU the forward and the recompute run the same kernels in the same order)."""
+    x, static, vol, E, push = block()
+    ref = run(sim_for(static, vol, 0, binned), x, E, push, 12, horizon=horizon)
+    sim = sim_for(static, vol, None, binned)
+    got = run(sim, x, E, push, 12, horizon=horizon)
+    assert len(sim._kept) == 3 and all(k.free() for k in sim._kept)
+    assert ref[1].abs().max() > 0 and (horizon is not None or ref[2].abs().max() > 0)
+    assert_same(got, ref)
+
+
+def test_the_budget_bounds_the_stored_frames():
+    """A budget of two frames' substeps stores two of four frames; the others recompute,
+    and the gradients are the same."""
+    x, static, vol, E, push = block(1)
+    ref = run(sim_for(static, vol, 0), x, E, push, 12, frames=4)
+    probe = sim_for(static, vol, 0)
+    budget = 2 * 12 * probe._substep_bytes() / 2**20
+    sim = sim_for(static, vol, budget * 1.01)
+    got = run(sim, x, E, push, 12, frames=4)
+    assert [k.capacity for k in sim._kept] == [12, 12]
+    assert_same(got, ref)
+
+
+def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable():
+    """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
+    its slots with their grids holding that forward's mass and momentum; the next forward
+    must clear them, or its P2G adds to them."""
+    x, static, vol, E, push = block(2)
+    ref = run(sim_for(static, vol, 0), x, E, push, 10)
+    sim = sim_for(static, vol, None)
+    dropped = run(sim, x, E * 1.5, push, 10, backward=False)
+    assert all(not k.free() for k in sim._kept)
+    del dropped
+    gc.collect()
+    assert len(sim._kept) == 3 and all(k.free() and not k.clean for k in sim._kept)
+    assert_same(run(sim, x, E, push, 10), ref)
+    assert len(sim._kept) == 3
+
+
+def test_no_slot_without_gradients_or_for_the_taped_backward():
+    x, static, vol, E, push = block(3)
+    sim = sim_for(static, vol, None)
+    with torch.no_grad():
+        run(sim, x, E, push, 8, backward=False)
+    assert sim._kept == []
+    state = initial_state(torch.tensor(x, dtype=torch.float32))
+    sim.frame(state, E, FRAME_DT, 8, [push])  # nothing requires a gradient
+    assert sim._kept == []
+    taped = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=16, backward="tape"))
+    run(taped, x, E, push, 8, frames=1)
+    assert taped._kept == []
+
+
+def test_a_longer_frame_grows_a_slot_and_a_second_backward_recomputes():
+    x, static, vol, E, push = block(4)
+    per = [8, 14, 8]
+    ref = run(sim_for(static, vol, 0), x, E, push, per)
+    sim = sim_for(static, vol, None)
+    run(sim, x, E, push, [8, 8, 8])
+    assert sorted(k.capacity for k in sim._kept) == [8, 8, 8]
+    assert_same(run(sim, x, E, push, per), ref)
+    assert sorted(k.capacity for k in sim._kept) == [8, 8, 14]
+    # retain_graph: the second backward finds the slots released and recomputes
+    Ei = E.clone().requires_grad_()
+    out = simulate_frames(sim, initial_state(torch.tensor(x, dtype=torch.float32)), Ei, FRAME_DT, 10, 2,
+                          forces=[push])
+    loss = sum((s[0] ** 2).sum() for s in out)
+    first = torch.autograd.grad(loss, Ei, retain_graph=True)[0]
+    second = torch.autograd.grad(loss, Ei)[0]
+    assert first.abs().max() > 0 and torch.equal(first, second)
+
+
+def test_a_negative_budget_is_refused():
+    with pytest.raises(SimConfigError, match="keep_budget_mb"):
+        SimConfig(keep_budget_mb=-1).validate()
