@@ -26,6 +26,9 @@ def main() -> None:
     ap.add_argument("--velocity-iters", type=int, default=None)
     ap.add_argument("--material-iters", type=int, default=None)
     ap.add_argument("--quick", action="store_true", help="CPU scale: 1000 Gaussians, 96x54 px, 4 frames, draft, 3 iterations a stage")
+    ap.add_argument("--recompute", action="store_true",
+                    help="store no frame for the backward (SimConfig.keep_budget_mb 0): every backward "
+                         "recomputes its frame, as a comparison")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     if args.quick:
@@ -46,6 +49,10 @@ def main() -> None:
     from pd_tool.render.views import scene_camera
 
     init_warp_quietly()
+    if args.recompute:
+        from pd_tool.sim.autograd import DiffSim
+
+        DiffSim._keep_budget_bytes = lambda self: 0.0  # the fit builds its SimConfig itself
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         scene_path = save_splats(make_plant(args.gaussians, seed=0, thin=False), tmp / "plant.ply")
@@ -74,6 +81,7 @@ def main() -> None:
     out = {
         "device": args.device, "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
         "gaussians": args.gaussians, "drivers": int(len(res.driver_E)), "frames": args.frames,
+        "stored_frames": not args.recompute,
         "size": [args.width, args.height], "quality": args.quality,
         "velocity_iters": rs.velocity_iters, "material_iters": rs.material_iters,
         "fit_wall_s": wall, "stage_s": res.seconds, "reference_video_s": t_video,

@@ -13,9 +13,12 @@ average) given in random order, in a unit box with a res^3 grid
 - fast: MPMSolver as bake uses it: on CUDA, fast_scatter with the atomic-free gather P2G
   (particles binned per cell, nodes gather; pd_tool/sim/gather.py); on the CPU the same as
   fast_scatter.
-- fwd+bwd: the differentiable path's cost per frame: the checkpointed forward plus the
-  backward (recompute of segments, then the hand-written adjoint kernels in reverse), on
-  warp arrays. fwd+bwd_tape (--backward both): the same with warp's taped adjoints.
+- fwd+bwd: the differentiable path's cost per frame as the autograd bridge runs it: the
+  forward storing each substep's state and grid (SimConfig.keep_budget_mb), then the
+  hand-written adjoint kernels in reverse over them, on warp arrays.
+  fwd+bwd_recompute: the same with nothing stored (keep_budget_mb 0): the forward in
+  place, and a backward that recomputes the frame's segments before the adjoints.
+  fwd+bwd_tape (--backward both): the recompute with warp's taped adjoints.
 
     python bench/sim_speed.py --device cpu --sizes 20000:32 --json cpu.json
     python bench/sim_speed.py --device cuda --json h100.json      # 20k/32, 100k/64, 300k/128
@@ -71,11 +74,15 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
 
 
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None,
-                          backward: str = "adjoint") -> tuple[float, float]:
-    """(forward, forward + backward) particle-substeps/s of the differentiable path."""
+                          backward: str = "adjoint", store: bool = True) -> tuple[float, float]:
+    """(forward, forward + backward) particle-substeps/s of the differentiable path; store:
+    the forward keeps the frame's substeps for the backward where the budget allows."""
     x, vol, mass, E, static = make_block(n, res)
-    cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=backward)
+    cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=backward,
+                    keep_budget_mb=None if store else 0)
     dsim = DiffSim(vol, mass, static, cfg, device=device)
+    claim = dsim._claim_kept(substeps)  # held for the whole run: every frame reuses its slot
+    kept = claim.slot if claim is not None else None
     xw = wp.array(x, dtype=wp.vec3, device=device)
     vw = wp.zeros(n, dtype=wp.vec3, device=device)
     Cw = wp.zeros(n, dtype=wp.mat33, device=device)
@@ -91,11 +98,13 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
 
     def one_frame():
         # forward (no tape) + backward, as the autograd bridge runs them
-        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs).numpy()  # guard sync
-        backward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, ones, zv, zm, zm)
+        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs, kept=kept).numpy()  # guard sync
+        backward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, ones, zv, zm, zm, kept=kept)
 
     def forward_only():
-        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs).numpy()
+        forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs, kept=kept).numpy()
+        if kept is not None:
+            kept.scrub()  # no backward ran to zero its grids
 
     rates = []
     for fn in (forward_only, one_frame):
@@ -193,6 +202,11 @@ def main(argv=None) -> int:
                     row["diff_fwd"] = diff_fwd
                     # the backward alone against the differentiable path's own forward
                     row["bwd_over_diff_fwd"] = diff_fwd / row[key] - 1.0
+                if mode == "adjoint":
+                    fwd, row["fwd_bwd_recompute"] = time_forward_backward(
+                        n, res, substeps, max(1, frames // 2), args.device, args.segment, mode, store=False)
+                    row["diff_fwd_recompute"] = fwd
+                    row["bwd_over_diff_fwd_recompute"] = fwd / row["fwd_bwd_recompute"] - 1.0
             row["backward_kernels"] = modes[0]
             row["segment"] = args.segment
             row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
@@ -204,7 +218,10 @@ def main(argv=None) -> int:
         print(f"N={n:7d} grid={res:4d}^3  baseline {row['baseline_fwd']:.3e}{extra}  fast {row['fast_fwd']:.3e}"
               + (f"  diff fwd {row['diff_fwd']:.3e}  fwd+bwd {row['fwd_bwd']:.3e} (backward = "
                  f"{row['bwd_over_fwd']:.2f} x fast forward, {row['bwd_over_diff_fwd']:.2f} x its own forward)"
-                 if "fwd_bwd" in row else "") + "  particle-substeps/s", flush=True)
+                 if "fwd_bwd" in row else "")
+              + (f"  recomputed: diff fwd {row['diff_fwd_recompute']:.3e}  fwd+bwd {row['fwd_bwd_recompute']:.3e} "
+                 f"(backward = {row['bwd_over_diff_fwd_recompute']:.2f} x its own forward)"
+                 if "fwd_bwd_recompute" in row else "") + "  particle-substeps/s", flush=True)
     out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",
            "rows": rows}
     if args.json:
