@@ -178,6 +178,7 @@ class DiffSim:
         # Replay the backward's segments as captured CUDA graphs (CUDA only).
         self.cuda_graph = True
         self._graphs: dict = {}
+        self._seen: set = set()  # graph keys run once without a capture (see _run_graphed)
         self._stream = None  # CUDA stream of graph launches (see _stream_scope)
         self._kept: list[_KeptFrame] = []  # slots of forward values (config.keep_budget_mb)
 
@@ -282,13 +283,17 @@ class DiffSim:
         per = self._substep_bytes()
         held = sum(k.capacity * per for k in self._kept)
         drop = max(free, key=lambda k: k.capacity) if free else None
-        if held - (drop.capacity * per if drop else 0) + substeps * per > self._keep_budget_bytes():
+        room = self._keep_budget_bytes() - held + (drop.capacity * per if drop else 0)
+        if substeps * per > room:
             return None
         if drop is not None:
             # grown: a larger slot replaces the largest free one, and its graphs go with it
             self._kept.remove(drop)
             self._graphs = {k: g for k, g in self._graphs.items() if k[-1] != drop.serial}
-        slot = _KeptFrame(self.n, self.geo, substeps, self.device)
+        # a quarter more than asked where the budget allows: the substep count creeps up
+        # as a fit stiffens E, and each growth is an allocation
+        capacity = int(min(substeps + (substeps + 3) // 4, room // per))
+        slot = _KeptFrame(self.n, self.geo, capacity, self.device)
         self._kept.append(slot)
         return _Claim(slot)
 
@@ -303,6 +308,25 @@ class DiffSim:
         if tiny is None:
             tiny = self._tiny_lists = alloc_cell_lists(1, self.device)
         return tiny
+
+    def _run_graphed(self, key: tuple, launches) -> None:
+        """Run `launches()` (a fixed sequence of kernel launches on kept arrays) on CUDA
+        from a graph captured for `key`. A key's first run launches directly and its second
+        captures: a stored frame's slot has its own arrays, and the substep count and dt
+        change with E, so in a material fit most keys run once, and a capture costs more
+        than the launches it would save."""
+        graph = self._graphs.get(key)
+        if graph is None:
+            if key not in self._seen:
+                if len(self._seen) > 4096:
+                    self._seen.clear()
+                self._seen.add(key)
+                launches()
+                return
+            with wp.ScopedCapture(device=self.device) as cap:
+                launches()
+            graph = self._graphs[key] = cap.graph
+        wp.capture_launch(graph)
 
     def _adjoint_pool(self, count: int):
         # count + 1 particle states and count grids of forward values, plus the grid
@@ -574,13 +598,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     if kept is not None:
         kept.clean = False
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
-        key = ("forward", substeps, dt, forces.n, sim.binned, None if kept is None else kept.serial)
-        graph = sim._graphs.get(key)
-        if graph is None:
-            with wp.ScopedCapture(device=dev) as cap:
-                run()
-            graph = sim._graphs[key] = cap.graph
-        wp.capture_launch(graph)
+        sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, None if kept is None else kept.serial), run)
     else:
         run()
     end = st if kept is None else kept.states[substeps]
@@ -675,13 +693,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         if not use_graph:
             segment()
             continue
-        key = (k0, k1 - k0, dt, forces.n, binned, None if kept is None else kept.serial)
-        graph = sim._graphs.get(key)
-        if graph is None:
-            with wp.ScopedCapture(device=dev) as cap:
-                segment()
-            graph = sim._graphs[key] = cap.graph
-        wp.capture_launch(graph)
+        sim._run_graphed((k0, k1 - k0, dt, forces.n, binned, None if kept is None else kept.serial), segment)
     if kept is not None:
         kept.clean = True  # grid_adjoint zeroed the grids' mass and momentum
     grads = tuple(wp.empty_like(a) for a in (gu,) + adj[1:])

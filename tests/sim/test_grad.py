@@ -310,7 +310,7 @@ def test_bridge_on_cuda_with_graphs_matches_plain_launches_and_cpu():
     for name, device, graphs in (("graph", "cuda:0", True), ("plain", "cuda:0", False), ("cpu", "cpu", False)):
         sim = DiffSim(vol, vol * 1000, static, cfg, device=device)
         sim.cuda_graph = graphs
-        for _ in range(2):  # the second pass replays the captured graphs
+        for _ in range(3):  # the first pass launches directly, the second captures, the third replays
             ins = [t.to(device).clone().requires_grad_() for t in base]
             state = tuple(ins[:4])
             for k in range(2):
