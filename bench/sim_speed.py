@@ -103,8 +103,6 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
 
     def forward_only():
         forward_frame(dsim, xw, vw, Cw, Fw, Ew, forces, 0.0, frame_dt, substeps, *outs, kept=kept).numpy()
-        if kept is not None:
-            kept.scrub()  # no backward ran to zero its grids
 
     rates = []
     for fn in (forward_only, one_frame):

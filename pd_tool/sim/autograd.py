@@ -12,7 +12,6 @@ segment's stores, whatever the number of frames.
 """
 from __future__ import annotations
 
-import itertools
 import weakref
 from contextlib import contextmanager
 from typing import Sequence
@@ -24,7 +23,7 @@ import warp as wp
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import alloc_cell_lists, run_substeps_binned
+from pd_tool.sim.gather import alloc_cell_lists, block_shape, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -91,33 +90,56 @@ def initial_state(x: torch.Tensor, v: torch.Tensor | None = None) -> State:
     return x, v, C, F
 
 
-class _KeptFrame:
-    """A slot for one frame's forward values: `capacity` + 1 particle states and `capacity`
-    grids, written by forward_frame and read by backward_frame's adjoint instead of a
-    recompute. A slot is held by one frame of the autograd graph (`owner`, a weak reference
-    to that frame's _Claim), and free again after the frame's backward or once the graph
-    that held it is gone. `clean`: the grids' mass and momentum are zero, as the recompute
-    kernels need them (the adjoint leaves them so; a forward without a backward does not)."""
+class _Substeps:
+    """`count` + 1 particle states and `count` grids, one array per field ([count + 1, N] for
+    u, v, C, G; [count, *nodes] for the grids' mmv, v and activity blocks), so that a frame's
+    substeps copy to or from another set in seven launches. `states[i]` and `grids[i]` are
+    views for the kernels, built on first use."""
 
-    _serials = itertools.count()
+    def __init__(self, n: int, geo: GridGeometry, count: int, device: str) -> None:
+        self.count = count
+        self.fields = [wp.zeros((count + 1, n), dtype=t, device=device) for t in (wp.vec3, wp.vec3, wp.mat33, wp.mat33)]
+        self.fields += [wp.zeros((count, *geo.nodes), dtype=t, device=device) for t in (wp.vec4, wp.vec3)]
+        self.fields.append(wp.zeros((count, *block_shape(geo.nodes)), dtype=int, device=device))
+        self._views = None
+
+    @property
+    def states(self) -> list[ParticleState]:
+        return self._split()[0]
+
+    @property
+    def grids(self) -> list[GridArrays]:
+        return self._split()[1]
+
+    def _split(self):
+        if self._views is None:
+            u, v, C, G, mmv, gv, blocks = self.fields
+            self._views = ([ParticleState(u[i], v[i], C[i], G[i]) for i in range(self.count + 1)],
+                           [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)])
+        return self._views
+
+    def copy_from(self, other: "_Substeps", substeps: int) -> None:
+        """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1)."""
+        for k, (dst, src) in enumerate(zip(self.fields, other.fields)):
+            rows = substeps + 1 if k < 4 else substeps
+            wp.copy(dst[:rows], src[:rows])
+
+
+class _KeptFrame(_Substeps):
+    """A slot for one frame's forward values, written by forward_frame and read back by
+    backward_frame instead of a recompute. A slot is held by one frame of the autograd graph
+    (`owner`, a weak reference to that frame's _Claim), and free again after the frame's
+    backward or once the graph that held it is gone. Kernels never run on a slot's arrays:
+    the substeps run in the simulator's pool and are copied, so that every frame replays the
+    pool's captured graphs."""
 
     def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
+        super().__init__(n, geo, capacity, device)
         self.capacity = capacity
-        self.states = [ParticleState.zeros(n, device) for _ in range(capacity + 1)]
-        self.grids = [GridArrays.alloc(geo, device) for _ in range(capacity)]
-        self.serial = next(self._serials)  # graph keys: ids of freed slots are reused
         self.owner: weakref.ref | None = None
-        self.clean = True
 
     def free(self) -> bool:
         return self.owner is None or self.owner() is None
-
-    def scrub(self) -> None:
-        """Zero the grids' mass and momentum, left by a forward whose backward never ran."""
-        if not self.clean:
-            for g in self.grids:
-                g.mmv.zero_()
-            self.clean = True
 
 
 class _Claim:
@@ -277,9 +299,7 @@ class DiffSim:
         free = [k for k in self._kept if k.free()]
         fits = [k for k in free if k.capacity >= substeps]
         if fits:
-            slot = min(fits, key=lambda k: k.capacity)
-            slot.scrub()
-            return _Claim(slot)
+            return _Claim(min(fits, key=lambda k: k.capacity))
         per = self._substep_bytes()
         held = sum(k.capacity * per for k in self._kept)
         drop = max(free, key=lambda k: k.capacity) if free else None
@@ -287,9 +307,7 @@ class DiffSim:
         if substeps * per > room:
             return None
         if drop is not None:
-            # grown: a larger slot replaces the largest free one, and its graphs go with it
-            self._kept.remove(drop)
-            self._graphs = {k: g for k, g in self._graphs.items() if k[-1] != drop.serial}
+            self._kept.remove(drop)  # grown: a larger slot replaces the largest free one
         # a quarter more than asked where the budget allows: the substep count creeps up
         # as a fit stiffens E, and each growth is an allocation
         capacity = int(min(substeps + (substeps + 3) // 4, room // per))
@@ -328,25 +346,16 @@ class DiffSim:
             graph = self._graphs[key] = cap.graph
         wp.capture_launch(graph)
 
-    def _adjoint_pool(self, count: int):
-        # count + 1 particle states and count grids of forward values, plus the grid
-        # cotangents (adj_grid_v starts zeroed and is left zeroed).
+    def _adjoint_pool(self, count: int) -> tuple[_Substeps, tuple[wp.array, wp.array]]:
+        # at least count substeps of forward values (their grids' mass and momentum zero
+        # between uses: the recompute adds to them and the adjoint clears them), plus the
+        # grid cotangents (adj_grid_v starts zeroed and is left zeroed)
         pool = getattr(self, "_adj_pool", None)
-        if pool is None or len(pool[1]) < count:
+        if pool is None or pool[0].count < count:
             self._graphs = {}  # captured graphs point into the old pool
-            pool = self._adj_pool = (
-                [ParticleState.zeros(self.n, self.device) for _ in range(count + 1)],
-                [GridArrays.alloc(self.geo, self.device) for _ in range(count)],
-                self._adjoint_grid())
-        return pool
-
-    def _adjoint_grid(self) -> tuple[wp.array, wp.array]:
-        # the grid cotangents (adj_grid_v, adj_mmv); adj_grid_v starts zeroed and is left zeroed
-        grid = getattr(self, "_adj_grid", None)
-        if grid is None:
             z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
-            grid = self._adj_grid = (z(wp.vec4), z(wp.vec4))
-        return grid
+            pool = self._adj_pool = (_Substeps(self.n, self.geo, count, self.device), (z(wp.vec4), z(wp.vec4)))
+        return pool
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
         # count + 1 particle states and count grids with gradients, for one taped segment.
@@ -583,7 +592,8 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
-    st = buf["state"] if kept is None else kept.states[0]
+    pool = sim._adjoint_pool(substeps)[0] if kept is not None else None
+    st = buf["state"] if kept is None else pool.states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
@@ -592,18 +602,19 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         if kept is None:
             sim.run_untaped(sctx, substeps, dt, st)
         else:
-            recompute_segment(sctx, dt, 0, kept.states[: substeps + 1], kept.grids[:substeps],
+            recompute_segment(sctx, dt, 0, pool.states[: substeps + 1], pool.grids[:substeps],
                               sim._lists(sim.binned), sim.binned)
 
-    if kept is not None:
-        kept.clean = False
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
-        sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, None if kept is None else kept.serial), run)
+        sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, kept is not None), run)
     else:
         run()
-    end = st if kept is None else kept.states[substeps]
+    end = st if kept is None else pool.states[substeps]
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
+    if kept is not None:
+        kept.copy_from(pool, substeps)
+        pool.fields[4][:substeps].zero_()  # the next recompute adds to zero mass and momentum
     return sctx.stats
 
 
@@ -652,11 +663,11 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
+    seg = substeps if kept is not None else sim.segment_length(substeps)
+    pool, adj_grid = sim._adjoint_pool(min(seg, substeps))
+    states, grids = pool.states, pool.grids
     if kept is not None:
-        seg, states, grids, adj_grid = substeps, kept.states, kept.grids, sim._adjoint_grid()
-    else:
-        seg = sim.segment_length(substeps)
-        states, grids, adj_grid = sim._adjoint_pool(min(seg, substeps))
+        pool.copy_from(kept, substeps)
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
     st0 = states[0] if single and kept is None else buf["state"]
@@ -693,9 +704,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         if not use_graph:
             segment()
             continue
-        sim._run_graphed((k0, k1 - k0, dt, forces.n, binned, None if kept is None else kept.serial), segment)
-    if kept is not None:
-        kept.clean = True  # grid_adjoint zeroed the grids' mass and momentum
+        sim._run_graphed((k0, k1 - k0, dt, forces.n, binned, kept is not None), segment)
     grads = tuple(wp.empty_like(a) for a in (gu,) + adj[1:])
     wp.launch(_scatter_gradients, dim=n, device=dev, inputs=[fr.order, adj[0], gu_sorted, *adj[1:], *grads])
     return grads

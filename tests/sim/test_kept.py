@@ -93,8 +93,8 @@ def test_the_budget_bounds_the_stored_frames():
 
 def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable():
     """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
-    its slots with their grids holding that forward's mass and momentum; the next forward
-    must clear them, or its P2G adds to them."""
+    its slots. Every forward leaves the simulator's pool of substeps with zero grid mass
+    and momentum, or the next forward's P2G adds to what the last one left."""
     x, static, vol, E, push = block(2)
     ref = run(sim_for(static, vol, 0), x, E, push, 10)
     sim = sim_for(static, vol, None)
@@ -102,7 +102,7 @@ def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable():
     assert all(not k.free() for k in sim._kept)
     del dropped
     gc.collect()
-    assert len(sim._kept) == 3 and all(k.free() and not k.clean for k in sim._kept)
+    assert len(sim._kept) == 3 and all(k.free() for k in sim._kept)
     assert_same(run(sim, x, E, push, 10), ref)
     assert len(sim._kept) == 3
 
@@ -146,9 +146,10 @@ def test_a_negative_budget_is_refused():
 
 
 def test_stored_frames_on_cuda_with_graphs():
-    """On CUDA each slot replays its own captured graphs; a slot left dirty by a dropped
-    forward is cleared before its graph runs again. Float sums land in another order each
-    run there, so the two paths agree to rounding, not bit for bit."""
+    """On CUDA, stored frames run the pool's captured graphs (a key's first run launches
+    directly, the second captures, the third replays) after a dropped forward. Float sums
+    land in another order each run there, so the two paths agree to rounding, not bit for
+    bit."""
     import warp as wp
 
     if not torch.cuda.is_available() or not wp.is_cuda_available():
