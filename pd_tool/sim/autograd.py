@@ -330,9 +330,9 @@ class DiffSim:
     def _run_graphed(self, key: tuple, launches) -> None:
         """Run `launches()` (a fixed sequence of kernel launches on kept arrays) on CUDA
         from a graph captured for `key`. A key's first run launches directly and its second
-        captures: a stored frame's slot has its own arrays, and the substep count and dt
-        change with E, so in a material fit most keys run once, and a capture costs more
-        than the launches it would save."""
+        captures: the substep count and dt change with E, and a key run only once (a
+        one-frame pass, an iteration whose E gave a new count) would otherwise pay for a
+        capture that is never replayed."""
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen:
@@ -587,7 +587,8 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     array (read it once, after the frame). With `kept` (a slot of at least `substeps`), each
     substep's state and grid are stored there for backward_frame; without, the substeps run
     in place. On CUDA the substeps replay a captured graph keyed by (substeps, dt, forces,
-    slot): every array they touch is a kept buffer."""
+    stored or not): every array they touch is a kept buffer, the stores running in the
+    simulator's pool and copied to the slot after."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
