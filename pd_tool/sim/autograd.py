@@ -129,9 +129,9 @@ class _KeptFrame(_Substeps):
     """A slot for one frame's forward values, written by forward_frame and read back by
     backward_frame instead of a recompute. A slot is held by one frame of the autograd graph
     (`owner`, a weak reference to that frame's _Claim), and free again after the frame's
-    backward or once the graph that held it is gone. Kernels never run on a slot's arrays:
-    the substeps run in the simulator's pool and are copied, so that every frame replays the
-    pool's captured graphs."""
+    backward or once the graph that held it is gone. Where CUDA graphs replay, the substeps
+    run in the simulator's pool and are copied to and from the slot, so that every frame
+    replays the pool's graphs; elsewhere they run on the slot's own arrays."""
 
     def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
         super().__init__(n, geo, capacity, device)
@@ -199,6 +199,10 @@ class DiffSim:
         self.binned = wp.get_device(self.device).is_cuda
         # Replay the backward's segments as captured CUDA graphs (CUDA only).
         self.cuda_graph = True
+        # Stored frames run in the pool and are copied to their slots where graphs replay
+        # (CUDA); elsewhere they run on the slot's own arrays, as the copies cost one CPU
+        # thread about what a recompute does. Tests switch the pool on for the CPU.
+        self.store_in_pool = False
         self._graphs: dict = {}
         self._seen: set = set()  # graph keys run once without a capture (see _run_graphed)
         self._stream = None  # CUDA stream of graph launches (see _stream_scope)
@@ -346,16 +350,26 @@ class DiffSim:
             graph = self._graphs[key] = cap.graph
         wp.capture_launch(graph)
 
-    def _adjoint_pool(self, count: int) -> tuple[_Substeps, tuple[wp.array, wp.array]]:
-        # at least count substeps of forward values (their grids' mass and momentum zero
-        # between uses: the recompute adds to them and the adjoint clears them), plus the
-        # grid cotangents (adj_grid_v starts zeroed and is left zeroed)
+    def _adjoint_pool(self, count: int) -> _Substeps:
+        # at least count substeps of forward values, their grids' mass and momentum zero
+        # between uses (the recompute adds to them and the adjoint clears them)
         pool = getattr(self, "_adj_pool", None)
-        if pool is None or pool[0].count < count:
+        if pool is None or pool.count < count:
             self._graphs = {}  # captured graphs point into the old pool
-            z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
-            pool = self._adj_pool = (_Substeps(self.n, self.geo, count, self.device), (z(wp.vec4), z(wp.vec4)))
+            pool = self._adj_pool = _Substeps(self.n, self.geo, count, self.device)
         return pool
+
+    def _adjoint_grid(self) -> tuple[wp.array, wp.array]:
+        # the grid cotangents (adj_grid_v, adj_mmv); adj_grid_v starts zeroed and is left zeroed
+        grid = getattr(self, "_adj_grid", None)
+        if grid is None:
+            z = lambda t: wp.zeros(self.geo.nodes, dtype=t, device=self.device)  # noqa: E731
+            grid = self._adj_grid = (z(wp.vec4), z(wp.vec4))
+        return grid
+
+    def _pooled(self) -> bool:
+        # with graphs always: a graph's key does not name the slot whose arrays it captured
+        return self.store_in_pool or (wp.get_device(self.device).is_cuda and self.cuda_graph)
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
         # count + 1 particle states and count grids with gradients, for one taped segment.
@@ -588,13 +602,16 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     substep's state and grid are stored there for backward_frame; without, the substeps run
     in place. On CUDA the substeps replay a captured graph keyed by (substeps, dt, forces,
     stored or not): every array they touch is a kept buffer, the stores running in the
-    simulator's pool and copied to the slot after."""
+    simulator's pool and copied to the slot after (DiffSim._pooled)."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
-    pool = sim._adjoint_pool(substeps)[0] if kept is not None else None
-    st = buf["state"] if kept is None else pool.states[0]
+    pooled = kept is not None and sim._pooled()
+    store = None if kept is None else sim._adjoint_pool(substeps) if pooled else kept
+    if kept is not None and not pooled:
+        kept.fields[4][:substeps].zero_()  # the recompute adds to zero mass and momentum
+    st = buf["state"] if kept is None else store.states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
@@ -603,19 +620,19 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         if kept is None:
             sim.run_untaped(sctx, substeps, dt, st)
         else:
-            recompute_segment(sctx, dt, 0, pool.states[: substeps + 1], pool.grids[:substeps],
+            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps],
                               sim._lists(sim.binned), sim.binned)
 
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
         sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, kept is not None), run)
     else:
         run()
-    end = st if kept is None else pool.states[substeps]
+    end = st if kept is None else store.states[substeps]
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
-    if kept is not None:
-        kept.copy_from(pool, substeps)
-        pool.fields[4][:substeps].zero_()  # the next recompute adds to zero mass and momentum
+    if pooled:
+        kept.copy_from(store, substeps)
+        store.fields[4][:substeps].zero_()  # the next recompute adds to zero mass and momentum
     return sctx.stats
 
 
@@ -665,10 +682,14 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     seg = substeps if kept is not None else sim.segment_length(substeps)
-    pool, adj_grid = sim._adjoint_pool(min(seg, substeps))
-    states, grids = pool.states, pool.grids
-    if kept is not None:
-        pool.copy_from(kept, substeps)
+    adj_grid = sim._adjoint_grid()
+    if kept is not None and not sim._pooled():
+        store = kept
+    else:
+        store = sim._adjoint_pool(min(seg, substeps))
+        if kept is not None:
+            store.copy_from(kept, substeps)
+    states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
     st0 = states[0] if single and kept is None else buf["state"]

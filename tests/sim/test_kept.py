@@ -48,9 +48,10 @@ def run(sim: DiffSim, x, E0, push, substeps, frames: int = 3, horizon=None, back
     return [t.detach() for t in out[-1]], dE, dv
 
 
-def sim_for(static, vol, budget, binned: bool = False) -> DiffSim:
+def sim_for(static, vol, budget, binned: bool = False, pooled: bool = False) -> DiffSim:
     sim = DiffSim(vol, vol * 1000, static, SimConfig(grid_res=16, gravity=(0, 0, -9.81), keep_budget_mb=budget))
     sim.binned = binned
+    sim.store_in_pool = pooled  # as on CUDA: run in the pool, copied to the slot
     return sim
 
 
@@ -61,14 +62,16 @@ def assert_same(a, b) -> None:
     assert torch.equal(a[2], b[2]), "dv0"
 
 
+@pytest.mark.parametrize("pooled", [False, True])
 @pytest.mark.parametrize("binned", [False, True])
 @pytest.mark.parametrize("horizon", [None, 2])
-def test_stored_frames_give_the_recompute_s_gradients(binned, horizon):
+def test_stored_frames_give_the_recompute_s_gradients(binned, horizon, pooled):
     """Every frame stored, against none: the same end state and gradients bit for bit (on
-    the CPU the forward and the recompute run the same kernels in the same order)."""
+    the CPU the forward and the recompute run the same kernels in the same order), stored
+    on the slots' own arrays or run in the pool and copied."""
     x, static, vol, E, push = block()
     ref = run(sim_for(static, vol, 0, binned), x, E, push, 12, horizon=horizon)
-    sim = sim_for(static, vol, None, binned)
+    sim = sim_for(static, vol, None, binned, pooled)
     got = run(sim, x, E, push, 12, horizon=horizon)
     assert len(sim._kept) == 3 and all(k.free() for k in sim._kept)
     assert ref[1].abs().max() > 0 and (horizon is not None or ref[2].abs().max() > 0)
@@ -88,13 +91,14 @@ def test_the_budget_bounds_the_stored_frames():
     assert_same(got, ref)
 
 
-def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable():
+@pytest.mark.parametrize("pooled", [False, True])
+def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable(pooled):
     """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
-    its slots. Every forward leaves the simulator's pool of substeps with zero grid mass
-    and momentum, or the next forward's P2G adds to what the last one left."""
+    its slots, their grids (or the pool's) holding that forward's mass and momentum; the
+    next forward must start from zero, or its P2G adds to what the last one left."""
     x, static, vol, E, push = block(2)
     ref = run(sim_for(static, vol, 0), x, E, push, 10)
-    sim = sim_for(static, vol, None)
+    sim = sim_for(static, vol, None, pooled=pooled)
     dropped = run(sim, x, E * 1.5, push, 10, backward=False)
     assert all(not k.free() for k in sim._kept)
     del dropped
