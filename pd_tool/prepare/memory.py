@@ -177,6 +177,20 @@ def estimate_fit_memory(
     return MemoryEstimate(host=host, device=dev, terms=terms)
 
 
+STORED_FRAMES_CPU_MB = 1024.0  # the most RAM a CPU fit fills with frames stored for the backward
+
+
+def stored_frames_budget_mb(estimate: MemoryEstimate, available: tuple[float, float | None]) -> float:
+    """MB the fit's simulator may fill with frames its forward stores for the backward
+    (SimConfig.keep_budget_mb): half of what the estimate leaves free, of GPU memory on
+    CUDA, of RAM on the CPU (there at most STORED_FRAMES_CPU_MB). Frames beyond it are
+    recomputed, so this trades memory for time only; 0 when the estimate leaves nothing."""
+    host, gpu = available
+    if gpu is not None:
+        return max(0.0, 0.5 * (gpu - estimate.device) / MiB)
+    return max(0.0, min(STORED_FRAMES_CPU_MB, 0.5 * (host - estimate.host) / MiB))
+
+
 def available_memory(device: str = "cpu") -> tuple[float, float | None]:
     """(host bytes available, GPU bytes free or None on CPU). Host: MemAvailable from
     /proc/meminfo (None where there is none, e.g. macOS: then no host check)."""

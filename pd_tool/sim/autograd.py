@@ -284,12 +284,25 @@ class DiffSim:
             return 0.25 * dev.free_memory / 2**20
         return 0.0
 
+    @staticmethod
+    def _host_quarter_mb() -> float:
+        # a quarter of MemAvailable (inf where /proc/meminfo is missing, e.g. macOS)
+        try:
+            with open("/proc/meminfo") as fh:
+                for line in fh:
+                    if line.startswith("MemAvailable:"):
+                        return 0.25 * float(line.split()[1]) / 1024
+        except OSError:
+            pass
+        return float("inf")
+
     def _keep_budget_bytes(self) -> float:
         budget = getattr(self, "_keep_budget", None)
         if budget is None:
             budget = self.config.keep_budget_mb
             if budget is None:
-                budget = self._free_quarter_mb() if wp.get_device(self.device).is_cuda else 1024.0
+                cuda = wp.get_device(self.device).is_cuda
+                budget = self._free_quarter_mb() if cuda else min(1024.0, self._host_quarter_mb())
             # fixed at the first frame: the free memory read later would count this sim's own slots
             budget = self._keep_budget = budget * 2**20
         return budget

@@ -58,8 +58,9 @@ class SimConfig:
         keep_budget_mb: memory in which the differentiable forward stores each substep's
             state and grid of the frames it runs with gradients, so that their backward
             skips the recompute (with "adjoint" only; a frame that does not fit is
-            recomputed as before); None = a quarter of the GPU's free memory on CUDA,
-            1024 MB on the CPU; 0 = always recompute.
+            recomputed as before); None = a quarter of the GPU's free memory on CUDA, on
+            the CPU a quarter of the available RAM up to 1024 MB, each read at the first
+            frame; 0 = always recompute.
     """
 
     grid_res: int = 64

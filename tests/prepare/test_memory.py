@@ -145,3 +145,15 @@ def test_the_estimate_counts_the_chunk_the_search_holds() -> None:
     assert grid + M.B_PAIR * M.KNN_CHUNK // 4 < cpu.terms["knn"] < 1.1 * (grid + M.B_PAIR * M.KNN_CHUNK // 4)
     assert grid + M.B_PAIR_CUDA * M.KNN_CHUNK_CUDA // 4 < gpu.terms["knn"]
     assert gpu.device >= gpu.terms["knn"]  # counted on the device
+
+
+def test_stored_frames_take_half_of_what_the_fit_leaves_free() -> None:
+    from pd_tool.prepare.memory import MiB, STORED_FRAMES_CPU_MB, MemoryEstimate, stored_frames_budget_mb
+
+    est = MemoryEstimate(host=2000 * MiB, device=3000 * MiB)
+    assert stored_frames_budget_mb(est, (2600 * MiB, None)) == pytest.approx(300.0)
+    assert stored_frames_budget_mb(est, (64000 * MiB, None)) == STORED_FRAMES_CPU_MB
+    assert stored_frames_budget_mb(est, (float("inf"), None)) == STORED_FRAMES_CPU_MB
+    assert stored_frames_budget_mb(est, (1000 * MiB, None)) == 0.0  # over: recompute every frame
+    assert stored_frames_budget_mb(est, (1000 * MiB, 11000 * MiB)) == pytest.approx(4000.0)  # the GPU's
+    assert stored_frames_budget_mb(est, (1e12, 2000 * MiB)) == 0.0
