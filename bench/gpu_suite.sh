@@ -26,6 +26,7 @@ if [ "$part" = b ]; then
   run usd_write 120 bench/usd_write.py --device cuda --points 300000 --frames 30 --fmt instancer,splat,both
   run physics 120 bench/physics.py --quick --device cuda
   run fit_speed 300 bench/fit_speed.py --device cuda --gaussians 100000 --width 1024 --height 576
+  run fit_speed_recompute 300 bench/fit_speed.py --device cuda --gaussians 100000 --width 1024 --height 576 --recompute
 fi
 # accuracy against converged references (docs/benchmarks.md, "Convergence against a fine
 # reference" and "Fitted materials at another quality"); each part fits one 10-minute call.
