@@ -142,7 +142,8 @@ def estimate_fit_memory(
     before the one backward pass, so the graph holds each frame's saved simulation state,
     animated Gaussians and loss maps; the simulation itself is checkpointed (it replays
     `segment` substeps under a tape: segment + 1 particle states and `segment` grids with
-    gradients).
+    gradients). Frames the simulation stores for the backward come on top, within the
+    budget stored_frames_budget_mb gives from what this estimate leaves free.
 
     Args:
         n_gaussians, n_simulated, driver_ratio, grid_dims: as for estimate_bake_memory.

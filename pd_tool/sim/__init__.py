@@ -12,7 +12,8 @@ Fast forward path (bake)::
         x, F = sim.positions(), sim.deformation_gradients()   # [N, 3] m, [N, 3, 3]
         if sim.kinetic_energy() < 1e-6: break
 
-Differentiable path (fit), torch autograd over warp with checkpoint-and-recompute::
+Differentiable path (fit), torch autograd over warp; each frame's substeps stored for its
+backward within SimConfig.keep_budget_mb, recomputed from checkpoints beyond it::
 
     from pd_tool.sim import DiffSim, initial_state, simulate_frames
     dsim = DiffSim(volume, mass, static, cfg, device="cpu")

@@ -1,4 +1,4 @@
-"""torch.autograd bridge over the warp MPM: one frame per Function, checkpoint-and-recompute.
+"""torch.autograd bridge over the warp MPM: one frame per Function, stored or recomputed.
 
 A frame run with gradients stores each substep's particle state and grid in a slot of
 `config.keep_budget_mb`, and its backward runs the adjoint kernels over them in reverse.
