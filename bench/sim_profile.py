@@ -102,8 +102,10 @@ def profile_bake(name: str, gaussians: int, quality: str, frames: int, device: s
 
 
 def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None) -> dict:
-    """Per-kernel GPU time and wall time (us per substep) of backward_frame, without CUDA
-    graphs (the activity timing needs plain launches)."""
+    """Per-kernel GPU time and wall time (us per substep) of backward_frame for a frame not
+    stored by its forward (the recompute, then the adjoints), without CUDA graphs (the
+    activity timing needs plain launches). A stored frame's backward is the adjoints' rows
+    plus seven copies."""
     import time
 
     import numpy as np
