@@ -135,6 +135,15 @@ class FitSettings:
         n, every = int(self.material_iters or 0), self.keep_best_every
         return [k for k in range(1, n + 1) if k % every == 0 or k == n] if every > 0 else []
 
+    def whole_clip_measures(self) -> int:
+        """Whole-clip losses a fit measures (each simulates every frame, forward only): stage
+        2's start (in every round when keeping the best state, else the first), each round's
+        measure points, and the result, which reuses the kept state's measure unless
+        calibration moved E after it; of resolved settings."""
+        points = self.measure_points()
+        starts = (self.rounds * (1 + len(points)) if points else 1) if self.material_iters else 0
+        return starts + (0 if points and not self.calibrate_iters else 1)
+
     def resolved(self) -> FitSettings:
         """These settings with every default filled in from the quality preset; ValueError
         (one line) for a value out of range or a combination the fit cannot run."""

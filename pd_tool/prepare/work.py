@@ -269,7 +269,7 @@ def check_fit_work(prep, settings, videos, *, n_gaussians: int, cfl_safety: floa
         velocity_iters=int(settings.velocity_iters), material_iters=int(settings.material_iters),
         rounds=int(settings.rounds), stage1_frames=int(settings.stage1_frames),
         calibrate_iters=int(settings.calibrate_iters),
-        whole_clips=int(settings.rounds) * (len(settings.measure_points()) + 1) + 1, device=str(settings.device))
+        whole_clips=settings.whole_clip_measures(), device=str(settings.device))
     check_work(est, fixes="lower --quality, --working-size or the iterations (--velocity-iters, --material-iters), "
                           "measure less often (--keep-best), or use fewer frames")
     return est

@@ -31,7 +31,7 @@ def test_an_overshooting_stage_2_ends_in_its_best_measured_state(fit_dir: Path, 
     best = int(np.argmin(measures))
     assert best < 3 and measures[-1] > measures[best], f"no overshoot to test: {measures}"
     assert kept.losses["kept"] == [float(best)]
-    # the fit ends where it measured its best: the same loss, simulated again
+    # the fit ends where it measured its best, and reports that measure as its result
     assert kept.losses["final"][0] == pytest.approx(measures[best], rel=1e-4)
     # the last state's loss is the keeping fit's last measure, higher than the kept one
     assert last.losses["final"][0] == pytest.approx(measures[-1], rel=1e-4) and last.losses["final"][0] > measures[best]
@@ -63,3 +63,24 @@ def test_measure_points_and_the_note() -> None:
                            s) is None
     with pytest.raises(ValueError, match="keep_best_every"):
         FitSettings(keep_best_every=-1).resolved()
+
+
+@pytest.mark.parametrize("every, rounds, calibrate", [(1, 1, 0), (0, 1, 0), (2, 2, 0), (0, 2, 0), (1, 1, 1)])
+def test_the_work_estimate_counts_the_measures_the_fit_takes(fit_dir: Path, tmp_path: Path, monkeypatch,
+                                                             every: int, rounds: int, calibrate: int) -> None:
+    """FitSettings.whole_clip_measures, which the work estimate charges, against the
+    whole-clip simulations a fit runs: with and without keeping the best state, one and two
+    rounds, and a calibration, after which the result is measured again."""
+    import pd_tool.fit.run as run_module
+    import pd_tool.fit.stages as stages_module
+    from pd_tool.fit.settings import FitSettings
+
+    calls = []
+    for module in (run_module, stages_module):
+        measure = module.whole_clip_loss
+        monkeypatch.setattr(module, "whole_clip_loss", lambda pb, v0s, f=measure: calls.append(1) or f(pb, v0s))
+    kw = dict(keep_best_every=every, rounds=rounds, calibrate_iters=calibrate)
+    _fit(fit_dir, tmp_path / "f.pdmat", **kw)
+    settings = FitSettings(quality="draft", velocity_iters=1, material_iters=3, working_long_side=24,
+                           stage1_level=False, **kw).resolved()
+    assert len(calls) == settings.whole_clip_measures() > 0
