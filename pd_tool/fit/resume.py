@@ -206,6 +206,20 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         raise bad(f"its loss histories are not {', '.join(sorted(lengths))}")
     for k, n in lengths.items():
         tensor(f"losses.{k}", losses[k], torch.zeros(n, dtype=torch.float64))
+    if "whole_clip" in losses:  # each round keeps the state its own measures rank first (Kept.offer)
+        measures, per = losses["whole_clip"].tolist(), 1 + len(points)
+        for r in range(rnd):
+            _, at = Kept.ranked_first(measures[r * per:(r + 1) * per], [0, *points])
+            if float(losses["kept"][r]) != at:
+                raise bad(f"losses.kept names iteration {float(losses['kept'][r]):g} for round {r + 1}, "
+                          f"where its measures rank iteration {at} first")
+        if keeping:
+            ats = [0, *(p for p in points if p <= it)]
+            best, at = Kept.ranked_first(measures[rnd * per:], ats)
+            loss, kept_it = (float(v) for v in state["kept_at"])
+            if (loss, kept_it) != (best, at):
+                raise bad(f"kept_at names iteration {kept_it:g} at the whole-clip loss {loss:.6g}, where this "
+                          f"round's measures rank iteration {at} first, at {best:.6g}")
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -56,8 +56,21 @@ class Kept:
 
     def offer(self, pb: FitProblem, loss: float, iteration: int) -> None:
         """Keep pb's state instead when `loss` is finite and lower (or the kept one is not finite)."""
-        if math.isfinite(loss) and not loss >= self.loss:
+        if Kept.prefers(loss, self.loss):
             vars(self).update(vars(Kept.of(pb, loss, iteration)))
+
+    @staticmethod
+    def prefers(loss: float, kept: float) -> bool:
+        return math.isfinite(loss) and not loss >= kept
+
+    @staticmethod
+    def ranked_first(measures: list[float], iterations: list[int]) -> tuple[float, int]:
+        """(loss, iteration) a round keeps of its measures, taken in order from its start."""
+        best, at = measures[0], iterations[0]
+        for loss, it in zip(measures[1:], iterations[1:]):
+            if Kept.prefers(loss, best):
+                best, at = loss, it
+        return best, at
 
     def restore(self, pb: FitProblem) -> None:
         with torch.no_grad():

@@ -316,6 +316,9 @@ RESUME_CASES = [
     ("kept state", lambda g, m: _craft(g[0], _pop("kept_residual")), ": it lacks kept_residual"),
     ("kept iteration", lambda g, m: _craft(g[0], _set("kept_at", torch.tensor([0.01, 7.0], dtype=torch.float64))),
      r": kept_at names iteration 7, where this fit measures at 0 and \[2\] up to 1"),
+    ("kept loss", lambda g, m: _craft(g[0], _set("kept_at", torch.tensor([0.01, 0.0], dtype=torch.float64))),
+     r": kept_at names iteration 0 at the whole-clip loss 0\.01, where this round's measures rank iteration 0 "
+     r"first, at [0-9.e-]+;"),
     ("loss history", lambda g, m: _craft(g[0], lambda st: st["losses"].__setitem__(
         "material", torch.zeros(5, dtype=torch.float64))), r": losses\.material is torch\.float64 \[5\]"),
 ]
