@@ -40,6 +40,19 @@ def init_warp_quietly() -> None:
     init_warp_quietly._done = True  # type: ignore[attr-defined]
 
 
+def host_available_bytes() -> float:
+    """RAM available to a new allocation: MemAvailable from /proc/meminfo, in bytes; inf where
+    there is none (e.g. macOS)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return float("inf")
+
+
 def cuda_available() -> bool:
     """True when both torch and warp see a CUDA device."""
     import torch

@@ -22,7 +22,6 @@ from pd_tool.fit.settings import FitSettings
 from pd_tool.materials.file import MaterialFile
 from pd_tool.materials.presets import fit_simulation, load_preset
 from pd_tool.prepare import memory
-from pd_tool.prepare.memory import check_memory, estimate_fit_memory, stored_frames_budget_mb
 from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
 from pd_tool.prepare.work import check_fit_work
 from pd_tool.render import render
@@ -53,13 +52,13 @@ class FitProblem:
         p = self.prep
         # refuse now, before drivers, simulator and graph, when the fit cannot fit in memory
         drivers_per_particle = p.floor_ratio(settings.driver_ratio, settings.min_drivers_per_cell)
-        need = estimate_fit_memory(
+        need = memory.estimate_fit_memory(
             n_gaussians=scene.count, n_simulated=len(p.positions_sim), driver_ratio=drivers_per_particle,
             grid_dims=p.grid_dims,
             frames=[v.num_frames for v in videos], image_pixels=int(videos[0].frames[0].numel() // 3),
             stage1_frames=settings.stage1_frames, device=settings.device)
         available = memory.available_memory(settings.device)
-        check_memory(need, what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio,
+        memory.check_memory(need, what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio,
                      device=settings.device, resolution=f"--working-size {settings.working_long_side}",
                      available=available)
         # ... or when it would take longer than allowed
@@ -94,7 +93,7 @@ class FitProblem:
         # frames stored for the backward fill half of what the estimate leaves free
         cfg = SimConfig(grid_res=max(p.grid_dims), domain=p.domain, nu=settings.nu, gravity=(0.0, 0.0, 0.0),
                         damping=settings.damping, cfl_safety=self.cfl_safety, min_substeps=settings.substeps,
-                        keep_budget_mb=stored_frames_budget_mb(need, available))
+                        keep_budget_mb=memory.stored_frames_budget_mb(need, available))
         self.sim = DiffSim(self.volume.cpu().numpy(), self.mass.cpu().numpy(), self.static.cpu().numpy(), cfg,
                            device=str(self.device))
         ones = torch.ones(3, device=self.device)

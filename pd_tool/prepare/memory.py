@@ -18,6 +18,7 @@ import math
 import os
 from dataclasses import dataclass, field
 
+from pd_tool.core.device import host_available_bytes
 from pd_tool.core.errors import PdToolError
 
 GiB = float(1 << 30)
@@ -194,23 +195,14 @@ def stored_frames_budget_mb(estimate: MemoryEstimate, available: tuple[float, fl
 
 def available_memory(device: str = "cpu") -> tuple[float, float | None]:
     """(host bytes available, GPU bytes free or None on CPU). Host: MemAvailable from
-    /proc/meminfo (None where there is none, e.g. macOS: then no host check)."""
-    host = None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    host = float(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
+    /proc/meminfo (inf where there is none, e.g. macOS: then no host check)."""
     gpu = None
     if str(device).startswith("cuda"):
         import torch
 
         free, _total = torch.cuda.mem_get_info(torch.device(device))
         gpu = float(free)
-    return (host if host is not None else math.inf), gpu
+    return host_available_bytes(), gpu
 
 
 def check_memory(estimate: MemoryEstimate, *, what: str, quality: str, driver_ratio: float, resolution: str,

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from pd_tool.core.device import host_available_bytes
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
@@ -134,8 +135,7 @@ class _KeptFrame(_Substeps):
     replays the pool's graphs; elsewhere they run on the slot's own arrays."""
 
     def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
-        super().__init__(n, geo, capacity, device)
-        self.capacity = capacity
+        super().__init__(n, geo, capacity, device)  # `count`: the most substeps it holds
         self.owner: weakref.ref | None = None
 
     def free(self) -> bool:
@@ -284,25 +284,13 @@ class DiffSim:
             return 0.25 * dev.free_memory / 2**20
         return 0.0
 
-    @staticmethod
-    def _host_quarter_mb() -> float:
-        # a quarter of MemAvailable (inf where /proc/meminfo is missing, e.g. macOS)
-        try:
-            with open("/proc/meminfo") as fh:
-                for line in fh:
-                    if line.startswith("MemAvailable:"):
-                        return 0.25 * float(line.split()[1]) / 1024
-        except OSError:
-            pass
-        return float("inf")
-
     def _keep_budget_bytes(self) -> float:
         budget = getattr(self, "_keep_budget", None)
         if budget is None:
             budget = self.config.keep_budget_mb
             if budget is None:
                 cuda = wp.get_device(self.device).is_cuda
-                budget = self._free_quarter_mb() if cuda else min(1024.0, self._host_quarter_mb())
+                budget = self._free_quarter_mb() if cuda else min(1024.0, 0.25 * host_available_bytes() / 2**20)
             # fixed at the first frame: the free memory read later would count this sim's own slots
             budget = self._keep_budget = budget * 2**20
         return budget
@@ -314,13 +302,13 @@ class DiffSim:
         if self.config.backward != "adjoint" or self.segment_length(substeps) < substeps:
             return None
         free = [k for k in self._kept if k.free()]
-        fits = [k for k in free if k.capacity >= substeps]
+        fits = [k for k in free if k.count >= substeps]
         if fits:
-            return _Claim(min(fits, key=lambda k: k.capacity))
+            return _Claim(min(fits, key=lambda k: k.count))
         per = self._substep_bytes()
-        held = sum(k.capacity * per for k in self._kept)
-        drop = max(free, key=lambda k: k.capacity) if free else None
-        room = self._keep_budget_bytes() - held + (drop.capacity * per if drop else 0)
+        held = sum(k.count * per for k in self._kept)
+        drop = max(free, key=lambda k: k.count) if free else None
+        room = self._keep_budget_bytes() - held + (drop.count * per if drop else 0)
         if substeps * per > room:
             return None
         if drop is not None:
@@ -621,8 +609,10 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     pooled = kept is not None and sim._pooled()
-    store = None if kept is None else sim._adjoint_pool(substeps) if pooled else kept
-    if kept is not None and not pooled:
+    store = kept
+    if pooled:
+        store = sim._adjoint_pool(substeps)
+    elif kept is not None:
         kept.fields[4][:substeps].zero_()  # the recompute adds to zero mass and momentum
     st = buf["state"] if kept is None else store.states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)

@@ -87,7 +87,7 @@ def test_the_budget_bounds_the_stored_frames():
     budget = 2 * 12 * probe._substep_bytes() / 2**20
     sim = sim_for(static, vol, budget * 27 / 24 * 1.01)  # 15 + 12 substeps
     got = run(sim, x, E, push, 12, frames=4)
-    assert [k.capacity for k in sim._kept] == [15, 12]  # a quarter of headroom, then what is left
+    assert [k.count for k in sim._kept] == [15, 12]  # a quarter of headroom, then what is left
     assert_same(got, ref)
 
 
@@ -128,9 +128,9 @@ def test_a_longer_frame_grows_a_slot_and_a_second_backward_recomputes():
     ref = run(sim_for(static, vol, 0), x, E, push, per)
     sim = sim_for(static, vol, None)
     run(sim, x, E, push, [8, 8, 8])
-    assert sorted(k.capacity for k in sim._kept) == [10, 10, 10]
+    assert sorted(k.count for k in sim._kept) == [10, 10, 10]
     assert_same(run(sim, x, E, push, per), ref)
-    assert sorted(k.capacity for k in sim._kept) == [10, 10, 18]
+    assert sorted(k.count for k in sim._kept) == [10, 10, 18]
     # retain_graph: the second backward finds the slots released and recomputes
     Ei = E.clone().requires_grad_()
     out = simulate_frames(sim, initial_state(torch.tensor(x, dtype=torch.float32)), Ei, FRAME_DT, 10, 2,
