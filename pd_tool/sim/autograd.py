@@ -297,8 +297,8 @@ class DiffSim:
 
     def _claim_kept(self, substeps: int) -> "_Claim | None":
         """A free slot for a frame of `substeps`, growing or adding one within the budget;
-        None when the budget is spent or the backward would not read it (the taped
-        reference, or a frame longer than one segment)."""
+        None when the budget is spent, the slot cannot be allocated, or the backward would
+        not read it (the taped reference, or a frame longer than one segment)."""
         if self.config.backward != "adjoint" or self.segment_length(substeps) < substeps:
             return None
         free = [k for k in self._kept if k.free()]
@@ -316,7 +316,14 @@ class DiffSim:
         # a quarter more than asked where the budget allows: the substep count creeps up
         # as a fit stiffens E, and each growth is an allocation
         capacity = int(min(substeps + (substeps + 3) // 4, room // per))
-        slot = _KeptFrame(self.n, self.geo, capacity, self.device)
+        try:
+            slot = _KeptFrame(self.n, self.geo, capacity, self.device)
+        except RuntimeError:
+            # The budget was read from the free memory at the first frame; another process
+            # (or this one's renderer) may have taken it since. Storing is only a speed-up:
+            # this frame and every later one beyond the slots already held recompute.
+            self._keep_budget = float(sum(k.count * per for k in self._kept))
+            return None
         self._kept.append(slot)
         return _Claim(slot)
 

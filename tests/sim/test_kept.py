@@ -91,6 +91,32 @@ def test_the_budget_bounds_the_stored_frames():
     assert_same(got, ref)
 
 
+def test_a_slot_that_cannot_be_allocated_leaves_its_frame_to_the_recompute(monkeypatch):
+    """Memory taken by another process after the budget was read: the frame whose slot
+    fails to allocate, and every later one, recompute with the same gradients; the budget
+    shrinks to the slots held, so no later frame tries again."""
+    import pd_tool.sim.autograd as ag
+
+    x, static, vol, E, push = block(5)
+    ref = run(sim_for(static, vol, 0), x, E, push, 12, frames=4)
+    made = []
+
+    class Scarce(ag._KeptFrame):
+        def __init__(self, *args, **kw):
+            if len(made) == 2:
+                raise RuntimeError("Failed to allocate 425256000 bytes on device 'cuda:0'")
+            super().__init__(*args, **kw)
+            made.append(self)
+
+    monkeypatch.setattr(ag, "_KeptFrame", Scarce)
+    sim = sim_for(static, vol, None)
+    assert_same(run(sim, x, E, push, 12, frames=4), ref)
+    assert sim._kept == made and len(made) == 2
+    assert sim._keep_budget_bytes() == 2 * 15 * sim._substep_bytes()
+    assert_same(run(sim, x, E, push, 12, frames=4), ref)  # the two slots again, no new attempt
+    assert len(made) == 2
+
+
 @pytest.mark.parametrize("pooled", [False, True])
 def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable(pooled):
     """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
