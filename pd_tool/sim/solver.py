@@ -57,8 +57,8 @@ class SimConfig:
             generated adjoints replayed under a wp.Tape; slower, kept as the reference).
         keep_budget_mb: memory in which the differentiable forward stores each substep's
             state and grid of the frames it runs with gradients, so that their backward
-            skips the recompute (with "adjoint" only; a frame that does not fit is
-            recomputed as before); None = a quarter of the GPU's free memory on CUDA, on
+            skips the recompute (with "adjoint" only; a frame that does not fit, or whose
+            slot fails to allocate, is recomputed as before); None = a quarter of the GPU's free memory on CUDA, on
             the CPU a quarter of the available RAM up to 1024 MB, each read at the first
             frame; 0 = always recompute.
     """
