@@ -77,14 +77,18 @@ def user_errors() -> Iterator[None]:
     """Turn library errors a user can fix into InputError (exit 2, one line). An OSError
     that names a file (a full disk, a read-only folder, a name too long) is the last resort:
     one line naming the user's file, not a traceback."""
+    from pd_tool.core.device import out_of_memory_line
     from pd_tool.core.errors import PdToolError
 
     try:
         yield
     except PdToolError as e:
         raise InputError(untemp(str(e))) from None
-    except MemoryError:
-        raise InputError("out of memory; lower --quality, the driver ratio or the grid resolution") from None
+    except (MemoryError, RuntimeError) as e:  # torch.OutOfMemoryError is a RuntimeError
+        line = out_of_memory_line(e)
+        if line is None:
+            raise
+        raise InputError(line) from None
     except OSError as e:
         if e.filename is None:
             raise

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sys
 from collections.abc import Iterator
 
@@ -51,6 +52,38 @@ def host_available_bytes() -> float:
     except OSError:
         pass
     return float("inf")
+
+
+# How torch and warp word a failed allocation: torch.OutOfMemoryError (CUDA), torch's CPU
+# "DefaultCPUAllocator: can't allocate memory", warp's "Failed to allocate N bytes on device
+# 'cuda:0'" and its CUDA error 2 ("out of memory").
+_ALLOCATION_FAILED = re.compile(r"Failed to allocate \d+ bytes on device '(?P<device>[^']+)'|out of memory"
+                                r"|can't allocate memory", re.IGNORECASE)
+
+
+def out_of_memory_line(error: BaseException) -> str | None:
+    """One line for a failed allocation (MemoryError, or a device's), naming how full the
+    GPU is and the ways out; None for any other error. Running out of memory is not a bug in the scene or in
+    pdtool: a larger scene or another process on the same GPU causes it."""
+    import torch
+
+    host = "out of memory; lower --quality, the driver ratio or the grid resolution"
+    if isinstance(error, MemoryError):
+        return host
+    if not (isinstance(error, torch.OutOfMemoryError)
+            or (isinstance(error, RuntimeError) and _ALLOCATION_FAILED.search(str(error)))):
+        return None
+    m = _ALLOCATION_FAILED.search(str(error))
+    named = m.group("device") if m else None
+    gpu = named.startswith("cuda") if named else (isinstance(error, torch.OutOfMemoryError) or "CUDA" in str(error))
+    if not gpu:
+        return host
+    where = ""
+    with contextlib.suppress(Exception):
+        free, total = torch.cuda.mem_get_info()
+        where = f" ({free / 2**30:.1f} of {total / 2**30:.1f} GiB free now)"
+    return (f"out of GPU memory{where}; close other programs or jobs using this GPU (pdtool batch runs "
+            "one job per GPU), lower --quality, the driver ratio or the grid resolution, or use --device cpu")
 
 
 def cuda_available() -> bool:

@@ -218,3 +218,44 @@ def test_a_frame_that_is_a_folder_is_refused(plant: Path, tmp_path: Path, monkey
     assert lines == [f"Error: {where}/frame_0002.png: has a frame's name but is a folder; every later frame would "
                      f"shift in time; remove or rename it"], lines
     assert written == []
+
+
+@pytest.mark.parametrize("error,start", [
+    (lambda: __import__("torch").OutOfMemoryError("CUDA out of memory. Tried to allocate 20.00 MiB"),
+     "Error: out of GPU memory"),
+    (lambda: RuntimeError("Failed to allocate 425256000 bytes on device 'cuda:0'"), "Error: out of GPU memory"),
+    (lambda: RuntimeError("Graph creation error: Warp CUDA error 2: out of memory (in function "
+                          "wp_cuda_graph_create_exec)"), "Error: out of GPU memory"),
+    (lambda: RuntimeError("Failed to allocate 8000000 bytes on device 'cpu'"), "Error: out of memory; lower"),
+    (lambda: RuntimeError("[enforce fail at alloc_cpu.cpp:117] DefaultCPUAllocator: can't allocate memory: you "
+                          "tried to allocate 80000000000 bytes"), "Error: out of memory; lower"),
+    (lambda: MemoryError(), "Error: out of memory; lower"),
+], ids=["torch", "warp array", "warp graph", "warp cpu", "torch cpu", "host"])
+def test_running_out_of_memory_is_one_line(plant: Path, tmp_path: Path, monkeypatch, error, start) -> None:
+    """A fit that runs out of memory (a larger scene, or another process on the same GPU)
+    ends with one line naming the ways out, not torch's or warp's traceback, and leaves
+    nothing behind."""
+    from pd_tool.fit import run as fit_run
+
+    def oom(*a, **k):
+        raise error()
+
+    monkeypatch.setattr(fit_run, "fit_round", oom)
+    res, written = _run(plant, tmp_path, monkeypatch)
+    assert res.exit_code == 2, (res.output, res.exception)
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(start), lines
+    assert "--quality" in lines[0] and "Traceback" not in res.output
+    assert written == []
+
+
+def test_an_error_that_is_not_about_memory_is_not_dressed_as_one(plant: Path, tmp_path: Path, monkeypatch) -> None:
+    from pd_tool.fit import run as fit_run
+
+    def bug(*a, **k):
+        raise RuntimeError("an index out of range in a kernel")
+
+    monkeypatch.setattr(fit_run, "fit_round", bug)
+    res, _ = _run(plant, tmp_path, monkeypatch)
+    assert res.exit_code == 1 and isinstance(res.exception, RuntimeError)
+    assert "memory" not in res.stderr
