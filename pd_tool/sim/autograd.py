@@ -279,10 +279,13 @@ class DiffSim:
         return self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
 
     def _free_quarter_mb(self) -> float:
+        free = self._gpu_free_bytes()
+        return 0.25 * free / 2**20 if free else 0.0
+
+    def _gpu_free_bytes(self) -> float | None:
+        """The GPU's free memory now, in bytes; None on the CPU."""
         dev = wp.get_device(self.device)
-        if dev.is_cuda and getattr(dev, "free_memory", None):
-            return 0.25 * dev.free_memory / 2**20
-        return 0.0
+        return float(dev.free_memory) if dev.is_cuda and getattr(dev, "free_memory", None) else None
 
     def _keep_budget_bytes(self) -> float:
         budget = getattr(self, "_keep_budget", None)
@@ -293,6 +296,10 @@ class DiffSim:
                 budget = self._free_quarter_mb() if cuda else min(1024.0, 0.25 * host_available_bytes() / 2**20)
             # fixed at the first frame: the free memory read later would count this sim's own slots
             budget = self._keep_budget = budget * 2**20
+            # what the budget leaves free on the GPU, for everything else; a slot is added only
+            # while that much stays free, so that fits sharing a GPU leave each other room
+            free = self._gpu_free_bytes()
+            self._keep_reserve = max(0.0, free - budget) if free is not None else None
         return budget
 
     def _claim_kept(self, substeps: int) -> "_Claim | None":
@@ -311,11 +318,19 @@ class DiffSim:
         room = self._keep_budget_bytes() - held + (drop.count * per if drop else 0)
         if substeps * per > room:
             return None
-        if drop is not None:
-            self._kept.remove(drop)  # grown: a larger slot replaces the largest free one
         # a quarter more than asked where the budget allows: the substep count creeps up
         # as a fit stiffens E, and each growth is an allocation
         capacity = int(min(substeps + (substeps + 3) // 4, room // per))
+        reserve, free_now = getattr(self, "_keep_reserve", None), self._gpu_free_bytes()
+        if reserve is not None and free_now is not None:
+            # another process may have taken the room since the budget was read (a dropped
+            # slot's memory stays in warp's pool, for this process to reuse)
+            spare = free_now + (drop.count * per if drop else 0) - reserve
+            capacity = int(min(capacity, spare // per))
+            if capacity < substeps:
+                return None
+        if drop is not None:
+            self._kept.remove(drop)  # grown: a larger slot replaces the largest free one
         try:
             slot = _KeptFrame(self.n, self.geo, capacity, self.device)
         except RuntimeError:

@@ -117,6 +117,29 @@ def test_a_slot_that_cannot_be_allocated_leaves_its_frame_to_the_recompute(monke
     assert len(made) == 2
 
 
+def test_slots_leave_the_gpu_memory_another_process_took(monkeypatch):
+    """On a GPU shared with another fit: the budget leaves `reserve` free for everything
+    else, and a slot is added only while that much stays free. A process taking two frames'
+    worth after the first frame leaves this one two slots, its other frames recompute with
+    the same gradients; once it lets go, the slots come back."""
+    x, static, vol, E, push = block(6)
+    ref = run(sim_for(static, vol, 0), x, E, push, 12, frames=4)
+    per = sim_for(static, vol, 0)._substep_bytes()
+    budget = 4 * 15 * per * 1.01
+    sim = sim_for(static, vol, budget / 2**20)
+    other = {"bytes": 0}
+    held = lambda: sum(k.count * per for k in sim._kept)  # noqa: E731
+    monkeypatch.setattr(sim, "_gpu_free_bytes", lambda: budget + 50 * per - held() - other["bytes"])
+    run(sim, x, E, push, 12, frames=1)
+    assert sim._keep_reserve == pytest.approx(50 * per) and [k.count for k in sim._kept] == [15]
+    other["bytes"] = 2 * 15 * per
+    assert_same(run(sim, x, E, push, 12, frames=4), ref)
+    assert [k.count for k in sim._kept] == [15, 15]
+    other["bytes"] = 0
+    assert_same(run(sim, x, E, push, 12, frames=4), ref)
+    assert [k.count for k in sim._kept] == [15, 15, 15, 15]
+
+
 @pytest.mark.parametrize("pooled", [False, True])
 def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable(pooled):
     """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
