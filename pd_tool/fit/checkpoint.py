@@ -15,7 +15,8 @@ parameter ids survive), {"tuple": [...]}, {"tensor": i} (member arrays/<i>.npy) 
 {"float": "nan" | "inf" | "-inf"} (written so that saving never fails, refused on
 reading). Reading is strict: only those members, those tags and a few little-endian
 dtypes; every array's .npy header must account for its member's bytes exactly; the
-checksum must match; every number must be finite. What the tree must hold for a given
+checksum must match; every number must be finite, but for the arrays under the paths the
+caller names as records (the fit's loss histories). What the tree must hold for a given
 fit (keys, shapes, ranges) is checked by the fit itself (pd_tool.fit.resume.check_checkpoint).
 
 The first member makes a checkpoint recognisable from its first bytes alone, even when
@@ -232,10 +233,14 @@ def _strict_json(raw: bytes, fail) -> Any:
 
 
 class _Decoder:
-    def __init__(self, arrays: list[np.ndarray], fail) -> None:
+    def __init__(self, arrays: list[np.ndarray], fail, nonfinite: tuple[str, ...] = ()) -> None:
         self.arrays = arrays
         self.used = [False] * len(arrays)
         self.fail = fail
+        self.nonfinite = nonfinite
+
+    def may_be_nonfinite(self, where: str) -> bool:
+        return any(where == p or where.startswith(p + ".") for p in self.nonfinite)
 
     def __call__(self, node: Any, where: str, depth: int = 0) -> Any:
         if depth > MAX_DEPTH:
@@ -263,7 +268,7 @@ class _Decoder:
                 raise self.fail(f"{where} names array {body}, which is missing or used twice")
             self.used[body] = True
             a = self.arrays[body]
-            if a.dtype.kind == "f" and not np.isfinite(a).all():
+            if a.dtype.kind == "f" and not np.isfinite(a).all() and not self.may_be_nonfinite(where):
                 raise self.fail(f"{where} holds NaN/inf")
             return torch.from_numpy(a)
         if tag == "float" and body in _NONFINITE:
@@ -271,14 +276,18 @@ class _Decoder:
         raise self.fail(f"{where} is not a value a checkpoint holds")
 
 
-def read_checkpoint(path: str | Path, *, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
+def read_checkpoint(path: str | Path, *, max_bytes: int,
+                    nonfinite: tuple[str, ...] = ()) -> tuple[dict[str, Any], dict[str, Any]]:
     """(problem key, state tree) of a checkpoint, read without pickles (module docstring).
 
     max_bytes: the largest file the caller's fit can have written; a larger file is refused
-    before anything is read into memory. Raises ForeignCheckpointFile when the file is not
-    one pdtool wrote, CheckpointError for one that is damaged: truncated, a checksum that
-    does not match, unknown members or tags, arrays whose header and size disagree,
-    NaN/inf anywhere. Messages are one line naming `path`; the fix is the caller's to add.
+    before anything is read into memory. nonfinite: paths in the tree ("state.losses", and
+    what lies under it) whose arrays are records that may hold NaN/inf, as a loss measured
+    on a diverged state does. Raises ForeignCheckpointFile when the file is not one pdtool
+    wrote, CheckpointError for one that is damaged: truncated, a checksum that does not
+    match, unknown members or tags, arrays whose header and size disagree, NaN/inf
+    anywhere but under `nonfinite`. Messages are one line naming `path`; the fix is the
+    caller's to add.
     """
     path = Path(path)
     ours, what = is_pdtool_checkpoint(path)
@@ -340,7 +349,7 @@ def read_checkpoint(path: str | Path, *, max_bytes: int) -> tuple[dict[str, Any]
         if not isinstance(want, dict) or want != {"dtype": a.dtype.str, "shape": list(a.shape)}:
             raise fail(f"arrays/{i}.npy is not the array its header lists")
         arrays.append(a)
-    decode = _Decoder(arrays, fail)
+    decode = _Decoder(arrays, fail, nonfinite)
     state = decode(header["state"], "state")
     if not all(decode.used):
         raise fail("it holds arrays its state does not use")

@@ -7,6 +7,7 @@ Every refusal is one CheckpointError line that names the file, what is wrong and
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -85,7 +86,9 @@ def load_checkpoint(path: Path, pb: FitProblem, s: FitSettings) -> dict | None:
     if not ours:
         raise _foreign_checkpoint(path, what)
     try:
-        problem, state = read_checkpoint(path, max_bytes=_checkpoint_max_bytes(pb, s))
+        # a whole-clip measure of a diverged state is NaN, and the kept state's loss with it
+        problem, state = read_checkpoint(path, max_bytes=_checkpoint_max_bytes(pb, s),
+                                         nonfinite=("state.losses", "state.kept_at"))
     except ForeignCheckpointFile:
         raise _foreign_checkpoint(path, "unrecognised") from None
     except CheckpointError as e:
@@ -210,14 +213,14 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         measures, per = losses["whole_clip"].tolist(), 1 + len(points)
         for r in range(rnd):
             _, at = Kept.ranked_first(measures[r * per:(r + 1) * per], [0, *points])
-            if float(losses["kept"][r]) != at:
+            if not float(losses["kept"][r]) == at:
                 raise bad(f"losses.kept names iteration {float(losses['kept'][r]):g} for round {r + 1}, "
                           f"where its measures rank iteration {at} first")
         if keeping:
             ats = [0, *(p for p in points if p <= it)]
             best, at = Kept.ranked_first(measures[rnd * per:], ats)
             loss, kept_it = (float(v) for v in state["kept_at"])
-            if (loss, kept_it) != (best, at):
+            if not (kept_it == at and (loss == best or math.isnan(loss) and math.isnan(best))):
                 raise bad(f"kept_at names iteration {kept_it:g} at the whole-clip loss {loss:.6g}, where this "
                           f"round's measures rank iteration {at} first, at {best:.6g}")
 

@@ -358,6 +358,34 @@ def test_the_genuine_checkpoint_resumes(plant, tmp_path: Path) -> None:
     assert len(res.losses["material"]) == 2
 
 
+def _nan_measure(st):
+    st["losses"]["whole_clip"] = torch.full_like(st["losses"]["whole_clip"], float("nan"))
+    st["kept_at"] = torch.tensor([float("nan"), 0.0], dtype=torch.float64)
+
+
+def test_a_checkpoint_whose_whole_clip_measure_is_nan_resumes(plant, tmp_path: Path) -> None:
+    """A whole-clip measure of a diverged state is NaN, and so is the kept state's loss
+    until a measure beats it: such a checkpoint is the fit's own record, and resumes. NaN
+    where a state is kept (the kept iteration, the weights) is still damage."""
+    from pd_tool.core.errors import PdToolError
+
+    inputs, genuine = plant
+    out = tmp_path / "fit.pdmat"
+    ckpt = out.with_name(out.name + ".ckpt")
+    assert genuine[0] != _craft(genuine[0], _nan_measure)
+    ckpt.write_bytes(_craft(genuine[0], _nan_measure))
+    res = _fit(inputs, out, resume=True)
+    assert out.is_file() and not ckpt.exists()
+    assert np.isnan(res.losses["whole_clip"][0]) and np.isfinite(res.losses["whole_clip"][-1])
+    for edit, message in ((_set("kept_at", torch.tensor([0.01, float("nan")], dtype=torch.float64)),
+                           "kept_at names iteration nan"),
+                          (_nan_residual, r"state\.residual holds NaN/inf")):
+        out.unlink(missing_ok=True)
+        ckpt.write_bytes(_craft(genuine[0], edit))
+        with pytest.raises(PdToolError, match=message):
+            _fit(inputs, out, resume=True)
+
+
 @pytest.mark.parametrize("resume", [False, True])
 @pytest.mark.parametrize("kind", ["user file", "folder", "pickle"])
 def test_a_foreign_file_at_the_checkpoint_path_is_kept(plant, tmp_path: Path, kind: str, resume: bool) -> None:
