@@ -63,8 +63,8 @@ _ALLOCATION_FAILED = re.compile(r"Failed to allocate \d+ bytes on device '(?P<de
 
 def out_of_memory_line(error: BaseException) -> str | None:
     """One line for a failed allocation (MemoryError, or a device's), naming how full the
-    GPU is and the ways out; None for any other error. Running out of memory is not a bug in the scene or in
-    pdtool: a larger scene or another process on the same GPU causes it."""
+    GPU is and the ways out; None for any other error. Running out of memory is no bug in
+    the scene or in pdtool: a larger scene or another process on the same GPU causes it."""
     import torch
 
     host = "out of memory; lower --quality, the driver ratio or the grid resolution"
