@@ -61,6 +61,7 @@ and 2x below the best uniform E; median |ln| at most 0.5. Figures: docs/benchmar
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -301,15 +302,20 @@ def scene_counts(text: str) -> dict[str, int]:
 def override_fit_defaults(items: list[str]) -> None:
     """`--set FIELD=VALUE`: `pdtool fit` (run in this process) builds its settings from a
     subclass of FitSettings with these defaults."""
-    import dataclasses
-
     from fit_recovery import setting_overrides
+
+    overrides = setting_overrides(items)
+    if overrides:
+        _fit_defaults(overrides)
+
+
+def _fit_defaults(overrides: dict):
+    """Make `pdtool fit` (run in this process) build its settings from a subclass of
+    FitSettings with these defaults; returns the class it replaced."""
+    import dataclasses
 
     import pd_tool.fit.settings as fs
 
-    overrides = setting_overrides(items)
-    if not overrides:
-        return
     base = fs.FitSettings
     names = {f.name: f for f in dataclasses.fields(base)}
     for key in overrides:
@@ -317,6 +323,20 @@ def override_fit_defaults(items: list[str]) -> None:
             raise SystemExit(f"--set {key}: FitSettings has no such field")
     fs.FitSettings = dataclasses.make_dataclass(
         "FitSettings", [(k, names[k].type, dataclasses.field(default=v)) for k, v in overrides.items()], bases=(base,))
+    return base
+
+
+@contextlib.contextmanager
+def field_alone():
+    """`pdtool fit` in the block fits E's field alone: no per-driver residuals (the caller
+    adds --no-level, the stage-1 level being folded into them)."""
+    import pd_tool.fit.settings as fs
+
+    base = _fit_defaults({"driver_residual": False})
+    try:
+        yield
+    finally:
+        fs.FitSettings = base
 
 
 def fit_quality(quality: str, grid: int, floor: float | None, folder: Path) -> str:
@@ -478,7 +498,15 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
 
     t0 = time.perf_counter()
     out = folder / "fit.pdmat"
-    fit(out)
+    if args.warm_from_field:
+        # E's smooth pattern first, where the per-driver residuals scatter it least, then
+        # the row's own fit from it, for the contrast a field alone cannot hold
+        with field_alone():
+            fit(folder / "field.pdmat", "--no-level")
+        row.seconds["field fit"] = time.perf_counter() - t0
+        fit(out, "--init-material", str(folder / "field.pdmat"))
+    else:
+        fit(out)
     row.fit_s = time.perf_counter() - t0
     E_fit = MaterialFile.load(out).E_at(pos)
     sel = moved > MOVING * size
@@ -592,6 +620,9 @@ def main() -> None:
                          "each with v0 refitted under it (three more stage-1 fits a row): does the fit's own "
                          "model prefer the truth?")
     ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
+    ap.add_argument("--warm-from-field", action="store_true",
+                    help="fit E's field alone first (no per-driver residuals, no stage-1 level), then the row's fit "
+                         "warm-started from it (--init-material); the row's fit time counts both")
     ap.add_argument("--clean", action="store_true",
                     help="reference videos as rendered: no blur, exposure change or noise (with --losses: does "
                          "the camera's degradation, or the model, let the fit prefer another E to the truth?)")

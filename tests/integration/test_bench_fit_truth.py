@@ -47,6 +47,18 @@ def test_degrade_darkens_blurs_and_adds_noise_of_the_stated_size() -> None:
     assert 40 < blurred[0, 10, 16, 0] < 0.9 * 255 * ft.EXPOSURE  # the step is no longer sharp
 
 
+def test_the_field_alone_fit_turns_the_residuals_off_and_restores_the_settings() -> None:
+    """--warm-from-field's first fit: FitSettings without per-driver residuals inside the
+    block (on top of any --set), the settings as they were after it."""
+    import pd_tool.fit.settings as fs
+
+    before = fs.FitSettings
+    with ft.field_alone():
+        assert fs.FitSettings().driver_residual is False
+        assert fs.FitSettings().residual_diffusion == before().residual_diffusion
+    assert fs.FitSettings is before and fs.FitSettings().driver_residual is True
+
+
 def test_the_true_E_material_holds_the_truths_geometric_mean_over_each_drivers_gaussians(tmp_path: Path) -> None:
     from pd_tool.materials.file import MaterialFile
 
