@@ -46,6 +46,10 @@ loss under the fitted E, the true E and the uniform start, each with v0 refitted
 quality file derived from `--quality`): the fit's discretisation, against which the loss can
 or cannot tell the true E from a uniform one.
 
+`--warm-from-field` fits E's field alone first (no per-driver residuals, no stage-1
+level), then the row's fit from that E (`--init-material`): the field's pattern, then the
+residuals' contrast.
+
 `--clean` writes the reference videos as rendered, without the camera's blur, exposure
 change and noise.
 
