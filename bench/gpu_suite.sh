@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j), batch over GPUs (k), and the fit against a split reference
-# with the drivers a cell it needs (l, m), and on a finer fit model with the whole-clip losses (n); JSON and logs
+# with the drivers a cell it needs (l, m), and on a finer fit model with the whole-clip losses (n) and with E
+# from the field alone or warm-started from it (o); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -107,4 +108,12 @@ if [ "$part" = n ]; then  # the fit on 64 cells with 8 drivers a cell, and wheth
   run fit_truth_fit64_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
     --bake-qualities default --fit-grid 64 --fit-floor 8 --losses
+fi
+# the same fit with E from the field alone (V=field), or the field first and then the full fit
+# warm-started from it (V=warm); one scene at a time: fits on one GPU at once share its memory
+if [ "$part" = o ]; then
+  if [ "${V:-field}" = field ]; then extra=(--set driver_residual=false --fit-args=--no-level); else extra=(--warm-from-field); fi
+  run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
+    --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
+    --bake-qualities default --fit-grid 64 --fit-floor 8 "${extra[@]}"
 fi
