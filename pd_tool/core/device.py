@@ -70,10 +70,9 @@ def out_of_memory_line(error: BaseException) -> str | None:
     host = "out of memory; lower --quality, the driver ratio or the grid resolution"
     if isinstance(error, MemoryError):
         return host
-    if not (isinstance(error, torch.OutOfMemoryError)
-            or (isinstance(error, RuntimeError) and _ALLOCATION_FAILED.search(str(error)))):
+    m = _ALLOCATION_FAILED.search(str(error)) if isinstance(error, RuntimeError) else None
+    if m is None and not isinstance(error, torch.OutOfMemoryError):
         return None
-    m = _ALLOCATION_FAILED.search(str(error))
     named = m.group("device") if m else None
     gpu = named.startswith("cuda") if named else (isinstance(error, torch.OutOfMemoryError) or "CUDA" in str(error))
     if not gpu:

@@ -59,8 +59,8 @@ class FitProblem:
             stage1_frames=settings.stage1_frames, device=settings.device)
         available = memory.available_memory(settings.device)
         memory.check_memory(need, what="fit", quality=str(settings.quality), driver_ratio=settings.driver_ratio,
-                     device=settings.device, resolution=f"--working-size {settings.working_long_side}",
-                     available=available)
+                            device=settings.device, resolution=f"--working-size {settings.working_long_side}",
+                            available=available)
         # ... or when it would take longer than allowed
         check_fit_work(p, settings, videos, n_gaussians=scene.count, cfl_safety=self.cfl_safety,
                        drivers_per_particle=drivers_per_particle)

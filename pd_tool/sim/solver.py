@@ -58,9 +58,9 @@ class SimConfig:
         keep_budget_mb: memory in which the differentiable forward stores each substep's
             state and grid of the frames it runs with gradients, so that their backward
             skips the recompute (with "adjoint" only; a frame that does not fit, or whose
-            slot fails to allocate, is recomputed as before); None = a quarter of the GPU's free memory on CUDA, on
-            the CPU a quarter of the available RAM up to 1024 MB, each read at the first
-            frame; 0 = always recompute.
+            slot fails to allocate, is recomputed as before); None = a quarter of the GPU's
+            free memory on CUDA, on the CPU a quarter of the available RAM up to 1024 MB,
+            each read at the first frame; 0 = always recompute.
     """
 
     grid_res: int = 64
