@@ -110,7 +110,8 @@ if [ "$part" = n ]; then  # the fit on 64 cells with 8 drivers a cell, and wheth
     --bake-qualities default --fit-grid 64 --fit-floor 8 --losses
 fi
 # the same fit with E from the field alone (V=field), or the field first and then the full fit
-# warm-started from it (V=warm); one scene at a time: fits on one GPU at once share its memory
+# warm-started from it (V=warm); scenes one after another (three rows at once in separate
+# processes fit on one H200: 113 of 143 GB)
 if [ "$part" = o ]; then
   if [ "${V:-field}" = field ]; then extra=(--set driver_residual=false --fit-args=--no-level); else extra=(--warm-from-field); fi
   run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
