@@ -24,7 +24,7 @@ from pd_tool.core.device import host_available_bytes
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import alloc_cell_lists, block_shape, run_substeps_binned
+from pd_tool.sim.gather import BLOCK_W, alloc_cell_lists, block_shape, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -94,7 +94,7 @@ def initial_state(x: torch.Tensor, v: torch.Tensor | None = None) -> State:
 class _Substeps:
     """`count` + 1 particle states and `count` grids, one array per field ([count + 1, N] for
     u, v, C, G; [count, *nodes] for the grids' mmv, v and activity blocks), so that a frame's
-    substeps copy to or from another set in seven launches. `states[i]` and `grids[i]` are
+    substeps copy to or from another set in a few launches. `states[i]` and `grids[i]` are
     views for the kernels, built on first use."""
 
     def __init__(self, n: int, geo: GridGeometry, count: int, device: str) -> None:
@@ -119,11 +119,56 @@ class _Substeps:
                            [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)])
         return self._views
 
-    def copy_from(self, other: "_Substeps", substeps: int) -> None:
-        """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1)."""
+    def copy_from(self, other: "_Substeps", substeps: int, tagged: bool = False) -> None:
+        """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1).
+
+        tagged: copy only the grid nodes of the activity blocks that each substep's binned
+        P2G tagged (gather.block_tagged, substep i's tag being i + 1 as a frame's forward and
+        its single-segment backward number them). The adjoint reads no other node; a block
+        that kept an older frame's equal tag is copied for nothing. Copied whole, each
+        substep's grid (59 MB at 300k particles on 128^3) cost what storing the frame saves
+        (docs/simulator.md, "Speed")."""
         for k, (dst, src) in enumerate(zip(self.fields, other.fields)):
+            if tagged and k in (4, 5):
+                continue
             rows = substeps + 1 if k < 4 else substeps
             wp.copy(dst[:rows], src[:rows])
+        if tagged and substeps > 0:
+            wp.launch(_tagged_nodes, dim=(substeps, *self.fields[6].shape[1:]), device=self.fields[4].device,
+                      inputs=[1, other.fields[4], other.fields[5], self.fields[6], self.fields[4], self.fields[5]])
+
+    def zero_mass(self, substeps: int, tagged: bool = False) -> None:
+        """Zero the first `substeps` grids' mass and momentum, ready for a recompute to add to;
+        tagged: only in the blocks tagged as copy_from says, where a binned P2G can have
+        added (everywhere else they are zero already)."""
+        if not tagged:
+            self.fields[4][:substeps].zero_()
+        elif substeps > 0:
+            f = self.fields
+            wp.launch(_tagged_nodes, dim=(substeps, *f[6].shape[1:]), device=f[4].device,
+                      inputs=[0, f[4], f[5], f[6], f[4], f[5]])
+
+
+# One thread per activity block and substep, not per node: a thread per node that only
+# reads its block's tag and returns costs, over a 128^3 frame's 64 grids, about what copying
+# them whole does.
+@wp.kernel(enable_backward=False)
+def _tagged_nodes(copy: int, src_mmv: wp.array4d(dtype=wp.vec4), src_v: wp.array4d(dtype=wp.vec3),
+                  blocks: wp.array4d(dtype=int), dst_mmv: wp.array4d(dtype=wp.vec4),
+                  dst_v: wp.array4d(dtype=wp.vec3)):
+    """Over the nodes of each block tagged by its substep: copy != 0 copies src to dst;
+    copy == 0 zeroes dst_mmv (src unread)."""
+    s, bi, bj, bk = wp.tid()
+    if blocks[s, bi, bj, bk] != s + 1:
+        return
+    for i in range(bi * BLOCK_W, wp.min((bi + 1) * BLOCK_W, dst_mmv.shape[1])):
+        for j in range(bj * BLOCK_W, wp.min((bj + 1) * BLOCK_W, dst_mmv.shape[2])):
+            for k in range(bk * BLOCK_W, wp.min((bk + 1) * BLOCK_W, dst_mmv.shape[3])):
+                if copy != 0:
+                    dst_mmv[s, i, j, k] = src_mmv[s, i, j, k]
+                    dst_v[s, i, j, k] = src_v[s, i, j, k]
+                else:
+                    dst_mmv[s, i, j, k] = wp.vec4(0.0)
 
 
 class _KeptFrame(_Substeps):
@@ -635,7 +680,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     if pooled:
         store = sim._adjoint_pool(substeps)
     elif kept is not None:
-        kept.fields[4][:substeps].zero_()  # the recompute adds to zero mass and momentum
+        kept.zero_mass(substeps)  # the recompute adds to zero mass and momentum
     st = buf["state"] if kept is None else store.states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
@@ -656,8 +701,9 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
     if pooled:
-        kept.copy_from(store, substeps)
-        store.fields[4][:substeps].zero_()  # the next recompute adds to zero mass and momentum
+        # the binned P2G tags what it touches: only those blocks are copied and cleared
+        kept.copy_from(store, substeps, tagged=sim.binned)
+        store.zero_mass(substeps, tagged=sim.binned)  # the next recompute adds to zero
     return sctx.stats
 
 
@@ -708,19 +754,19 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     buf = fr.buffers
     seg = substeps if kept is not None else sim.segment_length(substeps)
     adj_grid = sim._adjoint_grid()
+    binned = sim.binned
     if kept is not None and not sim._pooled():
         store = kept
     else:
         store = sim._adjoint_pool(min(seg, substeps))
         if kept is not None:
-            store.copy_from(kept, substeps)
+            store.copy_from(kept, substeps, tagged=binned)
     states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
     st0 = states[0] if single and kept is None else buf["state"]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st0)
     sctx = fr.context(base, E_sorted, t0)
-    binned = sim.binned
     lists = sim._lists(binned)
     starts, ckpts = [0], {}
     if not single:

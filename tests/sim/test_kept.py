@@ -140,14 +140,15 @@ def test_slots_leave_the_gpu_memory_another_process_took(monkeypatch):
     assert [k.count for k in sim._kept] == [15, 15, 15, 15]
 
 
-@pytest.mark.parametrize("pooled", [False, True])
-def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable(pooled):
+@pytest.mark.parametrize("pooled,binned", [(False, False), (True, False), (True, True)])
+def test_a_forward_without_backward_frees_its_slots_and_leaves_them_usable(pooled, binned):
     """A graph dropped before its backward (a fit's measuring pass with gradients on) frees
     its slots, their grids (or the pool's) holding that forward's mass and momentum; the
-    next forward must start from zero, or its P2G adds to what the last one left."""
+    next forward must start from zero, or its P2G adds to what the last one left (binned,
+    the pool is cleared only in the blocks its P2G tagged)."""
     x, static, vol, E, push = block(2)
-    ref = run(sim_for(static, vol, 0), x, E, push, 10)
-    sim = sim_for(static, vol, None, pooled=pooled)
+    ref = run(sim_for(static, vol, 0, binned), x, E, push, 10)
+    sim = sim_for(static, vol, None, binned, pooled)
     dropped = run(sim, x, E * 1.5, push, 10, backward=False)
     assert all(not k.free() for k in sim._kept)
     del dropped
