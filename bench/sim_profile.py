@@ -105,7 +105,7 @@ def profile_backward(n: int, res: int, substeps: int, frames: int, device: str, 
     """Per-kernel GPU time and wall time (us per substep) of backward_frame for a frame not
     stored by its forward (the recompute, then the adjoints), without CUDA graphs (the
     activity timing needs plain launches). A stored frame's backward is the adjoints' rows
-    plus seven copies."""
+    plus the copies of its stored states and tagged grid blocks."""
     import time
 
     import numpy as np
