@@ -1,0 +1,111 @@
+"""What each simulator kernel asks of a GPU, read from its PTX: no GPU needed.
+
+Warp compiles the simulator's modules ahead of time for a CUDA architecture (`--arch`, 90 =
+Hopper) to PTX, on any machine, and this counts, per forward kernel, its static PTX
+instructions, its global loads (and how many of them are 128-bit vector loads), stores,
+atomics and reductions (inline `red` included), branches and f32 arithmetic. Loops with a
+fixed trip count are unrolled in PTX, so the counts follow the 27-node stencil loops; a
+loop that runs until it converges (the polar decomposition) counts once.
+
+Use it to check that a kernel change emits what it means to (a 128-bit load, one reduction
+a node) before spending GPU time on it. Counts are not times: bench/sim_profile.py times the
+kernels on a GPU (docs/simulator.md, "Speed", says what bounds them).
+
+    python bench/kernel_ptx.py                               # the fast path's and the adjoint's kernels
+    python bench/kernel_ptx.py --kernels g2p_bin,p2g_chunks --json ptx.json
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import re
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+MODULES = ("pd_tool.sim.kernels", "pd_tool.sim.gather", "pd_tool.sim.adjoint", "pd_tool.sim.autograd")
+
+
+def count_ops(body: str) -> dict:
+    """Instruction counts of one PTX kernel body (text after its `.entry` line)."""
+    ops = []
+    for line in body.split("{", 1)[-1].splitlines():  # past the parameter list
+        s = line.strip()
+        if not s or s.startswith(("//", ".", "{", "}", ")", "(")) or s.endswith(":"):
+            continue
+        words = s.split()
+        if words[0].startswith("@") and len(words) > 1:  # a predicated instruction
+            words = words[1:]
+        ops.append(words[0].rstrip(";"))
+    inline = len(re.findall(r"\bred\.global\.add", body)) - sum(o.startswith("red.") for o in ops)
+    return {
+        "instructions": len(ops),
+        "global_loads": sum(o.startswith("ld.global") for o in ops),
+        "vector_loads": sum(o.startswith("ld.global") and ".v" in o for o in ops),
+        "global_stores": sum(o.startswith("st.global") for o in ops),
+        "atomics": sum(o.startswith(("atom.", "red.")) for o in ops) + max(0, inline),
+        "branches": sum(o.startswith("bra") for o in ops),
+        "f32_arithmetic": sum(o.endswith(".f32") and o.split(".")[0] in ("add", "sub", "mul", "fma", "div", "sqrt",
+                                                                          "rcp", "rsqrt", "neg", "abs", "min", "max")
+                              for o in ops),
+    }
+
+
+def kernel_counts(ptx: str) -> dict[str, dict]:
+    """{kernel name (warp's hash stripped): counts} for every forward kernel of a PTX file."""
+    out = {}
+    for part in re.split(r"\.visible\s+\.entry\s+", ptx)[1:]:
+        name = part.split("(", 1)[0].strip()
+        if "_cuda_kernel_forward" not in name:
+            continue
+        short = re.sub(r"_[0-9a-f]{7,8}_cuda_kernel_forward$", "", name)
+        short = re.sub(r"_cuda_kernel_forward$", "", short)
+        key, i = short, 2
+        while key in out:  # a generic kernel's overloads
+            key, i = f"{short}#{i}", i + 1
+        out[key] = count_ops(part)
+    return out
+
+
+def compile_ptx(module_name: str, arch: int, out_dir: Path) -> str:
+    import warp as wp
+
+    module = importlib.import_module(module_name)
+    paths = wp.compile_aot_module(module, arch=arch, module_dir=out_dir, use_ptx=True)
+    return "\n".join(Path(p).read_text() for p in paths)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--arch", type=int, default=90, help="CUDA architecture to compile for (90: Hopper)")
+    ap.add_argument("--modules", default=",".join(MODULES), help="modules to compile, comma separated")
+    ap.add_argument("--kernels", default="", help="only kernels whose name contains one of these (comma separated)")
+    ap.add_argument("--quick", action="store_true", help="the binned P2G's module alone")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    modules = ["pd_tool.sim.gather"] if args.quick else [m for m in args.modules.split(",") if m]
+    wanted = [k for k in args.kernels.split(",") if k]
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for m in modules:
+            for name, counts in kernel_counts(compile_ptx(m, args.arch, Path(tmp))).items():
+                if not wanted or any(w in name for w in wanted):
+                    rows[f"{m.rsplit('.', 1)[-1]}.{name}"] = counts
+    cols = ("instructions", "global_loads", "vector_loads", "global_stores", "atomics", "branches", "f32_arithmetic")
+    print(f"{'kernel':44s}" + "".join(f"{c.replace('_', ' '):>15s}" for c in cols))
+    for name, c in sorted(rows.items(), key=lambda kv: -kv[1]["instructions"]):
+        print(f"{name:44s}" + "".join(f"{c[k]:15d}" for k in cols))
+    if args.json:
+        args.json.write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernels": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
