@@ -49,10 +49,6 @@ def main() -> None:
     from pd_tool.render.views import scene_camera
 
     init_warp_quietly()
-    if args.recompute:
-        from pd_tool.sim.autograd import DiffSim
-
-        DiffSim._keep_budget_bytes = lambda self: 0.0  # the fit builds its SimConfig itself
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         scene_path = save_splats(make_plant(args.gaussians, seed=0, thin=False), tmp / "plant.ply")
@@ -66,7 +62,8 @@ def main() -> None:
         t_video = time.perf_counter() - t0
         refs = [load_reference_video(video, working_size=max(args.width, args.height), device=args.device)]
         s = FitSettings(quality=args.quality, device=args.device, velocity_iters=args.velocity_iters,
-                        material_iters=args.material_iters, working_long_side=max(args.width, args.height))
+                        material_iters=args.material_iters, working_long_side=max(args.width, args.height),
+                        stored_frames_mb=0.0 if args.recompute else None)
         if args.device == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()

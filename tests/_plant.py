@@ -24,10 +24,11 @@ def tiny_plant_video(folder: Path, gaussians: int, seed: int, size: int, n_frame
     return scene
 
 
-def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_frames: int = 4, thin: bool = True):
-    """tiny_plant_video, then the draft-quality FitProblem over it and the video's true
-    initial velocity at its drivers ([Q, 3] m/s; the fit's drivers are the video's).
-    Returns (scene, problem, v0)."""
+def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_frames: int = 4, thin: bool = True,
+                       **settings):
+    """tiny_plant_video, then the draft-quality FitProblem over it (FitSettings overridden by
+    `settings`) and the video's true initial velocity at its drivers ([Q, 3] m/s; the fit's
+    drivers are the video's). Returns (scene, problem, v0)."""
     import torch
 
     from pd_tool.fit.problem import FitProblem
@@ -40,6 +41,6 @@ def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_fra
     scene = tiny_plant_video(folder, gaussians, seed=seed, size=size, n_frames=n_frames, thin=thin)
     refs = [load_reference_video(folder / "video", working_size=size)]
     pb = FitProblem(scene, refs, PrepareOptions(static_below=POT_TOP),
-                    FitSettings(quality="draft", working_long_side=size).resolved())
+                    FitSettings(quality="draft", working_long_side=size, **settings).resolved())
     v0 = torch.tensor(push_velocity(pb.x_rest.double().numpy(), pb.static.numpy(), speed=0.6), dtype=torch.float32)
     return scene, pb, v0

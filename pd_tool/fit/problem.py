@@ -90,10 +90,11 @@ class FitProblem:
         self.driver_spacing = dist2[:, 1:].sqrt().mean(dim=1)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
-        # frames stored for the backward fill half of what the estimate leaves free
+        # frames stored for the backward fill half of what the estimate leaves free, unless set
+        stored = settings.stored_frames_mb
         cfg = SimConfig(grid_res=max(p.grid_dims), domain=p.domain, nu=settings.nu, gravity=(0.0, 0.0, 0.0),
                         damping=settings.damping, cfl_safety=self.cfl_safety, min_substeps=settings.substeps,
-                        keep_budget_mb=memory.stored_frames_budget_mb(need, available))
+                        keep_budget_mb=memory.stored_frames_budget_mb(need, available) if stored is None else stored)
         self.sim = DiffSim(self.volume.cpu().numpy(), self.mass.cpu().numpy(), self.static.cpu().numpy(), cfg,
                            device=str(self.device))
         ones = torch.ones(3, device=self.device)

@@ -128,6 +128,12 @@ class FitSettings:
     seed: int = 0
     device: str = "cpu"
     checkpoint_every: int = 5  # iterations between checkpoints (bounded loss of work on a kill)
+    # Memory for the frames the simulation's forward stores so that their backward need not
+    # recompute them (SimConfig.keep_budget_mb), MB. None: half of what the fit's memory
+    # estimate leaves free, at most 1 GB of RAM on the CPU (prepare/memory.py); 0: every
+    # backward recomputes its frame (the same gradients, more time). A cap for a GPU shared
+    # with other work.
+    stored_frames_mb: float | None = None
 
     def measure_points(self) -> list[int]:
         """The stage-2 iterations after which a round measures its whole-clip loss for
@@ -161,6 +167,10 @@ class FitSettings:
             raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
         if not out.residual_eps > 0:
             raise ValueError(f"residual_eps must be > 0, got {out.residual_eps}")
+        if out.stored_frames_mb is not None and not (math.isfinite(out.stored_frames_mb)
+                                                     and out.stored_frames_mb >= 0.0):
+            raise ValueError(f"stored_frames_mb must be >= 0 (MB), or None for the automatic budget, "
+                             f"got {out.stored_frames_mb}")
         if out.calibrate_iters < 0:
             raise ValueError(f"calibrate_iters must be at least 0, got {out.calibrate_iters}")
         if out.calibrate_clusters < 1:
