@@ -5,7 +5,8 @@ Hopper) to PTX, on any machine, and this counts, per forward kernel, its static 
 instructions, its global loads (and how many of them are 128-bit vector loads), stores,
 atomics and reductions (inline `red` included), branches and f32 arithmetic. Loops with a
 fixed trip count are unrolled in PTX, so the counts follow the 27-node stencil loops; a
-loop that runs until it converges (the polar decomposition) counts once.
+loop that runs until it converges (the polar decomposition) counts once, and both sides of
+a branch count whichever a thread takes.
 
 Use it to check that a kernel change emits what it means to (a 128-bit load, one reduction
 a node) before spending GPU time on it. Counts are not times: bench/sim_profile.py times the
