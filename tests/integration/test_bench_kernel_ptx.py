@@ -8,10 +8,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(tmp_path: Path) -> None:
+    import warp as wp
+
+    if tuple(wp.get_cuda_toolkit_version() or (0, 0)) == (0, 0):  # warp's CPU-only builds (macOS)
+        pytest.skip("this warp build has no NVRTC to compile CUDA kernels with")
     out = tmp_path / "ptx.json"
     proc = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--json", str(out)],
                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
