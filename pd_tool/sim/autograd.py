@@ -24,7 +24,7 @@ from pd_tool.core.device import host_available_bytes
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import BLOCK_W, alloc_cell_lists, block_shape, run_substeps_binned
+from pd_tool.sim.gather import BLOCK_W, alloc_cell_lists, block_shape, block_tag, run_substeps_binned
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -123,8 +123,8 @@ class _Substeps:
         """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1).
 
         tagged: copy only the grid nodes of the activity blocks that each substep's binned
-        P2G tagged (gather.block_tagged, substep i's tag being i + 1 as a frame's forward and
-        its single-segment backward number them). The adjoint reads no other node; a block
+        P2G tagged (gather.block_tagged, substep i's tag being block_tag(0, i) as a frame's
+        forward and its single-segment backward number them). The adjoint reads no other node; a block
         that kept an older frame's equal tag is copied for nothing. Copied whole, each
         substep's grid (59 MB at 300k particles on 128^3) cost what storing the frame saves
         (docs/simulator.md, "Speed")."""
@@ -135,7 +135,8 @@ class _Substeps:
             wp.copy(dst[:rows], src[:rows])
         if tagged and substeps > 0:
             wp.launch(_tagged_nodes, dim=(substeps, *self.fields[6].shape[1:]), device=self.fields[4].device,
-                      inputs=[1, other.fields[4], other.fields[5], self.fields[6], self.fields[4], self.fields[5]])
+                      inputs=[1, block_tag(0, 0), other.fields[4], other.fields[5], self.fields[6], self.fields[4],
+                              self.fields[5]])
 
     def zero_mass(self, substeps: int, tagged: bool = False) -> None:
         """Zero the first `substeps` grids' mass and momentum, ready for a recompute to add to;
@@ -146,20 +147,20 @@ class _Substeps:
         elif substeps > 0:
             f = self.fields
             wp.launch(_tagged_nodes, dim=(substeps, *f[6].shape[1:]), device=f[4].device,
-                      inputs=[0, f[4], f[5], f[6], f[4], f[5]])
+                      inputs=[0, block_tag(0, 0), f[4], f[5], f[6], f[4], f[5]])
 
 
 # One thread per activity block and substep, not per node: a thread per node that only
 # reads its block's tag and returns costs, over a 128^3 frame's 64 grids, about what copying
 # them whole does.
 @wp.kernel(enable_backward=False)
-def _tagged_nodes(copy: int, src_mmv: wp.array4d(dtype=wp.vec4), src_v: wp.array4d(dtype=wp.vec3),
+def _tagged_nodes(copy: int, tag0: int, src_mmv: wp.array4d(dtype=wp.vec4), src_v: wp.array4d(dtype=wp.vec3),
                   blocks: wp.array4d(dtype=int), dst_mmv: wp.array4d(dtype=wp.vec4),
                   dst_v: wp.array4d(dtype=wp.vec3)):
-    """Over the nodes of each block tagged by its substep: copy != 0 copies src to dst;
-    copy == 0 zeroes dst_mmv (src unread)."""
+    """Over the nodes of each block tagged by its substep s (tag tag0 + s): copy != 0
+    copies src to dst; copy == 0 zeroes dst_mmv (src unread)."""
     s, bi, bj, bk = wp.tid()
-    if blocks[s, bi, bj, bk] != s + 1:
+    if blocks[s, bi, bj, bk] != tag0 + s:
         return
     for i in range(bi * BLOCK_W, wp.min((bi + 1) * BLOCK_W, dst_mmv.shape[1])):
         for j in range(bj * BLOCK_W, wp.min((bj + 1) * BLOCK_W, dst_mmv.shape[2])):
