@@ -8,6 +8,8 @@ resume where it stopped.
 """
 from __future__ import annotations
 
+import math
+
 from functools import partial
 from typing import Iterable
 
@@ -94,17 +96,24 @@ def make_optimizer(
 
 def make_tensor_optimizer(
     param: torch.Tensor, lr: float, total_steps: int, *, warmup_steps: int = 0, final_factor: float = 0.0,
-    eps: float = 1e-8,
+    eps: float = 1e-8, weight_decay: float = 0.0,
 ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam (no decay) over one tensor, e.g. the fit's per-driver log-E residuals or its
-    stage-1 level, with make_optimizer's schedule. Arguments as make_optimizer's; eps is
-    Adam's (added to sqrt of the second moment), in the gradient's units."""
+    """Adam over one tensor, e.g. the fit's per-driver log-E residuals or its stage-1 level,
+    with make_optimizer's schedule. Arguments as make_optimizer's; eps is Adam's (added to
+    sqrt of the second moment), in the gradient's units. weight_decay > 0 makes it AdamW:
+    each step also multiplies the tensor by 1 - lr_t * weight_decay, a pull toward zero in
+    the tensor's own units that the gradient's scale does not change."""
     if not lr > 0:
         raise ValueError(f"learning rate must be > 0, got {lr}")
     if not eps > 0:  # a zero eps divides 0 by 0 wherever a gradient is zero
         raise ValueError(f"Adam eps must be > 0, got {eps}")
+    if not (math.isfinite(weight_decay) and weight_decay >= 0.0):
+        raise ValueError(f"weight decay must be >= 0, got {weight_decay}")
     warmup_linear_decay(0, total_steps, warmup_steps, final_factor)  # validate early
-    opt = torch.optim.Adam([param], lr=lr, eps=eps)
+    if weight_decay > 0:
+        opt = torch.optim.AdamW([param], lr=lr, eps=eps, weight_decay=weight_decay)
+    else:
+        opt = torch.optim.Adam([param], lr=lr, eps=eps)
     return opt, _scheduler(opt, total_steps, warmup_steps, final_factor)
 
 

@@ -93,6 +93,12 @@ class FitSettings:
     # one with a weak gradient (a leaf), and carries the leaves' softening out to their tips.
     # 0.02 moves the median driver about half way at the 100k benchmark's driver density.
     residual_diffusion: float = 0.02
+    # Decoupled weight decay of the residuals (AdamW, 0: off): each stage-2 step multiplies
+    # them by 1 - lr_t * residual_decay, a pull back to the field in nats that, unlike a
+    # penalty in the loss, Adam's per-driver scaling does not undo. A driver whose video
+    # gradient keeps one sign settles near 1 / residual_decay nats from the field; one whose
+    # gradient changes sign returns to it. A diagnostic setting (bench/fit_truth.py --set).
+    residual_decay: float = 0.0
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -165,6 +171,8 @@ class FitSettings:
             raise ValueError(f"cfl_quantile must be in (0, 1], got {out.cfl_quantile}")
         if not (math.isfinite(out.residual_diffusion) and out.residual_diffusion >= 0.0):
             raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
+        if not (math.isfinite(out.residual_decay) and out.residual_decay >= 0.0):
+            raise ValueError(f"residual_decay must be >= 0 (per unit step), got {out.residual_decay}")
         if not out.residual_eps > 0:
             raise ValueError(f"residual_eps must be > 0, got {out.residual_eps}")
         if out.stored_frames_mb is not None and not (math.isfinite(out.stored_frames_mb)

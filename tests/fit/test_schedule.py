@@ -116,3 +116,43 @@ def test_fit_settings_refuse_a_residual_eps_that_is_not_positive():
         with pytest.raises(ValueError, match="residual_eps"):
             FitSettings(quality="draft", residual_eps=eps).resolved()
     assert FitSettings(quality="draft", residual_eps=1e-16).resolved().residual_eps == 1e-16
+
+
+def test_tensor_optimizer_weight_decay_pulls_toward_zero_whatever_the_gradient_scale():
+    # AdamW: p <- p (1 - lr wd) - lr m / (sqrt(v) + eps). With a zero gradient only the pull
+    # acts; with gradients 1e-9 and 1e3 the Adam part is the same full step, so the decay's
+    # share does not depend on the loss's scale (a penalty in the loss would)
+    lr, wd = 0.1, 0.5
+    t = torch.nn.Parameter(torch.full((1,), 2.0))
+    opt, _ = make_tensor_optimizer(t, lr, 10, eps=1e-16, weight_decay=wd)
+    t.grad = torch.zeros(1)
+    opt.step()
+    assert float(t.detach()) == pytest.approx(2.0 * (1 - lr * wd), rel=1e-6)
+    for g in (1e-9, 1e3):
+        t = torch.nn.Parameter(torch.full((1,), 2.0))
+        opt, _ = make_tensor_optimizer(t, lr, 10, eps=1e-16, weight_decay=wd)
+        t.grad = torch.full((1,), g)
+        opt.step()
+        assert float(t.detach()) == pytest.approx(2.0 * (1 - lr * wd) - lr, rel=1e-5)
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="weight decay"):
+            make_tensor_optimizer(t, lr, 10, weight_decay=bad)
+
+
+def test_fit_settings_refuse_a_residual_decay_out_of_range_and_stage_two_uses_it():
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.fit.stages import stage_optimizers
+
+    for bad in (-0.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="residual_decay"):
+            FitSettings(quality="draft", residual_decay=bad).resolved()
+
+    class Problem:  # the attributes stage_optimizers reads
+        material = torch.nn.Linear(2, 1)
+        velocities = [torch.nn.Linear(2, 1)]
+        log_e_residual = torch.nn.Parameter(torch.zeros(3))
+
+    for decay, kind in ((0.0, torch.optim.Adam), (0.3, torch.optim.AdamW)):
+        s = FitSettings(quality="draft", residual_decay=decay).resolved()
+        opt, _ = stage_optimizers(Problem(), s, "material")["_r"]
+        assert type(opt) is kind and opt.param_groups[0]["weight_decay"] == pytest.approx(decay)
