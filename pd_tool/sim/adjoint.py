@@ -42,6 +42,7 @@ from pd_tool.sim.gather import (
     grid_update_tagged,
     p2g_chunks,
     red_add_vec4,
+    store_payload,
 )
 
 
@@ -158,9 +159,7 @@ def g2p_adjoint_particle(
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
         else:
             lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-            lists.pay_fx[p] = fx
-            lists.pay_mv[p] = wp.vec4(gvel[0], gvel[1], gvel[2], 0.0)
-            lists.pay_A[p] = Ag
+            store_payload(lists, p, fx, wp.vec4(gvel[0], gvel[1], gvel[2], 0.0), Ag)
 
 
 @wp.func

@@ -73,18 +73,74 @@ def red_add_vec4(arr: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int, value: 
     ...
 
 
+# warp's vec4 has the alignment of a float, so nvcc splits a vec4 access into four 32-bit
+# ones. These read and write a vec4 array element (16-byte aligned: an array starts on 256
+# bytes and its elements are 16 bytes) with one 128-bit access. The load goes through the
+# read-only cache (__ldg), so an array read with it must not be written by the same launch.
+# The CPU reads and writes plainly. No adjoint: untaped kernels only.
+_LOAD_VEC4 = """
+#if defined(__CUDA_ARCH__)
+    const float4 q = __ldg(reinterpret_cast<const float4*>(wp::address(arr, i)));
+    return wp::vec4(q.x, q.y, q.z, q.w);
+#else
+    return *wp::address(arr, i);
+#endif
+"""
+_STORE_VEC4 = """
+#if defined(__CUDA_ARCH__)
+    *reinterpret_cast<float4*>(wp::address(arr, i)) = make_float4(value[0], value[1], value[2], value[3]);
+#else
+    *wp::address(arr, i) = value;
+#endif
+"""
+
+
+@wp.func_native(_LOAD_VEC4)
+def load_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """arr[i] in one 128-bit load (arr not written by this launch)."""
+    ...
+
+
+@wp.func_native(_STORE_VEC4)
+def store_vec4(arr: wp.array(dtype=wp.vec4), i: int, value: wp.vec4):
+    """arr[i] = value in one 128-bit store."""
+    ...
+
+
 @wp.struct
 class CellLists:
     """Each particle's stencil cell and P2G payload, on the device.
 
-    cell [N]: each particle's stencil cell this substep (-1: adds nothing);
-    pay_fx [N]: B-spline offset x/dx - base; pay_mv [N]: momentum (kg m/s) and mass (kg);
-    pay_A [N]: MLS affine matrix m C - 4/dx^2 dt V tau (kg/s)."""
+    cell [N]: each particle's stencil cell this substep (-1: adds nothing); pay_mv [N]:
+    momentum (kg m/s) and mass (kg); pay_r0, pay_r1, pay_r2 [N]: row d of the MLS affine
+    matrix A = m C - 4/dx^2 dt V tau (kg/s) in lanes 0-2 and the B-spline offset
+    x_d/dx - base_d in lane 3. Four vec4s, so that the chunk sums read a particle's payload
+    in four 128-bit loads (store_payload, load_payload) instead of sixteen 32-bit ones."""
 
     cell: wp.array(dtype=int)
-    pay_fx: wp.array(dtype=wp.vec3)
     pay_mv: wp.array(dtype=wp.vec4)
-    pay_A: wp.array(dtype=wp.mat33)
+    pay_r0: wp.array(dtype=wp.vec4)
+    pay_r1: wp.array(dtype=wp.vec4)
+    pay_r2: wp.array(dtype=wp.vec4)
+
+
+@wp.func
+def store_payload(lists: CellLists, p: int, fx: wp.vec3, mv: wp.vec4, A: wp.mat33):
+    """Write particle p's payload: offset fx, (momentum, mass) mv, affine matrix A."""
+    store_vec4(lists.pay_mv, p, mv)
+    store_vec4(lists.pay_r0, p, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]))
+    store_vec4(lists.pay_r1, p, wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]))
+    store_vec4(lists.pay_r2, p, wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]))
+
+
+@wp.func
+def load_payload(lists: CellLists, q: int):
+    """Particle q's payload (fx, mv, A) as store_payload wrote it."""
+    r0 = load_vec4(lists.pay_r0, q)
+    r1 = load_vec4(lists.pay_r1, q)
+    r2 = load_vec4(lists.pay_r2, q)
+    A = wp.mat33(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2])
+    return wp.vec3(r0[3], r1[3], r2[3]), load_vec4(lists.pay_mv, q), A
 
 
 @wp.func
@@ -110,10 +166,9 @@ def bin_particle(
     lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
     lm = K.lame(E, nu)
     tau = K.kirchhoff_stress(F, lm[0], lm[1])
-    lists.pay_fx[p] = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
     mv = m * (v + a_ext * dt)
-    lists.pay_mv[p] = wp.vec4(mv[0], mv[1], mv[2], m)
-    lists.pay_A[p] = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
+    store_payload(lists, p, x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2])),
+                  wp.vec4(mv[0], mv[1], mv[2], m), m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau)
 
 
 @wp.kernel(enable_backward=False)
@@ -208,9 +263,7 @@ def tag_row(blocks: wp.array3d(dtype=int), tag: int, n: wp.vec3i):
 def row_shares(q: int, a: int, b: int, lists: CellLists, dx: float):
     """Particle q's shares of the three nodes (a, b, 0..2) of its cell's stencil: the masses
     w_n m and the vectors w_n (momentum + A dpos_n) of its payload."""
-    fx = lists.pay_fx[q]
-    pm = lists.pay_mv[q]
-    A = lists.pay_A[q]
+    fx, pm, A = load_payload(lists, q)
     wab = bspline_at(fx[0], a) * bspline_at(fx[1], b)
     wz = K.bspline_w(fx[2])
     mom = wp.vec3(pm[0], pm[1], pm[2])
@@ -337,7 +390,7 @@ def alloc_cell_lists(n_particles: int, device) -> CellLists:
     z = lambda n, t=int: wp.zeros(n, dtype=t, device=device)  # noqa: E731
     lists = CellLists()
     lists.cell = z(n)
-    lists.pay_fx, lists.pay_mv, lists.pay_A = z(n, wp.vec3), z(n, wp.vec4), z(n, wp.mat33)
+    lists.pay_mv, lists.pay_r0, lists.pay_r1, lists.pay_r2 = (z(n, wp.vec4) for _ in range(4))
     return lists
 
 
