@@ -109,11 +109,16 @@ if [ "$part" = n ]; then  # the fit on 64 cells with 8 drivers a cell, and wheth
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
     --bake-qualities default --fit-grid 64 --fit-floor 8 --losses
 fi
-# the same fit with E from the field alone (V=field), or the field first and then the full fit
-# warm-started from it (V=warm); scenes one after another (three rows at once in separate
-# processes fit on one H200: 113 of 143 GB)
+# the same fit with E from the field alone (V=field), the field first and then the full fit
+# warm-started from it (V=warm), or the field first and then the residuals alone, pulled back
+# to it by a weight decay of DECAY (V=decay); scenes one after another (three rows at once in
+# separate processes fit on one H200: 113-133 of 143 GB)
 if [ "$part" = o ]; then
-  if [ "${V:-field}" = field ]; then extra=(--set driver_residual=false --fit-args=--no-level); else extra=(--warm-from-field); fi
+  case "${V:-field}" in
+    field) extra=(--set driver_residual=false --fit-args=--no-level) ;;
+    warm) extra=(--warm-from-field) ;;
+    *) extra=(--warm-from-field --fit-args=--no-level --set residual_decay=${DECAY:-1}) ;;
+  esac
   run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
     --bake-qualities default --fit-grid 64 --fit-floor 8 "${extra[@]}"
