@@ -110,8 +110,8 @@ if [ "$part" = n ]; then  # the fit on 64 cells with 8 drivers a cell, and wheth
     --bake-qualities default --fit-grid 64 --fit-floor 8 --losses
 fi
 # the same fit with E from the field alone (V=field), the field first and then the full fit
-# warm-started from it (V=warm), or the field first and then the residuals alone, pulled back
-# to it by a weight decay of DECAY (V=decay); scenes one after another (three rows at once in
+# warm-started from it (V=warm), or the same with no stage-1 level and a weight decay of DECAY
+# on the per-driver residuals (V=decay); scenes one after another (three rows at once in
 # separate processes fit on one H200: 113-133 of 143 GB)
 if [ "$part" = o ]; then
   case "${V:-field}" in
