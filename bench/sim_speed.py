@@ -74,14 +74,16 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
 
 
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None,
-                          backward: str = "adjoint", store: bool = True) -> tuple[float, float]:
-    """(forward, forward + backward) particle-substeps/s of the differentiable path; store:
-    the forward keeps the frame's substeps for the backward where the budget allows."""
+                          backward: str = "adjoint", store: bool = True) -> tuple[float, float, dict]:
+    """(forward, forward + backward) particle-substeps/s of the differentiable path, and the
+    MB a stored frame takes (`stored_frame_mb`, packed on CUDA) against a dense slot's
+    (`dense_frame_mb`); store: the forward keeps the frame's substeps for the backward where
+    the budget allows."""
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, gravity=(0.0, 0.0, -9.81), segment=segment, backward=backward,
                     keep_budget_mb=None if store else 0)
     dsim = DiffSim(vol, mass, static, cfg, device=device)
-    claim = dsim._claim_kept(substeps)  # held for the whole run: every frame reuses its slot
+    claim = dsim._claim_kept(substeps, x)  # held for the whole run: every frame reuses its slot
     kept = claim.slot if claim is not None else None
     xw = wp.array(x, dtype=wp.vec3, device=device)
     vw = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -114,7 +116,11 @@ def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: 
             fn()
         sync(device)
         rates.append(n * substeps * frames / (time.perf_counter() - t0))
-    return tuple(rates)
+    mb = {}
+    if kept is not None:
+        mb = {"stored_frame_mb": kept.nbytes / 2**20 * substeps / kept.count,
+              "dense_frame_mb": substeps * dsim._substep_bytes() / 2**20, "stored_frame_held": bool(kept.holds)}
+    return rates[0], rates[1], mb
 
 
 def check_adjoint(n: int, res: int, substeps: int, device: str, segment: int | None) -> float:
@@ -195,14 +201,16 @@ def main(argv=None) -> int:
             modes = ["adjoint", "tape"] if args.backward == "both" else [args.backward]
             for mode in modes:
                 key = "fwd_bwd" if mode == modes[0] else "fwd_bwd_tape"
-                diff_fwd, row[key] = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device,
-                                                           args.segment, mode)
+                diff_fwd, row[key], mb = time_forward_backward(n, res, substeps, max(1, frames // 2), args.device,
+                                                               args.segment, mode)
+                if mode == modes[0]:
+                    row.update(mb)
                 if mode == modes[0]:
                     row["diff_fwd"] = diff_fwd
                     # the backward alone against the differentiable path's own forward
                     row["bwd_over_diff_fwd"] = diff_fwd / row[key] - 1.0
                 if mode == "adjoint":
-                    fwd, row["fwd_bwd_recompute"] = time_forward_backward(
+                    fwd, row["fwd_bwd_recompute"], _ = time_forward_backward(
                         n, res, substeps, max(1, frames // 2), args.device, args.segment, mode, store=False)
                     row["diff_fwd_recompute"] = fwd
                     row["bwd_over_diff_fwd_recompute"] = fwd / row["fwd_bwd_recompute"] - 1.0
@@ -220,7 +228,9 @@ def main(argv=None) -> int:
                  if "fwd_bwd" in row else "")
               + (f"  recomputed: diff fwd {row['diff_fwd_recompute']:.3e}  fwd+bwd {row['fwd_bwd_recompute']:.3e} "
                  f"(backward = {row['bwd_over_diff_fwd_recompute']:.2f} x its own forward)"
-                 if "fwd_bwd_recompute" in row else "") + "  particle-substeps/s", flush=True)
+                 if "fwd_bwd_recompute" in row else "") + "  particle-substeps/s"
+              + (f"; a stored frame {row['stored_frame_mb']:.0f} MB (dense {row['dense_frame_mb']:.0f})"
+                 if "stored_frame_mb" in row else ""), flush=True)
     out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",
            "rows": rows}
     if args.json:

@@ -2,6 +2,8 @@
 
 A frame run with gradients stores each substep's particle state and grid in a slot of
 `config.keep_budget_mb`, and its backward runs the adjoint kernels over them in reverse.
+With the binned P2G on CUDA a slot keeps each grid only in the blocks its substep's P2G
+tagged, packed (_PackedFrame), so that a thin object's frames take a fraction of the memory.
 Where the budget is spent (or with the taped reference backward), the forward runs the
 substeps in place and saves only the frame's input state; the backward then recomputes the
 frame from it, keeping one checkpoint every `config.segment` substeps, and reverses each
@@ -12,6 +14,7 @@ segment's stores, whatever the number of frames.
 """
 from __future__ import annotations
 
+import math
 import weakref
 from contextlib import contextmanager
 from typing import Sequence
@@ -24,7 +27,15 @@ from pd_tool.core.device import host_available_bytes
 from pd_tool.sim import kernels as K
 from pd_tool.sim.adjoint import adjoint_segment, recompute_segment
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import BLOCK_W, alloc_cell_lists, block_shape, block_tag, run_substeps_binned
+from pd_tool.sim.gather import (
+    BLOCK,
+    BLOCK_W,
+    alloc_cell_lists,
+    block_shape,
+    block_tag,
+    run_substeps_binned,
+    touched_blocks,
+)
 from pd_tool.sim.guard import check_stats
 from pd_tool.sim.solver import (
     Force,
@@ -180,12 +191,145 @@ class _KeptFrame(_Substeps):
     run in the simulator's pool and are copied to and from the slot, so that every frame
     replays the pool's graphs; elsewhere they run on the slot's own arrays."""
 
+    holds = True  # the frame stored last fitted (a packed slot's blocks may not)
+
     def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
         super().__init__(n, geo, capacity, device)  # `count`: the most substeps it holds
         self.owner: weakref.ref | None = None
 
     def free(self) -> bool:
         return self.owner is None or self.owner() is None
+
+    @property
+    def nbytes(self) -> int:
+        """What the budget counts: `count` substeps' particle states and grids (the budget
+        leaves the one extra state and the tags, 1/64 of a grid, to its margin)."""
+        u, _, _, _, mmv = self.fields[:5]
+        return self.count * (u.shape[1] * (3 + 3 + 9 + 9) * 4 + int(np.prod(mmv.shape[1:])) * (4 + 3) * 4)
+
+    def fits(self, substeps: int, blocks: int) -> bool:
+        """Whether a frame of `substeps` whose P2G tags about `blocks` blocks in all fits."""
+        return self.count >= substeps
+
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """The forward's values of a frame run in `pool` (copy_from)."""
+        self.copy_from(pool, substeps, tagged=tagged)
+
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """Back into `pool` for the frame's backward."""
+        pool.copy_from(self, substeps, tagged=tagged)
+
+
+# A packed slot's blocks over the most a substep tagged so far (or over what the particles'
+# stencils touch before any frame has run): the particles move within a frame and over a fit.
+PACK_MARGIN = 1.25
+
+
+class _PackedFrame(_KeptFrame):
+    """A slot for the binned pool (DiffSim._pooled with DiffSim.binned) that keeps each
+    substep's particle state whole but its grid only in the activity blocks the substep's
+    P2G tagged, packed one after another (`packed_mmv`, `packed_v`: [blocks, BLOCK^3] nodes;
+    `packed_at`: each block's substep and block index). A thin object tags a few percent of
+    its grid's blocks, so a frame takes a fraction of a dense slot's memory and the budget
+    holds more frames. The blocks a frame tags are known only once it has run: a frame
+    that tags more than `blocks` is not stored (`holds` False after store_from) and its
+    backward recomputes."""
+
+    def __init__(self, n: int, geo: GridGeometry, capacity: int, blocks: int, device: str) -> None:
+        self.count = capacity
+        self.fields = [wp.zeros((capacity + 1, n), dtype=t, device=device) for t in (wp.vec3, wp.vec3, wp.mat33, wp.mat33)]
+        self.fields.append(wp.zeros((capacity, *block_shape(geo.nodes)), dtype=int, device=device))
+        self.blocks = max(1, int(blocks))
+        per = BLOCK_W * BLOCK_W * BLOCK_W
+        self.packed_mmv = wp.zeros((self.blocks, per), dtype=wp.vec4, device=device)
+        self.packed_v = wp.zeros((self.blocks, per), dtype=wp.vec3, device=device)
+        self.packed_at = wp.zeros(self.blocks, dtype=int, device=device)
+        self.filled = wp.zeros(1, dtype=int, device=device)
+        self.filled_blocks = 0
+        self.holds = True
+        self._views = None
+        self.owner = None
+
+    @property
+    def nbytes(self) -> int:
+        u, tags = self.fields[0], self.fields[4]
+        return (self.count * (u.shape[1] * (3 + 3 + 9 + 9) * 4 + int(np.prod(tags.shape[1:])) * 4)
+                + self.blocks * BLOCK ** 3 * (4 + 3) * 4)
+
+    def fits(self, substeps: int, blocks: int) -> bool:
+        return self.count >= substeps and self.blocks >= blocks
+
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """The particle states and tags of the frame in `pool`, and its tagged blocks packed;
+        reads back how many blocks that was (one sync) and sets `holds`."""
+        for k in range(4):
+            wp.copy(self.fields[k][: substeps + 1], pool.fields[k][: substeps + 1])
+        wp.copy(self.fields[4][:substeps], pool.fields[6][:substeps])
+        self.filled.zero_()
+        if substeps > 0:
+            wp.launch(_pack_blocks, dim=(substeps, *self.fields[4].shape[1:]), device=self.filled.device,
+                      inputs=[block_tag(0, 0), pool.fields[4], pool.fields[5], pool.fields[6], self.filled,
+                              self.packed_at, self.packed_mmv, self.packed_v])
+        self.filled_blocks = int(self.filled.numpy()[0])
+        self.holds = self.filled_blocks <= self.blocks
+
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        for k in range(4):
+            wp.copy(pool.fields[k][: substeps + 1], self.fields[k][: substeps + 1])
+        wp.copy(pool.fields[6][:substeps], self.fields[4][:substeps])
+        wp.launch(_unpack_blocks, dim=self.blocks, device=self.filled.device,
+                  inputs=[self.filled, self.packed_at, self.packed_mmv, self.packed_v, pool.fields[4], pool.fields[5]])
+
+
+@wp.func
+def _block_node(bi: int, bj: int, bk: int, local: int) -> wp.vec3i:
+    """Node `local` (0 .. BLOCK^3 - 1, k fastest) of block (bi, bj, bk)."""
+    return wp.vec3i(bi * BLOCK_W + local // (BLOCK_W * BLOCK_W), bj * BLOCK_W + (local // BLOCK_W) % BLOCK_W,
+                    bk * BLOCK_W + local % BLOCK_W)
+
+
+@wp.kernel(enable_backward=False)
+def _pack_blocks(tag0: int, src_mmv: wp.array4d(dtype=wp.vec4), src_v: wp.array4d(dtype=wp.vec3),
+                 tags: wp.array4d(dtype=int), filled: wp.array(dtype=int), packed_at: wp.array(dtype=int),
+                 packed_mmv: wp.array2d(dtype=wp.vec4), packed_v: wp.array2d(dtype=wp.vec3)):
+    """Each block tagged by its substep s (tag tag0 + s) takes the next packed place and
+    its nodes are copied there; `filled` counts the tagged blocks, those past the packed
+    arrays' end included (the frame then does not fit)."""
+    s, bi, bj, bk = wp.tid()
+    if tags[s, bi, bj, bk] != tag0 + s:
+        return
+    slot = wp.atomic_add(filled, 0, 1)
+    if slot >= packed_at.shape[0]:
+        return
+    packed_at[slot] = ((s * tags.shape[1] + bi) * tags.shape[2] + bj) * tags.shape[3] + bk
+    for local in range(BLOCK_W * BLOCK_W * BLOCK_W):
+        n = _block_node(bi, bj, bk, local)
+        if n[0] < src_mmv.shape[1] and n[1] < src_mmv.shape[2] and n[2] < src_mmv.shape[3]:
+            packed_mmv[slot, local] = src_mmv[s, n[0], n[1], n[2]]
+            packed_v[slot, local] = src_v[s, n[0], n[1], n[2]]
+
+
+@wp.kernel(enable_backward=False)
+def _unpack_blocks(filled: wp.array(dtype=int), packed_at: wp.array(dtype=int),
+                   packed_mmv: wp.array2d(dtype=wp.vec4), packed_v: wp.array2d(dtype=wp.vec3),
+                   dst_mmv: wp.array4d(dtype=wp.vec4), dst_v: wp.array4d(dtype=wp.vec3)):
+    """The packed blocks back to their substeps' grids (the inverse of _pack_blocks)."""
+    t = wp.tid()
+    if t >= filled[0]:
+        return
+    at = packed_at[t]
+    nb = (dst_mmv.shape[1] + BLOCK_W - 1) // BLOCK_W
+    nj = (dst_mmv.shape[2] + BLOCK_W - 1) // BLOCK_W
+    nk = (dst_mmv.shape[3] + BLOCK_W - 1) // BLOCK_W
+    bk = at % nk
+    bj = (at // nk) % nj
+    bi = (at // (nk * nj)) % nb
+    s = at // (nk * nj * nb)
+    for local in range(BLOCK_W * BLOCK_W * BLOCK_W):
+        n = _block_node(bi, bj, bk, local)
+        if n[0] < dst_mmv.shape[1] and n[1] < dst_mmv.shape[2] and n[2] < dst_mmv.shape[3]:
+            dst_mmv[s, n[0], n[1], n[2]] = packed_mmv[t, local]
+            dst_v[s, n[0], n[1], n[2]] = packed_v[t, local]
 
 
 class _Claim:
@@ -280,7 +424,7 @@ class DiffSim:
         if substeps < 1:
             raise SimConfigError(f"DiffSim.frame: substeps={substeps}, need >= 1")
         graded = torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, C, F, E))
-        claim = self._claim_kept(int(substeps)) if graded else None
+        claim = self._claim_kept(int(substeps), x) if graded else None
         return _FrameFunction.apply(x, v, C, F, E, self, float(frame_dt), int(substeps), fa,
                                     float(t0), int(frame_index), claim)
 
@@ -322,7 +466,10 @@ class DiffSim:
 
     def _substep_bytes(self) -> int:
         # one stored substep: a particle state (u, v, C, G) and a grid (mmv, v)
-        return self.n * (3 + 3 + 9 + 9) * 4 + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
+        return self._particle_bytes() + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
+
+    def _particle_bytes(self) -> int:
+        return self.n * (3 + 3 + 9 + 9) * 4
 
     def _free_quarter_mb(self) -> float:
         free = self._gpu_free_bytes()
@@ -348,20 +495,48 @@ class DiffSim:
             self._keep_reserve = max(0.0, free - budget) if free is not None else None
         return budget
 
-    def _claim_kept(self, substeps: int) -> "_Claim | None":
-        """A free slot for a frame of `substeps`, growing or adding one within the budget;
-        None when the budget is spent, the slot cannot be allocated, or the backward would
-        not read it (the taped reference, or a frame longer than one segment)."""
+    def _packed(self) -> bool:
+        # frames run in the binned pool are stored packed (_PackedFrame)
+        return self.binned and self._pooled()
+
+    def _packed_blocks(self, substeps: int, x: "torch.Tensor | np.ndarray") -> int:
+        """The blocks to pack a frame of `substeps` into: the most a substep has tagged so
+        far, or before any frame the blocks the particles' stencils touch at x, with a
+        margin for motion within the frame."""
+        per = getattr(self, "_blocks_per_substep", 0.0)
+        if not per:
+            pos = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+            per = self._blocks_per_substep = float(touched_blocks(pos, self.geo))
+        return int(math.ceil(substeps * per * PACK_MARGIN))
+
+    def note_stored(self, slot: "_KeptFrame", substeps: int) -> None:
+        """After a forward stored into `slot`: the blocks its substeps tagged size the next
+        packed slots."""
+        if isinstance(slot, _PackedFrame) and substeps > 0:
+            self._blocks_per_substep = max(getattr(self, "_blocks_per_substep", 0.0), slot.filled_blocks / substeps)
+
+    def _claim_kept(self, substeps: int, x: "torch.Tensor | np.ndarray | None" = None) -> "_Claim | None":
+        """A free slot for a frame of `substeps` (starting at positions x, for a packed
+        slot's size), growing or adding one within the budget; None when the budget is
+        spent, the slot cannot be allocated, or the backward would not read it (the taped
+        reference, or a frame longer than one segment)."""
         if self.config.backward != "adjoint" or self.segment_length(substeps) < substeps:
             return None
+        packed = self._packed() and x is not None
+        blocks = self._packed_blocks(substeps, x) if packed else 0
         free = [k for k in self._kept if k.free()]
-        fits = [k for k in free if k.count >= substeps]
+        fits = [k for k in free if k.fits(substeps, blocks)]
         if fits:
-            return _Claim(min(fits, key=lambda k: k.count))
+            return _Claim(min(fits, key=lambda k: k.nbytes))
+        # bytes a substep takes in a slot: its particle state, and its grid whole or its
+        # tagged blocks packed
         per = self._substep_bytes()
-        held = sum(k.count * per for k in self._kept)
-        drop = max(free, key=lambda k: k.count) if free else None
-        room = self._keep_budget_bytes() - held + (drop.count * per if drop else 0)
+        if packed:
+            per = self._particle_bytes() + int(np.prod(block_shape(self.geo.nodes))) * 4 + \
+                math.ceil(blocks / substeps) * BLOCK ** 3 * (4 + 3) * 4
+        held = sum(k.nbytes for k in self._kept)
+        drop = max(free, key=lambda k: k.nbytes) if free else None
+        room = self._keep_budget_bytes() - held + (drop.nbytes if drop else 0)
         if substeps * per > room:
             return None
         # a quarter more than asked where the budget allows: the substep count creeps up
@@ -371,19 +546,22 @@ class DiffSim:
         if reserve is not None and free_now is not None:
             # another process may have taken the room since the budget was read (a dropped
             # slot's memory stays in warp's pool, for this process to reuse)
-            spare = free_now + (drop.count * per if drop else 0) - reserve
+            spare = free_now + (drop.nbytes if drop else 0) - reserve
             capacity = int(min(capacity, spare // per))
             if capacity < substeps:
                 return None
         if drop is not None:
             self._kept.remove(drop)  # grown: a larger slot replaces the largest free one
         try:
-            slot = _KeptFrame(self.n, self.geo, capacity, self.device)
+            if packed:
+                slot = _PackedFrame(self.n, self.geo, capacity, blocks * capacity // substeps, self.device)
+            else:
+                slot = _KeptFrame(self.n, self.geo, capacity, self.device)
         except RuntimeError:
             # The budget was read from the free memory at the first frame; another process
             # (or this one's renderer) may have taken it since. Storing is only a speed-up:
             # this frame and every later one beyond the slots already held recompute.
-            self._keep_budget = float(sum(k.count * per for k in self._kept))
+            self._keep_budget = float(sum(k.nbytes for k in self._kept))
             return None
         self._kept.append(slot)
         return _Claim(slot)
@@ -637,6 +815,11 @@ class _FrameFunction(torch.autograd.Function):
         with _stream_scope(sim):
             stats = forward_frame(sim, *args, forces, t0, frame_dt, substeps, *outs, kept=kept)
             stats = stats.numpy().copy()  # one sync per frame for the guard
+        if kept is not None:
+            sim.note_stored(kept, substeps)
+            if not kept.holds:  # its blocks did not fit the packed slot: the backward recomputes
+                claim.take()
+                claim = None
         check_stats(stats, frame_index, t0 + frame_dt, substeps)
         ctx.save_for_backward(x, v, C, F, E)
         ctx.sim, ctx.frame_dt, ctx.substeps, ctx.forces, ctx.t0 = sim, frame_dt, substeps, forces, t0
@@ -703,7 +886,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
     if pooled:
         # the binned P2G tags what it touches: only those blocks are copied and cleared
-        kept.copy_from(store, substeps, tagged=sim.binned)
+        kept.store_from(store, substeps, tagged=sim.binned)
         store.zero_mass(substeps, tagged=sim.binned)  # the next recompute adds to zero
     return sctx.stats
 
@@ -750,6 +933,8 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     recompute that stores each substep's particle state and grid, then the substeps'
     adjoints in reverse; with `kept`, the adjoints alone over the forward's stores."""
     dev, n = sim.device, sim.n
+    if kept is not None and not kept.holds:
+        kept = None  # its forward tagged more blocks than the packed slot holds: recompute
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
@@ -761,7 +946,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     else:
         store = sim._adjoint_pool(min(seg, substeps))
         if kept is not None:
-            store.copy_from(kept, substeps, tagged=binned)
+            kept.load_into(store, substeps, tagged=binned)
     states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state

@@ -28,6 +28,7 @@ recompute); the taped replay keeps the scatter P2G, whose adjoint warp generates
 """
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from pd_tool.sim import kernels as K
@@ -382,6 +383,19 @@ def block_tag(k0: int, i: int) -> int:
 def block_shape(nodes: tuple[int, int, int]) -> tuple[int, int, int]:
     """Activity blocks per axis over a grid of `nodes` nodes."""
     return tuple(-(-int(n) // BLOCK) for n in nodes)
+
+
+def touched_blocks(x: np.ndarray, geo) -> int:
+    """Activity blocks the stencils of particles at x [N, 3] (m) reach on grid `geo`: what
+    a substep's P2G would tag with the particles there (kernels.stencil_base's clamping)."""
+    nodes = np.asarray(geo.nodes, np.int64)
+    q = np.nan_to_num(np.asarray(x, np.float64) / float(geo.dx) - 0.5, nan=0.0)
+    base = np.clip(np.floor(np.maximum(q, 0.0)), 0, nodes - 3).astype(np.int64)
+    nb = np.asarray(block_shape(tuple(nodes)), np.int64)
+    ends = (base // BLOCK, (base + 2) // BLOCK)  # a stencil's 3 nodes span 1 or 2 blocks an axis
+    ids = [(ends[a][:, 0] * nb[1] + ends[b][:, 1]) * nb[2] + ends[c][:, 2]
+           for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    return int(np.unique(np.concatenate(ids)).size) if len(x) else 0
 
 
 def alloc_cell_lists(n_particles: int, device) -> CellLists:
