@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j), batch over GPUs (k), and the fit against a split reference
 # with the drivers a cell it needs (l, m), and on a finer fit model with the whole-clip losses (n) and with E
-# from the field alone or warm-started from it (o); JSON and logs
+# from the field alone or warm-started from it (o), and the fast path under per-kernel compile
+# options (p); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -122,4 +123,17 @@ if [ "$part" = o ]; then
   run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
     --bake-qualities default --fit-grid 64 --fit-floor 8 "${extra[@]}"
+fi
+# the fast path's forward under warp's per-kernel compile options (bench/kernel_ptx.py
+# --kernel-options): no grid-stride loop, register caps on the particle kernel, launch bounds
+# on the chunk sums (its launches use 256 threads a block, the particle kernel's 64), each
+# against the shipped build in the same call
+if [ "$part" = p ]; then
+  i=0
+  for opts in "" "gather.*:grid_stride=0" "gather.g2p_bin:cuda_max_registers=64" "gather.g2p_bin:cuda_max_registers=96" \
+              "gather.g2p_bin:launch_bounds=64/16" "gather.p2g_chunks:launch_bounds=256/4" ""; do
+    run sim_speed_options_$i 120 bench/sim_speed.py --device cuda --sizes 100000:64,300000:128 --no-backward \
+      --kernel-options "$opts"
+    i=$((i + 1))
+  done
 fi

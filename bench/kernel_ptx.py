@@ -12,8 +12,15 @@ Use it to check that a kernel change emits what it means to (a 128-bit load, one
 a node) before spending GPU time on it. Counts are not times: bench/sim_profile.py times the
 kernels on a GPU (docs/simulator.md, "Speed", says what bounds them).
 
+`--kernel-options` sets warp's per-kernel compile options before the build, the same flag
+as bench/sim_speed.py's and bench/sim_profile.py's (`apply_kernel_options`): a register cap
+(`cuda_max_registers`, PTX `.maxnreg`), `launch_bounds` (threads, or threads/blocks an SM:
+`.maxntid`, `.minnctapersm`) or `grid_stride=0` (one thread an element, no grid-stride
+loop), to sweep what bounds a kernel's occupancy.
+
     python bench/kernel_ptx.py                               # the fast path's and the adjoint's kernels
     python bench/kernel_ptx.py --kernels g2p_bin,p2g_chunks --json ptx.json
+    python bench/kernel_ptx.py --quick --kernel-options "gather.g2p_bin:cuda_max_registers=64"
 """
 from __future__ import annotations
 
@@ -55,6 +62,53 @@ def count_ops(body: str) -> dict:
     }
 
 
+# warp's per-kernel compile options that --kernel-options may set, with their parsers
+KERNEL_OPTIONS = {
+    "cuda_max_registers": int,
+    "launch_bounds": lambda v: tuple(int(x) for x in v.split("/")) if "/" in v else int(v),
+    "grid_stride": lambda v: bool(int(v)),
+}
+
+
+def apply_kernel_options(spec: str, modules=MODULES) -> list[str]:
+    """Set warp compile options on simulator kernels before their modules are built.
+
+    spec: items separated by ';', each MODULE.KERNEL:OPTION=VALUE (MODULE the last part of
+    the module name, KERNEL '*' for all of that module's kernels), e.g.
+    'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0'; OPTION one of
+    KERNEL_OPTIONS (launch_bounds as THREADS or THREADS/BLOCKS_PER_SM). Returns the kernels
+    set, as MODULE.KERNEL:OPTION=VALUE. Raises ValueError naming what is wrong."""
+    import warp as wp
+
+    kernels = {}
+    for name in modules:
+        mod = importlib.import_module(name)
+        for attr, obj in vars(mod).items():
+            if isinstance(obj, wp.Kernel) and obj.func.__module__ == name:
+                kernels[f"{name.rsplit('.', 1)[-1]}.{attr}"] = obj
+    done = []
+    for item in (i.strip() for i in spec.split(";") if i.strip()):
+        target, _, setting = item.partition(":")
+        opt, _, value = setting.partition("=")
+        if opt not in KERNEL_OPTIONS or not value:
+            raise ValueError(f"--kernel-options {item!r}: want MODULE.KERNEL:OPTION=VALUE with OPTION one of "
+                             f"{', '.join(KERNEL_OPTIONS)}")
+        mod, _, kname = target.partition(".")
+        hit = sorted(k for k in kernels if k.split(".")[0] == mod and (kname == "*" or k.split(".")[1] == kname))
+        if not hit:
+            raise ValueError(f"--kernel-options {item!r}: no kernel {target} (of {', '.join(sorted(kernels))})")
+        parsed = KERNEL_OPTIONS[opt](value)
+        for k in hit:
+            options = kernels[k].options
+            if opt == "cuda_max_registers":
+                options.pop("launch_bounds", None)  # warp takes one or the other
+            elif opt == "launch_bounds":
+                options.pop("cuda_max_registers", None)
+            options[opt] = parsed
+            done.append(f"{k}:{opt}={value}")
+    return done
+
+
 def kernel_counts(ptx: str) -> dict[str, dict]:
     """{kernel name (warp's hash stripped): counts} for every forward kernel of a PTX file."""
     out = {}
@@ -68,6 +122,10 @@ def kernel_counts(ptx: str) -> dict[str, dict]:
         while key in out:  # a generic kernel's overloads
             key, i = f"{short}#{i}", i + 1
         out[key] = count_ops(part)
+        head = part.split("{", 1)[0]  # directives between the parameters and the body
+        for directive in ("maxnreg", "maxntid", "minnctapersm"):
+            found = re.search(rf"\.{directive}\s+(\d+)", head)
+            out[key][directive] = int(found.group(1)) if found else 0
     return out
 
 
@@ -85,12 +143,18 @@ def main(argv=None) -> int:
     ap.add_argument("--modules", default=",".join(MODULES), help="modules to compile, comma separated")
     ap.add_argument("--kernels", default="", help="only kernels whose name contains one of these (comma separated)")
     ap.add_argument("--quick", action="store_true", help="the binned P2G's module alone")
+    ap.add_argument("--kernel-options", default="", metavar="SPEC",
+                    help="warp compile options per kernel, e.g. 'gather.g2p_bin:cuda_max_registers=64' (see above)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     import warp as wp
 
     wp.config.quiet = True
     wp.init()
+    try:
+        applied = apply_kernel_options(args.kernel_options)
+    except ValueError as e:
+        ap.error(str(e))
     modules = ["pd_tool.sim.gather"] if args.quick else [m for m in args.modules.split(",") if m]
     wanted = [k for k in args.kernels.split(",") if k]
     rows = {}
@@ -104,7 +168,8 @@ def main(argv=None) -> int:
     for name, c in sorted(rows.items(), key=lambda kv: -kv[1]["instructions"]):
         print(f"{name:44s}" + "".join(f"{c[k]:15d}" for k in cols))
     if args.json:
-        args.json.write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernels": rows}, indent=1))
+        args.json.write_text(json.dumps({"arch": args.arch, "warp": wp.__version__, "kernel_options": applied,
+                                         "kernels": rows}, indent=1))
     return 0
 
 

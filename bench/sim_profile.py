@@ -23,9 +23,11 @@ from pathlib import Path
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pd_tool.io.synthetic import make_block  # noqa: E402  (the scene of bench/sim_speed.py)
 from pd_tool.sim import MPMSolver, SimConfig  # noqa: E402
+from kernel_ptx import apply_kernel_options  # noqa: E402
 
 
 def hardware(device: str) -> str:
@@ -154,8 +156,15 @@ def main(argv=None) -> int:
                     help="--scene: the folder holding the captures")
     ap.add_argument("--chunk", type=int, default=None, help="particles per chunk of the chunked P2G "
                     "(gather.CHUNK; compile-time, one value per process)")
+    ap.add_argument("--kernel-options", default="", metavar="SPEC",
+                    help="warp compile options per kernel before the first launch, e.g. "
+                         "'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    try:
+        applied = apply_kernel_options(args.kernel_options)
+    except ValueError as e:
+        ap.error(str(e))
     from pd_tool.sim import gather as G
 
     if args.chunk:  # before the first launch compiles the module
@@ -164,7 +173,7 @@ def main(argv=None) -> int:
         args.sizes, args.substeps, args.frames = "20000:32", 4, 1
     wp.config.quiet = True
     wp.init()
-    out = {"hardware": hardware(args.device), "rows": []}
+    out = {"hardware": hardware(args.device), "kernel_options": applied, "rows": []}
     if args.scene:
         row = profile_bake(args.scene, args.gaussians, args.quality, args.frames, args.device, args.data)
         out["rows"].append({"scene": args.scene, "gaussians": args.gaussians, "quality": args.quality, **row})

@@ -37,10 +37,12 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pd_tool.io.synthetic import make_block  # noqa: E402
 from pd_tool.sim import DiffSim, MPMSolver, SimConfig  # noqa: E402
 from pd_tool.sim.autograd import backward_frame, forward_frame  # noqa: E402
+from kernel_ptx import apply_kernel_options  # noqa: E402
 
 DEFAULT_SIZES = "20000:32,100000:64,300000:128"
 
@@ -178,8 +180,15 @@ def main(argv=None) -> int:
     ap.add_argument("--check", action="store_true",
                     help="also compare the hand-written backward with the taped one (max relative difference)")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 particles on a 32-cell grid, 4 substeps, 1 frame")
+    ap.add_argument("--kernel-options", default="", metavar="SPEC",
+                    help="warp compile options per kernel before the first launch, e.g. "
+                         "'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
     ap.add_argument("--json", type=Path, help="write results here")
     args = ap.parse_args(argv)
+    try:
+        applied = apply_kernel_options(args.kernel_options)
+    except ValueError as e:
+        ap.error(str(e))
     if args.quick:
         args.sizes, args.substeps, args.frames = "20000:32", 4, 1
     wp.config.quiet = True
@@ -232,7 +241,7 @@ def main(argv=None) -> int:
               + (f"; a stored frame {row['stored_frame_mb']:.0f} MB (dense {row['dense_frame_mb']:.0f})"
                  if "stored_frame_mb" in row else ""), flush=True)
     out = {"device": args.device, "hardware": hardware(args.device), "unit": "particle-substeps/s",
-           "rows": rows}
+           "kernel_options": applied, "rows": rows}
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

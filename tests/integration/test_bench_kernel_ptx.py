@@ -43,6 +43,7 @@ def test_counts_read_a_kernel_body() -> None:
 .visible .entry k_0123abcd_cuda_kernel_forward(
     .param .u64 a
 )
+.maxnreg 32
 {
     .reg .f32 %f<4>;
 $L1:
@@ -65,4 +66,29 @@ $L1:
     # ld, ld.v4, fma, the predicated bra, st, ret; the inline reduction's braces hide it from
     # the instruction count but not from the atomics
     assert counts["k"] == {"instructions": 6, "global_loads": 2, "vector_loads": 1, "global_stores": 1,
-                           "atomics": 1, "branches": 1, "f32_arithmetic": 1}
+                           "atomics": 1, "branches": 1, "f32_arithmetic": 1,
+                           "maxnreg": 32, "maxntid": 0, "minnctapersm": 0}
+
+
+def test_kernel_options_reach_the_compiled_kernels(tmp_path: Path) -> None:
+    """--kernel-options (shared with sim_speed.py and sim_profile.py): a register cap and
+    launch bounds show as PTX directives on the kernels named and on no other; a wrong
+    name is refused with one line and exit code 2."""
+    import warp as wp
+
+    if tuple(wp.get_cuda_toolkit_version() or (0, 0)) == (0, 0):
+        pytest.skip("this warp build has no NVRTC to compile CUDA kernels with")
+    out = tmp_path / "ptx.json"
+    spec = "gather.g2p_bin:cuda_max_registers=72;gather.p2g_chunks:launch_bounds=256/3"
+    proc = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--kernel-options", spec,
+                           "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(out.read_text())
+    rows = data["kernels"]
+    assert data["kernel_options"] == ["gather.g2p_bin:cuda_max_registers=72", "gather.p2g_chunks:launch_bounds=256/3"]
+    assert (rows["gather.g2p_bin"]["maxnreg"], rows["gather.g2p_bin"]["maxntid"]) == (72, 0)
+    assert (rows["gather.p2g_chunks"]["maxntid"], rows["gather.p2g_chunks"]["minnctapersm"]) == (256, 3)
+    assert rows["gather.grid_update_tagged"]["maxnreg"] == rows["gather.grid_update_tagged"]["maxntid"] == 0
+    bad = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--kernel-options",
+                          "gather.g2p_bin:registers=64"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert bad.returncode == 2 and "OPTION one of cuda_max_registers" in bad.stderr
