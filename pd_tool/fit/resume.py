@@ -152,7 +152,7 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         raise bad(f"it stopped in the {stage} stage, which this fit skips ({stage}_iters = 0)")
     it = integer("iteration", 0, iters - 1)
     rnd = integer("round", 0, s.rounds - 1)
-    optimizers = stage_optimizers(pb, s, stage)
+    optimizers = stage_optimizers(pb, s.round_settings(rnd), stage)
     want = {"stage", "iteration", "round", "material", "velocities", "residual", "level", "losses", "torch_rng"}
     want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
     points = s.measure_points()
@@ -195,7 +195,9 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     vi, mi = s.velocity_iters, s.material_iters
     lengths = {"velocity": rnd * vi + (it if stage == "velocity" else vi),
                "material": rnd * mi + (it if stage == "material" else 0)}
-    folds = rnd + (stage == "material") if s.stage1_level else 0
+    # one fold per stage 1 finished by a round that fits the level
+    folds = sum(s.round_settings(r).stage1_level for r in range(rnd)) + \
+        (stage == "material" and s.round_settings(rnd).stage1_level)
     if folds:
         lengths["stage1_level"] = folds
     if mi > 0 and (rnd > 0 or stage == "material"):

@@ -6,7 +6,7 @@ quantities in nats.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from pd_tool.materials.presets import DRIVERS_PER_CELL_RANGE, fit_min_per_cell, fit_simulation, load_preset
 
@@ -53,6 +53,11 @@ class FitSettings:
     # within 10% on five seeds but makes the new-force motion worse on every seed compared
     # (docs/benchmarks.md, fit recovery).
     rounds: int = 1
+    # The first round fits E's field alone (no per-driver residuals, no stage-1 level), and
+    # the later rounds add the residuals on top of the field it found (round_settings);
+    # needs rounds >= 2. With residual_decay the residuals are pulled back to that field. A
+    # diagnostic setting (bench/fit_truth.py --set), off by default.
+    field_first: bool = False
     # Stage 1 also fits one log-E offset shared by every driver (a level, not a field; the
     # paper freezes E there: False). Stage 1 fits v0 under the starting E; when that E is too
     # soft, a slower push matches the first frames (v0 7-11% slow at 100k, docs/fitting.md)
@@ -156,6 +161,13 @@ class FitSettings:
         starts = (self.rounds * (1 + len(points)) if points else 1) if self.material_iters else 0
         return starts + (0 if points and not self.calibrate_iters else 1)
 
+    def round_settings(self, rnd: int) -> "FitSettings":
+        """The settings round `rnd` (0-based) runs with: with field_first, round 0 fits the
+        field alone (no residual step, no stage-1 level); otherwise these."""
+        if self.field_first and rnd == 0:
+            return replace(self, driver_residual=False, stage1_level=False)
+        return self
+
     def resolved(self) -> FitSettings:
         """These settings with every default filled in from the quality preset; ValueError
         (one line) for a value out of range or a combination the fit cannot run."""
@@ -163,6 +175,9 @@ class FitSettings:
         out = FitSettings(**asdict(self))
         if out.rounds < 1:
             raise ValueError(f"rounds must be at least 1, got {out.rounds}")
+        if out.field_first and (out.rounds < 2 or not out.driver_residual or out.init_material is not None):
+            raise ValueError(f"field_first fits the field alone in the first round and adds the per-driver residuals "
+                             f"after it: it needs rounds >= 2 (got {out.rounds}), driver_residual on and no init_material")
         if out.keep_best_every < 0:
             raise ValueError(f"keep_best_every must be at least 0 (0: off), got {out.keep_best_every}")
         if out.polish_iters < 0:

@@ -269,6 +269,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
     losses and seconds, calls `save` every settings.checkpoint_every iterations and when stage
     2 starts; returns the stage-2 steps skipped for a non-finite gradient."""
     tag = "" if s.rounds == 1 else f" {rnd + 1}/{s.rounds}"
+    s = s.round_settings(rnd)
     # ---- stage 1: initial velocity per video, E's field frozen (its level fitted with stage1_level)
     t0 = time.perf_counter()
     start = 0
@@ -288,6 +289,8 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         _clip_and_step(list(pb.velocities.parameters()), opt, sched, s.grad_clip)
         if opt_l is not None:
             _clip_and_step([pb.log_e_level], opt_l, sched_l, math.inf)
+        else:
+            pb.log_e_level.grad = None  # a round that does not fit the level (field_first) drops its gradient
         losses["velocity"].append(loss)
         if progress:
             progress("velocity" + tag, it + 1, s.velocity_iters, loss)
@@ -334,6 +337,8 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
         if opt_r is not None and not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
             skipped += 1
+        elif opt_r is None:
+            pb.log_e_residual.grad = None  # nor, a round without residual steps, theirs
         if opt_r is not None and s.residual_diffusion > 0:
             pb.diffuse_residuals(s.residual_diffusion)
         losses["material"].append(loss)
