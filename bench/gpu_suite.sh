@@ -111,14 +111,16 @@ if [ "$part" = n ]; then  # the fit on 64 cells with 8 drivers a cell, and wheth
     --bake-qualities default --fit-grid 64 --fit-floor 8 --losses
 fi
 # the same fit with E from the field alone (V=field), the field first and then the full fit
-# warm-started from it (V=warm), or the same with no stage-1 level and a weight decay of DECAY
-# on the per-driver residuals (V=decay); scenes one after another (three rows at once in
-# separate processes fit on one H200: 113-133 of 143 GB)
+# warm-started from it (V=warm), the same with no stage-1 level and a weight decay of DECAY
+# on the per-driver residuals (V=decay), or one fit of two rounds, the field alone and then
+# the residuals on top of it under that decay (V=field_first); scenes one after another
+# (three rows at once in separate processes fit on one H200: 113-133 of 143 GB)
 if [ "$part" = o ]; then
   case "${V:-field}" in
     field) extra=(--set driver_residual=false --fit-args=--no-level) ;;
     warm) extra=(--warm-from-field) ;;
-    *) extra=(--warm-from-field --fit-args=--no-level --set residual_decay=${DECAY:-1}) ;;
+    decay) extra=(--warm-from-field --fit-args=--no-level --set residual_decay=${DECAY:-1}) ;;
+    *) extra=("--fit-args=--rounds=2 --no-level" --set field_first=true --set residual_decay=${DECAY:-1}) ;;
   esac
   run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
