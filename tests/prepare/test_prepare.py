@@ -218,11 +218,18 @@ def test_another_grid_takes_the_grid_free_parts_over(monkeypatch) -> None:
             prepare_scene(scene, other, reuse=coarse)
 
 
-def test_a_real_closed_scan_is_filled_and_weighs_the_same_at_every_quality(shared_data) -> None:
+def test_a_real_closed_scan_is_filled_and_weighs_the_same_at_every_quality(shared_data, monkeypatch) -> None:
     """The tree capture (30,000 of its Gaussians): found on the simulation's own cells, its
     interior was missed at draft's 32 cells and filled from 64, so draft simulated a hollow
     tree a quarter as heavy."""
+    from functools import partial
+
+    import pd_tool.prepare.preparation as preparation
     from pd_tool.io import load_splats
+
+    # the fill's 30 s wall-clock budget, raised as test_fill.py raises it: on a busy 2-core
+    # box the fill can run past 30 s and give up, which is the budget working, not this test
+    monkeypatch.setattr(preparation, "fill_interior", partial(preparation.fill_interior, time_budget_s=300.0))
 
     tree = load_splats(shared_data / "tree_100k.splat")
     tree = tree.subset(np.sort(np.random.default_rng(0).choice(tree.count, 30_000, replace=False)))
