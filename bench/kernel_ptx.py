@@ -78,6 +78,8 @@ def apply_kernel_options(spec: str, modules=MODULES) -> list[str]:
     'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0'; OPTION one of
     KERNEL_OPTIONS (launch_bounds as THREADS or THREADS/BLOCKS_PER_SM). Returns the kernels
     set, as MODULE.KERNEL:OPTION=VALUE. Raises ValueError naming what is wrong."""
+    if not spec.strip():
+        return []  # nothing to set: no module need be imported
     import warp as wp
 
     kernels = {}

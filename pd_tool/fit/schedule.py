@@ -9,7 +9,6 @@ resume where it stopped.
 from __future__ import annotations
 
 import math
-
 from functools import partial
 from typing import Iterable
 

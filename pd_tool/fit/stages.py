@@ -335,10 +335,10 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             skipped += 1
         if opt_v is not None:
             _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
-        if opt_r is not None and not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
-            skipped += 1
-        elif opt_r is None:
+        if opt_r is None:
             pb.log_e_residual.grad = None  # nor, a round without residual steps, theirs
+        elif not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
+            skipped += 1
         if opt_r is not None and s.residual_diffusion > 0:
             pb.diffuse_residuals(s.residual_diffusion)
         losses["material"].append(loss)

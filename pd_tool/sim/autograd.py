@@ -183,6 +183,13 @@ def _tagged_nodes(copy: int, tag0: int, src_mmv: wp.array4d(dtype=wp.vec4), src_
                     dst_mmv[s, i, j, k] = wp.vec4(0.0)
 
 
+# Bytes a stored substep takes: per particle its state (u, v, C, G), per grid node its
+# (momentum, mass) and velocity, per activity block its tag.
+STATE_BYTES = (3 + 3 + 9 + 9) * 4
+NODE_BYTES = (4 + 3) * 4
+TAG_BYTES = 4
+
+
 class _KeptFrame(_Substeps):
     """A slot for one frame's forward values, written by forward_frame and read back by
     backward_frame instead of a recompute. A slot is held by one frame of the autograd graph
@@ -205,7 +212,7 @@ class _KeptFrame(_Substeps):
         """What the budget counts: `count` substeps' particle states and grids (the budget
         leaves the one extra state and the tags, 1/64 of a grid, to its margin)."""
         u, _, _, _, mmv = self.fields[:5]
-        return self.count * (u.shape[1] * (3 + 3 + 9 + 9) * 4 + int(np.prod(mmv.shape[1:])) * (4 + 3) * 4)
+        return self.count * (u.shape[1] * STATE_BYTES + int(np.prod(mmv.shape[1:])) * NODE_BYTES)
 
     def fits(self, substeps: int, blocks: int) -> bool:
         """Whether a frame of `substeps` whose P2G tags about `blocks` blocks in all fits."""
@@ -253,8 +260,8 @@ class _PackedFrame(_KeptFrame):
     @property
     def nbytes(self) -> int:
         u, tags = self.fields[0], self.fields[4]
-        return (self.count * (u.shape[1] * (3 + 3 + 9 + 9) * 4 + int(np.prod(tags.shape[1:])) * 4)
-                + self.blocks * BLOCK ** 3 * (4 + 3) * 4)
+        return (self.count * (u.shape[1] * STATE_BYTES + int(np.prod(tags.shape[1:])) * TAG_BYTES)
+                + self.blocks * BLOCK ** 3 * NODE_BYTES)
 
     def fits(self, substeps: int, blocks: int) -> bool:
         return self.count >= substeps and self.blocks >= blocks
@@ -278,7 +285,8 @@ class _PackedFrame(_KeptFrame):
             wp.copy(pool.fields[k][: substeps + 1], self.fields[k][: substeps + 1])
         wp.copy(pool.fields[6][:substeps], self.fields[4][:substeps])
         wp.launch(_unpack_blocks, dim=self.blocks, device=self.filled.device,
-                  inputs=[self.filled, self.packed_at, self.packed_mmv, self.packed_v, pool.fields[4], pool.fields[5]])
+                  inputs=[self.filled, self.packed_at, self.packed_mmv, self.packed_v, self.fields[4], pool.fields[4],
+                          pool.fields[5]])
 
 
 @wp.func
@@ -312,19 +320,19 @@ def _pack_blocks(tag0: int, src_mmv: wp.array4d(dtype=wp.vec4), src_v: wp.array4
 @wp.kernel(enable_backward=False)
 def _unpack_blocks(filled: wp.array(dtype=int), packed_at: wp.array(dtype=int),
                    packed_mmv: wp.array2d(dtype=wp.vec4), packed_v: wp.array2d(dtype=wp.vec3),
-                   dst_mmv: wp.array4d(dtype=wp.vec4), dst_v: wp.array4d(dtype=wp.vec3)):
-    """The packed blocks back to their substeps' grids (the inverse of _pack_blocks)."""
+                   tags: wp.array4d(dtype=int), dst_mmv: wp.array4d(dtype=wp.vec4), dst_v: wp.array4d(dtype=wp.vec3)):
+    """The packed blocks back to their substeps' grids (the inverse of _pack_blocks, whose
+    block index `tags`' shape decodes)."""
     t = wp.tid()
     if t >= filled[0]:
         return
     at = packed_at[t]
-    nb = (dst_mmv.shape[1] + BLOCK_W - 1) // BLOCK_W
-    nj = (dst_mmv.shape[2] + BLOCK_W - 1) // BLOCK_W
-    nk = (dst_mmv.shape[3] + BLOCK_W - 1) // BLOCK_W
+    nk = tags.shape[3]
+    nj = tags.shape[2]
     bk = at % nk
     bj = (at // nk) % nj
-    bi = (at // (nk * nj)) % nb
-    s = at // (nk * nj * nb)
+    bi = (at // (nk * nj)) % tags.shape[1]
+    s = at // (nk * nj * tags.shape[1])
     for local in range(BLOCK_W * BLOCK_W * BLOCK_W):
         n = _block_node(bi, bj, bk, local)
         if n[0] < dst_mmv.shape[1] and n[1] < dst_mmv.shape[2] and n[2] < dst_mmv.shape[3]:
@@ -466,10 +474,7 @@ class DiffSim:
 
     def _substep_bytes(self) -> int:
         # one stored substep: a particle state (u, v, C, G) and a grid (mmv, v)
-        return self._particle_bytes() + int(np.prod(self.geo.nodes)) * (4 + 3) * 4
-
-    def _particle_bytes(self) -> int:
-        return self.n * (3 + 3 + 9 + 9) * 4
+        return self.n * STATE_BYTES + int(np.prod(self.geo.nodes)) * NODE_BYTES
 
     def _free_quarter_mb(self) -> float:
         free = self._gpu_free_bytes()
@@ -532,8 +537,8 @@ class DiffSim:
         # tagged blocks packed
         per = self._substep_bytes()
         if packed:
-            per = self._particle_bytes() + int(np.prod(block_shape(self.geo.nodes))) * 4 + \
-                math.ceil(blocks / substeps) * BLOCK ** 3 * (4 + 3) * 4
+            per = self.n * STATE_BYTES + int(np.prod(block_shape(self.geo.nodes))) * TAG_BYTES + \
+                math.ceil(blocks / substeps) * BLOCK ** 3 * NODE_BYTES
         held = sum(k.nbytes for k in self._kept)
         drop = max(free, key=lambda k: k.nbytes) if free else None
         room = self._keep_budget_bytes() - held + (drop.nbytes if drop else 0)
