@@ -45,6 +45,8 @@ from pd_tool.sim.gather import (
     store_payload,
 )
 
+K.lean_launches(__name__)
+
 
 @wp.func
 def bspline_dw(fx: float) -> wp.vec3:

@@ -53,6 +53,8 @@ from pd_tool.sim.solver import (
     sort_by_cell,
 )
 
+K.lean_launches(__name__)
+
 State = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 

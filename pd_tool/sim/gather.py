@@ -33,6 +33,8 @@ import warp as wp
 
 from pd_tool.sim import kernels as K
 
+K.lean_launches(__name__)
+
 # Particles a chunk sums. H100, substep of the 300k-Gaussian plant with 3 mm leaves (118,626
 # particles on 89 x 75 x 128 cells), P2G: 36.7 us at 8, 37.2 at 16, 43.1 at 32; runs of one
 # cell cut at 8 / 32 particles took 39.3 / 59.0 plus 7-10 us to list them

@@ -13,16 +13,27 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(tmp_path: Path) -> None:
+def _needs_nvrtc() -> None:
     import warp as wp
 
     if tuple(wp.get_cuda_toolkit_version() or (0, 0)) == (0, 0):  # warp's CPU-only builds (macOS)
         pytest.skip("this warp build has no NVRTC to compile CUDA kernels with")
-    out = tmp_path / "ptx.json"
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+    """The shipped build's PTX counts, and the folder kernel_ptx.py ran in."""
+    _needs_nvrtc()
+    cwd = tmp_path_factory.mktemp("ptx")
+    out = cwd / "ptx.json"
     proc = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--json", str(out)],
-                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+                          capture_output=True, text=True, timeout=600, cwd=cwd)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = json.loads(out.read_text())["kernels"]
+    return json.loads(out.read_text())["kernels"], cwd
+
+
+def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(shipped: tuple[dict, Path]) -> None:
+    rows, cwd = shipped
     sums = rows["gather.p2g_chunks"]
     # each flush adds a row of three nodes with one `red.global.add.v4.f32` each (two flush sites)
     assert sums["atomics"] == 6
@@ -32,7 +43,7 @@ def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(tmp_p
     g2p = rows["gather.g2p_bin"]
     assert g2p["global_loads"] >= 81 and g2p["instructions"] > sums["instructions"]
     assert all(r["instructions"] > 0 for r in rows.values())
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ptx.json"]
+    assert sorted(p.name for p in cwd.iterdir()) == ["ptx.json"]
 
 
 def test_counts_read_a_kernel_body() -> None:
@@ -70,25 +81,27 @@ $L1:
                            "maxnreg": 32, "maxntid": 0, "minnctapersm": 0}
 
 
-def test_kernel_options_reach_the_compiled_kernels(tmp_path: Path) -> None:
+def test_kernel_options_reach_the_compiled_kernels(tmp_path: Path, shipped: tuple[dict, Path]) -> None:
     """--kernel-options (shared with sim_speed.py and sim_profile.py): a register cap and
-    launch bounds show as PTX directives on the kernels named and on no other; a wrong
-    name is refused with one line and exit code 2."""
-    import warp as wp
-
-    if tuple(wp.get_cuda_toolkit_version() or (0, 0)) == (0, 0):
-        pytest.skip("this warp build has no NVRTC to compile CUDA kernels with")
+    launch bounds show as PTX directives on the kernels named and on no other; the grid-stride
+    loop, which the simulator's modules leave out (kernels.lean_launches), comes back on the
+    kernel asked for; a wrong name is refused with one line and exit code 2."""
     out = tmp_path / "ptx.json"
-    spec = "gather.g2p_bin:cuda_max_registers=72;gather.p2g_chunks:launch_bounds=256/3"
+    spec = ("gather.g2p_bin:cuda_max_registers=72;gather.p2g_chunks:launch_bounds=256/3;"
+            "gather.grid_update_tagged:grid_stride=1")
     proc = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--kernel-options", spec,
                            "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     data = json.loads(out.read_text())
     rows = data["kernels"]
-    assert data["kernel_options"] == ["gather.g2p_bin:cuda_max_registers=72", "gather.p2g_chunks:launch_bounds=256/3"]
+    assert data["kernel_options"] == ["gather.g2p_bin:cuda_max_registers=72", "gather.p2g_chunks:launch_bounds=256/3",
+                                      "gather.grid_update_tagged:grid_stride=1"]
     assert (rows["gather.g2p_bin"]["maxnreg"], rows["gather.g2p_bin"]["maxntid"]) == (72, 0)
     assert (rows["gather.p2g_chunks"]["maxntid"], rows["gather.p2g_chunks"]["minnctapersm"]) == (256, 3)
     assert rows["gather.grid_update_tagged"]["maxnreg"] == rows["gather.grid_update_tagged"]["maxntid"] == 0
+    # the loop's extra index arithmetic and back edge
+    lean = shipped[0]
+    assert rows["gather.grid_update_tagged"]["instructions"] > lean["gather.grid_update_tagged"]["instructions"]
     bad = subprocess.run([sys.executable, str(REPO / "bench" / "kernel_ptx.py"), "--quick", "--kernel-options",
                           "gather.g2p_bin:registers=64"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert bad.returncode == 2 and "OPTION one of cuda_max_registers" in bad.stderr
