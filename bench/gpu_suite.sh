@@ -114,7 +114,9 @@ fi
 # warm-started from it (V=warm), the same with no stage-1 level and a weight decay of DECAY
 # on the per-driver residuals (V=decay), or one fit of two rounds, the field alone and then
 # the residuals on top of it under that decay (V=field_first); scenes one after another
-# (three rows at once in separate processes fit on one H200: 113-133 of 143 GB)
+# (three rows at once in separate processes fit on one H200: 113-133 of 143 GB; with
+# V=field_first the donut's row, 50k Gaussians, and the tree's random field together did
+# not finish in 435 s: run the donut alone)
 if [ "$part" = o ]; then
   case "${V:-field}" in
     field) extra=(--set driver_residual=false --fit-args=--no-level) ;;
@@ -127,12 +129,14 @@ if [ "$part" = o ]; then
     --bake-qualities default --fit-grid 64 --fit-floor 8 "${extra[@]}"
 fi
 # the fast path's forward under warp's per-kernel compile options (bench/kernel_ptx.py
-# --kernel-options): no grid-stride loop, register caps on the particle kernel, launch bounds
-# on the chunk sums (its launches use 256 threads a block, the particle kernel's 64), each
-# against the shipped build in the same call
+# --kernel-options): warp's grid-stride loop put back in every simulator module (shipped
+# without it), register caps on the particle kernel, launch bounds on the chunk sums (its
+# launches use 256 threads a block, the particle kernel's 64), each against the shipped
+# build in the same call
+LOOP="gather.*:grid_stride=1;kernels.*:grid_stride=1;adjoint.*:grid_stride=1;autograd.*:grid_stride=1"
 if [ "$part" = p ]; then
   i=0
-  for opts in "" "gather.*:grid_stride=0" "gather.g2p_bin:cuda_max_registers=64" "gather.g2p_bin:cuda_max_registers=96" \
+  for opts in "" "$LOOP" "gather.g2p_bin:cuda_max_registers=64" "gather.g2p_bin:cuda_max_registers=96" \
               "gather.g2p_bin:launch_bounds=64/16" "gather.p2g_chunks:launch_bounds=256/4" ""; do
     run sim_speed_options_$i 120 bench/sim_speed.py --device cuda --sizes 100000:64,300000:128 --no-backward \
       --kernel-options "$opts"
