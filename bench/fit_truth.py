@@ -33,7 +33,8 @@ object's size in the truth; `still` is what a material that does not move would 
 Also the E error: median |ln(E_fit / E_true)| and Spearman's rank correlation over the
 Gaussians that move more than 1% of the object's size in a video, split into the fit's
 level (median ln) and its shape (median |ln| about that level), beside the same median for
-the uniform start and the best uniform E.
+the uniform start and the best uniform E; and for each matched bake, the factor it scaled
+the fitted E by and the same median for the E it moved with (`matched_abs_ln`).
 
 `--set FIELD=VALUE` and `--fit-args` try another fit setting on every scene and field (a
 default must hold on all of them).
@@ -68,6 +69,7 @@ import argparse
 import contextlib
 import json
 import math
+import re
 import sys
 import tempfile
 import time
@@ -143,6 +145,10 @@ class Row:
     spearman: float = math.nan
     moving_share: float = math.nan
     errors: dict = field(default_factory=dict)  # bake name -> RMS / object size
+    # "fitted, QUALITY" bakes: the factor the bake scaled the fitted E by to move as the fit
+    # did, and median |ln(factor E_fit / E_true)| over the moving drivers
+    match_factor: dict = field(default_factory=dict)
+    matched_abs_ln: dict = field(default_factory=dict)
     ratios: dict = field(default_factory=dict)  # "uniform start / fitted" etc.
     # --losses: the fit's whole-clip video loss under an E, with v0 fitted under that E:
     # "fitted" (the fit's own v0), and the fitted E, the true E and the uniform start, each
@@ -359,7 +365,8 @@ def fit_quality(quality: str, grid: int, floor: float | None, folder: Path) -> s
     return str(path)
 
 
-def cli(args: list[str]) -> None:
+def cli(args: list[str]) -> str:
+    """Run pdtool in this process; returns what it printed."""
     from click.testing import CliRunner
 
     from cli import main
@@ -367,19 +374,32 @@ def cli(args: list[str]) -> None:
     res = CliRunner().invoke(main, args, catch_exceptions=False)
     if res.exit_code != 0:
         raise RuntimeError(f"pdtool {' '.join(args[:1])} failed ({res.exit_code}): {res.output[-2000:]}")
+    return res.output
+
+
+# pd_tool.bake.transfer.MotionMatch.line, as `pdtool bake` prints it
+MATCH_LINE = re.compile(r"fitted material matched to this grid: E x([0-9.eE+-]+),")
+
+
+def match_factor(bake_output: str) -> float:
+    """The factor by which `pdtool bake` scaled the fitted E so that its grid moves as the
+    fit's did (its report line); 1 where it baked the fitted E as it is."""
+    found = MATCH_LINE.search(bake_output)
+    return float(found.group(1)) if found else 1.0
 
 
 def bake_positions(folder: Path, name: str, scene_path: Path, material: list[str], force, seconds: float,
-                   device: str, up: str, extra: list[str]) -> np.ndarray:
+                   device: str, up: str, extra: list[str]) -> tuple[np.ndarray, float]:
     """`pdtool bake` under the new force; positions [T, N, 3] in scene axes, read back
-    from its USD (whose axes follow pd_tool.bake.baker.usd_frame)."""
+    from its USD (whose axes follow pd_tool.bake.baker.usd_frame), and the factor the bake
+    scaled a fitted E by (match_factor)."""
     from pxr import Usd
 
     from pd_tool.bake.baker import usd_frame
 
     accel, point, radius, _ = force
     out = folder / f"{name}.usd"
-    cli(["bake", "--scene", str(scene_path), *material, "--force", ",".join(f"{a:.9g}" for a in accel), "--force-units", "scene",
+    printed = cli(["bake", "--scene", str(scene_path), *material, "--force", ",".join(f"{a:.9g}" for a in accel), "--force-units", "scene",
          "--at", ",".join(f"{a:.9g}" for a in point), "--radius", f"{radius:.9g}",
          "--duration", str(NEW_FORCE["duration"]), "--seconds", str(seconds), "--format", "instancer",
          "--device", device, *extra, str(out)])
@@ -387,7 +407,8 @@ def bake_positions(folder: Path, name: str, scene_path: Path, material: list[str
     frames = int(round(seconds * 30)) + 1
     R = usd_frame(up)[0]
     # every instance by id: pinned ones sit on their own prim, written once
-    return np.stack([instance_positions(stage, float(f))[1].astype(np.float64) for f in range(frames)]) @ R
+    x = np.stack([instance_positions(stage, float(f))[1].astype(np.float64) for f in range(frames)]) @ R
+    return x, match_factor(printed)
 
 
 def truth_material(fitted, pos: np.ndarray, E_true: np.ndarray, path: Path) -> Path:
@@ -563,9 +584,14 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                                     "--static-below", f"{static_below:.9g}"])
     for bname, (material, extra) in bakes.items():
         t0 = time.perf_counter()
-        x = bake_positions(folder, bname.replace(" ", "_").replace(",", ""), scene_path, material, force,
-                           args.seconds, args.device, up, extra)
+        x, factor = bake_positions(folder, bname.replace(" ", "_").replace(",", ""), scene_path, material, force,
+                                   args.seconds, args.device, up, extra)
         row.errors[bname] = off(x)
+        if bname.startswith("fitted, ") and bname != "fitted, as fit" and sel.sum() > 2:
+            # the E the product's bake moves with, against the truth: the match takes out
+            # the level the fit's coarser grid puts on E, not its shape
+            row.match_factor[bname] = factor
+            row.matched_abs_ln[bname] = float(np.median(np.abs(np.log(factor * E_fit[sel] / E_true[sel]))))
         row.seconds[f"bake {bname}"] = time.perf_counter() - t0
     # what a material that does not move at all would score
     row.errors["still"] = float(np.sqrt((np.linalg.norm(x_true[:, moving] - x_true[0, moving], axis=-1) ** 2).mean())
@@ -665,6 +691,10 @@ def main() -> None:
                 print(f"{name:6} {kind:7} {row.fit_s:5.0f} {row.median_abs_ln:5.2f} {row.spearman:5.2f}  level "
                       f"{row.median_ln:+.2f} shape {row.shape_abs_ln:.2f} (|ln| of {base})  {errs}  |  {ratios}",
                       flush=True)
+                if row.match_factor:
+                    print("       the bake's E against the truth: " + "  ".join(
+                        f"{k}: E x{row.match_factor[k]:.3g}, |ln| {row.matched_abs_ln[k]:.2f}" for k in row.match_factor),
+                        flush=True)
                 if row.losses:
                     print("       whole-clip loss: " + "  ".join(f"{k} {v:.5f}" for k, v in row.losses.items()),
                           flush=True)

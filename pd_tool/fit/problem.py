@@ -14,7 +14,7 @@ import torch
 from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.core.errors import VideoError
 from pd_tool.core.scene import GaussianScene
-from pd_tool.drivers import knn
+from pd_tool.drivers import kmeans, knn
 from pd_tool.fit.diffusion import diffuse, diffusion_fractions
 from pd_tool.fit.fields import MaterialField, VelocityField
 from pd_tool.fit.losses import frame_loss
@@ -88,6 +88,7 @@ class FitProblem:
         dist2, nearest = knn(self.x_rest, self.x_rest, k=min(7, len(self.x_rest)))
         self.driver_pairs = nearest[:, 1:]
         self.driver_spacing = dist2[:, 1:].sqrt().mean(dim=1)
+        self.residual_parts = self._residual_parts(settings.residual_parts)
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         # frames stored for the backward fill half of what the estimate leaves free, unless set
@@ -139,6 +140,30 @@ class FitProblem:
     def diffuse_residuals(self, cells2: float) -> None:
         """One diffusion step of the residuals over the driver graph (FitSettings.residual_diffusion)."""
         diffuse(self.log_e_residual.data, self.driver_pairs, diffusion_fractions(self.driver_spacing, self.prep.dx, cells2))
+
+    def _residual_parts(self, k: int) -> torch.Tensor | None:
+        """The part [Q] of each driver (FitSettings.residual_parts; static drivers -1), or
+        None for one residual per driver."""
+        moving = (~self.static).nonzero().squeeze(1)
+        if k <= 0 or len(moving) == 0:
+            return None
+        _, labels = kmeans(self.x_rest[moving].double().cpu(), min(int(k), len(moving)), seed=self.s.seed)
+        parts = torch.full((len(self.x_rest),), -1, dtype=torch.long)
+        parts[moving.cpu()] = labels
+        return parts.to(self.device)
+
+    @torch.no_grad()
+    def share_residuals(self) -> None:
+        """Each moving driver's residual becomes its part's mean (FitSettings.residual_parts)."""
+        parts = self.residual_parts
+        if parts is None:
+            return
+        r = self.log_e_residual.data
+        moving = parts >= 0
+        k = int(parts.max()) + 1
+        sums = torch.zeros(k, dtype=r.dtype, device=r.device).index_add_(0, parts[moving], r[moving])
+        counts = torch.bincount(parts[moving], minlength=k).to(r.dtype)
+        r[moving] = (sums / counts)[parts[moving]]
 
     def driver_v0(self, i: int) -> torch.Tensor:
         """Video i's initial velocity per driver [Q, 3], m/s; 0 on static drivers."""

@@ -104,6 +104,12 @@ class FitSettings:
     # gradient keeps one sign settles near 1 / residual_decay nats from the field; one whose
     # gradient changes sign returns to it. A diagnostic setting (bench/fit_truth.py --set).
     residual_decay: float = 0.0
+    # One residual per part instead of per driver (0: per driver): the moving drivers split
+    # into this many k-means parts by rest position, and after each residual step every
+    # driver takes its part's mean. Fewer unknowns than drivers, so the videos pin each one
+    # down more firmly, while a part can still differ from its neighbour as a region does.
+    # Static drivers keep their own residual (nothing moves them). A diagnostic setting.
+    residual_parts: int = 0
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -188,6 +194,8 @@ class FitSettings:
             raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
         if not (math.isfinite(out.residual_decay) and out.residual_decay >= 0.0):
             raise ValueError(f"residual_decay must be >= 0 (per unit step), got {out.residual_decay}")
+        if out.residual_parts < 0:
+            raise ValueError(f"residual_parts must be >= 0 (0: one residual per driver), got {out.residual_parts}")
         if not out.residual_eps > 0:
             raise ValueError(f"residual_eps must be > 0, got {out.residual_eps}")
         if out.stored_frames_mb is not None and not (math.isfinite(out.stored_frames_mb)

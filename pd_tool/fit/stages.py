@@ -341,6 +341,8 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             skipped += 1
         if opt_r is not None and s.residual_diffusion > 0:
             pb.diffuse_residuals(s.residual_diffusion)
+        if opt_r is not None:
+            pb.share_residuals()
         losses["material"].append(loss)
         if progress:
             progress("material" + tag, it + 1, s.material_iters, loss)

@@ -35,6 +35,19 @@ def test_every_field_spans_the_stated_range_and_follows_its_shape(kind: str) -> 
         assert len(np.unique(E)) <= 4
 
 
+def test_the_matched_factor_is_read_from_the_bakes_own_report_line() -> None:
+    """The factor comes from pd_tool.bake.transfer's line as `pdtool bake` prints it; a bake
+    that kept the fitted E (flat motion, or no fitted material) reads 1."""
+    from pd_tool.bake.transfer import MotionMatch
+
+    E = np.ones(3)
+    for factor, matched in ((2.37, True), (0.0413, False)):
+        line = MotionMatch(E * factor, factor, 1.2, 3, 1.0, 1.5, matched).line(32, 64)
+        assert ft.match_factor(f"preparing\n{line}\nwrote out.usd") == pytest.approx(factor, rel=5e-3)
+    flat = MotionMatch(E, 1.0, 1.5, 2, 1.0, 1.5, False, flat=True).line(32, 64)
+    assert ft.match_factor(flat) == 1.0 and ft.match_factor("") == 1.0
+
+
 def test_degrade_darkens_blurs_and_adds_noise_of_the_stated_size() -> None:
     rng = np.random.default_rng(0)
     flat = np.full((2, 32, 32, 3), 200, np.uint8)
