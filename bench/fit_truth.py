@@ -587,7 +587,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         x, factor = bake_positions(folder, bname.replace(" ", "_").replace(",", ""), scene_path, material, force,
                                    args.seconds, args.device, up, extra)
         row.errors[bname] = off(x)
-        if bname.startswith("fitted, ") and bname != "fitted, as fit" and sel.sum() > 2:
+        if bname.removeprefix("fitted, ") in args.bake_qualities and sel.sum() > 2:
             # the E the product's bake moves with, against the truth: the match takes out
             # the level the fit's coarser grid puts on E, not its shape
             row.match_factor[bname] = factor

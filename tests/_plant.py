@@ -24,6 +24,15 @@ def tiny_plant_video(folder: Path, gaussians: int, seed: int, size: int, n_frame
     return scene
 
 
+def tiny_plant_inputs(folder: Path):
+    """tiny_plant_video of the fit tests' size (600 Gaussians, seed 1, 24 px), loaded as
+    `run_fit` takes it: (folder, scene, [reference video])."""
+    from pd_tool.video.folder import load_reference_video
+
+    scene = tiny_plant_video(folder, 600, seed=1, size=24)
+    return folder, scene, [load_reference_video(folder / "video", working_size=24)]
+
+
 def tiny_plant_problem(folder: Path, gaussians: int, seed: int, size: int, n_frames: int = 4, thin: bool = True,
                        **settings):
     """tiny_plant_video, then the draft-quality FitProblem over it (FitSettings overridden by

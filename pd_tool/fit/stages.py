@@ -337,11 +337,11 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
             _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
         if opt_r is None:
             pb.log_e_residual.grad = None  # nor, a round without residual steps, theirs
-        elif not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
-            skipped += 1
-        if opt_r is not None and s.residual_diffusion > 0:
-            pb.diffuse_residuals(s.residual_diffusion)
-        if opt_r is not None:
+        else:
+            if not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
+                skipped += 1
+            if s.residual_diffusion > 0:
+                pb.diffuse_residuals(s.residual_diffusion)
             pb.share_residuals()
         losses["material"].append(loss)
         if progress:

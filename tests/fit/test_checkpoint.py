@@ -185,12 +185,10 @@ class Interrupt(Exception):
 def plant(tmp_path_factory):
     """A tiny plant, its video, and two genuine checkpoints written in stage 2 (iteration 1):
     one of the fit the tests resume, one of the same fit with another seed."""
-    from _plant import tiny_plant_video
-    from pd_tool.video.folder import load_reference_video
+    from _plant import tiny_plant_inputs
 
-    d = tmp_path_factory.mktemp("ckpt")
-    scene = tiny_plant_video(d, 600, seed=1, size=24)
-    inputs = (d, scene, [load_reference_video(d / "video", working_size=24)])
+    inputs = tiny_plant_inputs(tmp_path_factory.mktemp("ckpt"))
+    d = inputs[0]
     genuine = {}
     for seed in (0, 1):
         out = d / f"seed{seed}.pdmat"

@@ -27,12 +27,9 @@ def test_round_settings_and_refusals() -> None:
 
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory):
-    from _plant import tiny_plant_video
-    from pd_tool.video.folder import load_reference_video
+    from _plant import tiny_plant_inputs
 
-    d = tmp_path_factory.mktemp("field_first")
-    scene = tiny_plant_video(d, 600, seed=1, size=24)
-    return d, scene, [load_reference_video(d / "video", working_size=24)]
+    return tiny_plant_inputs(tmp_path_factory.mktemp("field_first"))
 
 
 def _fit(plant, out: Path, monkeypatch, stop_at=None, resume: bool = False):

@@ -15,12 +15,9 @@ def test_negative_parts_are_refused() -> None:
 
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory):
-    from _plant import tiny_plant_video
-    from pd_tool.video.folder import load_reference_video
+    from _plant import tiny_plant_inputs
 
-    d = tmp_path_factory.mktemp("parts")
-    scene = tiny_plant_video(d, 600, seed=1, size=24)
-    return d, scene, [load_reference_video(d / "video", working_size=24)]
+    return tiny_plant_inputs(tmp_path_factory.mktemp("parts"))
 
 
 def test_a_fit_keeps_one_residual_per_part(plant, tmp_path, monkeypatch) -> None:

@@ -23,12 +23,9 @@ class Interrupt(Exception):
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
-    from _plant import tiny_plant_video
-    from pd_tool.video.folder import load_reference_video
+    from _plant import tiny_plant_inputs
 
-    d = tmp_path_factory.mktemp("resume")
-    scene = tiny_plant_video(d, 600, seed=1, size=24)
-    return d, scene, [load_reference_video(d / "video", working_size=24)]
+    return tiny_plant_inputs(tmp_path_factory.mktemp("resume"))
 
 
 def _fit(inputs, out: Path, stop_at: tuple[str, int] | None = None, resume: bool = False, seed: int = 0,
