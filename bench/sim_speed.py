@@ -10,9 +10,11 @@ average) given in random order, in a unit box with a res^3 grid
 - fast_scatter: particles stored in grid-cell order once, G2P fused with the next
   substep's P2G (atomic scatter) and the grid clear fused into the grid update (two launches
   per substep), CUDA graph of a frame's substeps on GPU, guard read once per frame.
-- fast: MPMSolver as bake uses it: on CUDA, fast_scatter with the atomic-free gather P2G
-  (particles binned per cell, nodes gather; pd_tool/sim/gather.py); on the CPU the same as
-  fast_scatter.
+- fast: MPMSolver as bake uses it: on CUDA, fast_scatter with each cell's shares summed
+  within a warp before one reduction a node, in the G2P's launch (pd_tool/sim/gather.py);
+  on the CPU the same as fast_scatter.
+- fast_chunks (CUDA): fast with the sums in a launch of their own, from a payload in
+  global memory (MPMSolver(warp_sums=False)).
 - fwd+bwd: the differentiable path's cost per frame as the autograd bridge runs it: the
   forward storing each substep's state and grid (SimConfig.keep_budget_mb), then the
   hand-written adjoint kernels in reverse over them, on warp arrays.
@@ -58,6 +60,7 @@ VARIANTS = {  # MPMSolver options of each forward variant
     "graph_only": dict(optimized=False, cuda_graph=True),
     "fast_scatter": dict(optimized=True, gather_p2g=False),
     "fast": dict(optimized=True),
+    "fast_chunks": dict(optimized=True, warp_sums=False),
 }
 
 
@@ -201,9 +204,9 @@ def main(argv=None) -> int:
         n, res = (int(v) for v in item.split(":"))
         row = {"particles": n, "grid": res, "substeps_per_frame": substeps, "frames": frames}
         variants = (["baseline", "sort_only", "fuse_only"] + (["graph_only"] if cuda else [])
-                    + ["fast_scatter", "fast"])
+                    + ["fast_scatter"] + (["fast_chunks"] if cuda else []) + ["fast"])
         if not args.ablation:
-            variants = ["baseline"] + (["fast_scatter"] if cuda else []) + ["fast"]
+            variants = ["baseline"] + (["fast_scatter", "fast_chunks"] if cuda else []) + ["fast"]
         for v in variants:
             row[f"{v}_fwd"] = time_forward(n, res, substeps, frames, args.device, v)
         if not args.no_backward:

@@ -38,8 +38,8 @@ from pd_tool.sim.gather import (
     block_tag,
     block_tagged,
     chunk_threads,
-    g2p_bin,
     grid_update_tagged,
+    launch_g2p2g_rows,
     p2g_chunks,
     red_add_vec4,
     store_payload,
@@ -348,9 +348,9 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
     """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
     to states[1:] and keeping each substep's grid mass, momentum and velocity in grids.
 
-    binned (CUDA): as the fast path, each G2P fused with the next substep's binning
-    (gather.g2p_bin with separate input and output arrays), P2G by the cell lists;
-    otherwise the atomic scatter P2G. The lists are left empty."""
+    binned (CUDA): as the fast path, each G2P and the next substep's P2G in one launch
+    (gather.g2p2g_rows with separate input and output states); otherwise the atomic scatter
+    P2G. `lists` is not used (the signature matches adjoint_segment's)."""
     geo, dev = ctx.geo, ctx.device
     ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
     n = states[0].u.shape[0]
@@ -370,21 +370,17 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
             g2p_into(i)
         return
 
-    def g2p_bin_into(do_g2p: int, i_in: int, i_out: int) -> None:
-        # G2P of substep i_in (skipped if do_g2p is 0) into state i_out, binned for substep i_out
-        wp.launch(g2p_bin, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            do_g2p, 1, ptcl, states[i_in].struct, states[i_out].struct, step, forces, float((k0 + i_out) * dt),
-            grids[i_in].v, lists, ctx.stats])
-
-    nodes, dx = geo.nodes_vec, float(geo.dx)
-    g2p_bin_into(0, 0, 0)
+    launch_g2p2g_rows(ctx, 0, 0, states[0].struct, states[0].struct, step, k0 * dt, grids[0].v, grids[0].mmv,
+                      grids[0].blocks, block_tag(k0, 0))
     for i in range(count):
-        g, tag = grids[i], block_tag(k0, i)
-        wp.launch(p2g_chunks, dim=chunk_threads(n), device=dev, block_dim=CELL_BLOCK,
-                  inputs=[lists, dx, nodes, g.mmv, g.blocks, tag])
-        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 0, g.blocks, tag])
+        g = grids[i]
+        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev,
+                  inputs=[step, g.mmv, g.v, 0, g.blocks, block_tag(k0, i)])
         if i < count - 1:
-            g2p_bin_into(1, i, i + 1)
+            # G2P of substep i into state i + 1, then its P2G into grid i + 1
+            nxt = grids[i + 1]
+            launch_g2p2g_rows(ctx, 1, 1, states[i].struct, states[i + 1].struct, step, (k0 + i + 1) * dt, g.v,
+                              nxt.mmv, nxt.blocks, block_tag(k0, i + 1))
         else:
             g2p_into(i)
 

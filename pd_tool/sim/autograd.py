@@ -33,7 +33,7 @@ from pd_tool.sim.gather import (
     alloc_cell_lists,
     block_shape,
     block_tag,
-    run_substeps_binned,
+    run_substeps_rows,
     touched_blocks,
 )
 from pd_tool.sim.guard import check_stats
@@ -449,9 +449,9 @@ class DiffSim:
     def run_untaped(self, sctx: SubstepContext, n: int, dt: float, st: ParticleState) -> None:
         """n substeps in place without a tape: the forward and the backward's recompute.
 
-        With the binned P2G of the fast path (gather.py) when self.binned, else the fused scatter."""
+        With the fast path's one-launch G2P + P2G (gather.g2p2g_rows) when self.binned, else the fused scatter."""
         if self.binned:
-            run_substeps_binned(sctx, n, dt, st, self._grid_cache(), self._lists(True))
+            run_substeps_rows(sctx, n, dt, st, self._grid_cache())
         else:
             run_substeps_fused(sctx, n, dt, st, self._grid_cache())
 

@@ -1,24 +1,29 @@
-"""P2G with few float atomics for the fast path: particles in cell order, summed in chunks
-of CHUNK consecutive particles, nine threads per chunk, one per row of three stencil nodes.
+"""P2G with few float atomics for the fast path: particles in cell order, each cell's shares
+summed before one reduction a node.
 
 The scatter P2G (kernels.p2g_scatter) does 27 x 4 float atomics per particle. On a GPU
 those atomics, not arithmetic, bound the substep (bench/sim_profile.py: 105 of the 136 us
-of a 100k-particle substep on an H200). Here:
+of a 100k-particle substep on an H200). Here, per substep:
 
-1. `g2p_bin` (per particle): G2P of this substep (skipped for a call's first binning), then
-   the particle's P2G payload for the next one (B-spline offset fx, mass, momentum, MLS
-   affine matrix: the stress is evaluated once per particle) and its stencil cell.
-2. `p2g_chunks` (9 threads per chunk of CHUNK particles, each owning a row of 3 stencil
-   nodes): the solver stores particles in cell order, so a chunk holds one cell's particles
-   or a few cells'. Each thread sums its row's shares while the cell stays the same and
-   adds the sums to the grid when it changes, one reduction per node (`red_add_vec4`:
-   momentum and mass in one 128-bit `red` on sm_90+). The threads of a chunk read the same
-   payload (L1 broadcasts) and write different nodes. A chunk's length is fixed, so no
-   thread waits on a long loop through a crowded cell (a thin leaf on a fine grid: up to
-   500 particles a cell) and no list of where cells start is built.
-3. `grid_update_tagged` (per node): the usual grid update, clearing the grid for the
-   next substep. It visits only the nodes of the 4^3-node blocks that step 2 tagged this
+1. `g2p2g_rows` (per particle, whole warps): G2P of this substep (skipped for a call's
+   first P2G), then the particle's P2G payload for the next one (B-spline offset fx, mass,
+   momentum, MLS affine matrix: the stress is evaluated once per particle), stashed in
+   shared memory with its stencil cell. Then, within each warp, 27 lanes in three groups of
+   nine each own a row of three stencil nodes and sum the shares of a third of the warp's
+   particles while the cell stays the same, adding the sums to the grid when it changes,
+   one reduction per node (`red_add_vec4`: momentum and mass in one 128-bit `red` on
+   sm_90+). The solver stores particles in cell order, so a group holds one cell's
+   particles or a few cells'.
+2. `grid_update_tagged` (per node): the usual grid update, clearing the grid for the
+   next substep. It visits only the nodes of the 4^3-node blocks that step 1 tagged this
    substep: a thin object leaves most of its grid empty.
+
+The same sums run from a payload in global memory in a launch of their own: `g2p_bin`
+writes it, `p2g_chunks` sums it in chunks of CHUNK consecutive particles, nine threads a
+chunk. The backward's grid-velocity cotangent goes that way (adjoint.py), and so does the
+fast path with `MPMSolver(warp_sums=False)`. A group's or chunk's length is fixed, so no
+thread waits on a long loop through a crowded cell (a thin leaf on a fine grid: up to 500
+particles a cell) and no list of where cells start is built.
 
 No particle is ever left out: particles that drift out of cell order only make more
 changes of cell (one per particle at worst, 27 reductions each, as the scatter's 27).
@@ -437,3 +442,219 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
         else:
             wp.launch(K.g2p, dim=count, device=dev, block_dim=PARTICLE_BLOCK,
                       inputs=[ptcl, sv, step, g.v, sv, ctx.stats])
+
+
+
+# p2g_chunks inside one warp, from shared memory, for the one-launch G2P + P2G
+# (g2p2g_rows): each lane stashes its particle's payload, then 27 lanes, three groups of
+# nine, each sum one row of three stencil nodes over a third of the warp's particles (10,
+# 11, 11), adding at each change of cell. The payload never goes through global memory and
+# the P2G needs no launch of its own. Every lane of a warp must call it (the launch covers
+# whole warps, rows_threads); blocks are PARTICLE_BLOCK threads (the shared arrays' size).
+# The CPU runs one thread at a time and scatters its particle.
+_WARP_ROW_SUMS = """
+#if defined(__CUDA_ARCH__)
+    __shared__ float4 pay[PBLOCK][4];
+    __shared__ int cells[PBLOCK];
+    const int t = (int)threadIdx.x;
+    const int lane = t & 31;
+    const int w0 = t - lane;
+    pay[t][0] = make_float4(r0[0], r0[1], r0[2], r0[3]);
+    pay[t][1] = make_float4(r1[0], r1[1], r1[2], r1[3]);
+    pay[t][2] = make_float4(r2[0], r2[1], r2[2], r2[3]);
+    pay[t][3] = make_float4(mv[0], mv[1], mv[2], mv[3]);
+    cells[t] = cell;
+    __syncwarp();
+    if (lane < 27) {
+        const int g = lane / 9;
+        const int o = lane - 9 * g;
+        const int a = o / 3;
+        const int b = o - 3 * a;
+        const int q1 = w0 + ((g + 1) * 32) / 3;
+        int cur = -1;
+        float s[3][4] = {{0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}};
+        for (int q = w0 + (g * 32) / 3; q <= q1; ++q) {
+            const int c = q < q1 ? cells[q] : -2;
+            if (c != cur) {
+                if (cur >= 0) {
+                    const int ck = cur % nodes[2];
+                    const int cj = (cur / nodes[2]) % nodes[1];
+                    const int ci = cur / (nodes[1] * nodes[2]);
+                    for (int z = 0; z < 3; ++z) {
+                        wp::vec4* p = wp::address(out, ci + a, cj + b, ck + z);
+#if (__CUDA_ARCH__ >= 900)
+                        asm volatile("{ .reg .u64 ga; cvta.to.global.u64 ga, %0; red.global.add.v4.f32 [ga], {%1, %2, %3, %4}; }"
+                                     :: "l"(p), "f"(s[z][0]), "f"(s[z][1]), "f"(s[z][2]), "f"(s[z][3]) : "memory");
+#else
+                        atomicAdd(&(p->c[0]), s[z][0]); atomicAdd(&(p->c[1]), s[z][1]);
+                        atomicAdd(&(p->c[2]), s[z][2]); atomicAdd(&(p->c[3]), s[z][3]);
+#endif
+                    }
+                    if (tag != 0) {
+                        const int bi = (ci + a) / BLOCKW, bj = (cj + b) / BLOCKW;
+                        const int k0 = ck / BLOCKW, k1 = (ck + 2) / BLOCKW;
+                        int* t0 = wp::address(blocks, bi, bj, k0);
+                        if (*t0 != tag) *t0 = tag;
+                        if (k1 != k0) { int* t1 = wp::address(blocks, bi, bj, k1); if (*t1 != tag) *t1 = tag; }
+                    }
+                }
+                cur = c;
+                for (int z = 0; z < 3; ++z) { s[z][0] = 0.f; s[z][1] = 0.f; s[z][2] = 0.f; s[z][3] = 0.f; }
+            }
+            if (c >= 0) {
+                const float4 p0 = pay[q][0], p1 = pay[q][1], p2 = pay[q][2], pm = pay[q][3];
+                const float fx = p0.w, fy = p1.w, fz = p2.w;
+                // quadratic B-spline weights of offsets a, b (bspline_at) and 0..2 along z
+                const float wa = a == 1 ? 0.75f - (fx - 1.f) * (fx - 1.f)
+                                        : 0.5f * (a == 0 ? (1.5f - fx) * (1.5f - fx) : (fx - 0.5f) * (fx - 0.5f));
+                const float wb = b == 1 ? 0.75f - (fy - 1.f) * (fy - 1.f)
+                                        : 0.5f * (b == 0 ? (1.5f - fy) * (1.5f - fy) : (fy - 0.5f) * (fy - 0.5f));
+                const float wab = wa * wb;
+                const float w[3] = {wab * 0.5f * (1.5f - fz) * (1.5f - fz), wab * (0.75f - (fz - 1.f) * (fz - 1.f)),
+                                    wab * 0.5f * (fz - 0.5f) * (fz - 0.5f)};
+                // momentum + A (off - fx) dx at z offset 0, and A's step per z offset (row_shares)
+                const float dx0 = ((float)a - fx) * dx, dy0 = ((float)b - fy) * dx, dz0 = -fz * dx;
+                const float qx = pm.x + p0.x * dx0 + p0.y * dy0 + p0.z * dz0;
+                const float qy = pm.y + p1.x * dx0 + p1.y * dy0 + p1.z * dz0;
+                const float qz = pm.z + p2.x * dx0 + p2.y * dy0 + p2.z * dz0;
+                const float ex = p0.z * dx, ey = p1.z * dx, ez = p2.z * dx;
+                for (int z = 0; z < 3; ++z) {
+                    s[z][0] += w[z] * (qx + (float)z * ex);
+                    s[z][1] += w[z] * (qy + (float)z * ey);
+                    s[z][2] += w[z] * (qz + (float)z * ez);
+                    s[z][3] += w[z] * pm.w;
+                }
+            }
+        }
+    }
+#else
+    if (cell >= 0) {
+        const int ck = cell % nodes[2];
+        const int cj = (cell / nodes[2]) % nodes[1];
+        const int ci = cell / (nodes[1] * nodes[2]);
+        const float f[3] = {r0[3], r1[3], r2[3]};
+        float wt[3][3];
+        for (int d = 0; d < 3; ++d) {
+            wt[d][0] = 0.5f * (1.5f - f[d]) * (1.5f - f[d]);
+            wt[d][1] = 0.75f - (f[d] - 1.f) * (f[d] - 1.f);
+            wt[d][2] = 0.5f * (f[d] - 0.5f) * (f[d] - 0.5f);
+        }
+        for (int a = 0; a < 3; ++a) for (int b = 0; b < 3; ++b) {
+            for (int z = 0; z < 3; ++z) {
+                const float w = wt[0][a] * wt[1][b] * wt[2][z];
+                const float d0 = ((float)a - f[0]) * dx, d1 = ((float)b - f[1]) * dx, d2 = ((float)z - f[2]) * dx;
+                wp::vec4 v(w * (mv[0] + r0[0] * d0 + r0[1] * d1 + r0[2] * d2),
+                           w * (mv[1] + r1[0] * d0 + r1[1] * d1 + r1[2] * d2),
+                           w * (mv[2] + r2[0] * d0 + r2[1] * d1 + r2[2] * d2), w * mv[3]);
+                wp::atomic_add(wp::address(out, ci + a, cj + b, ck + z), v);
+            }
+            if (tag != 0) {
+                const int bi = (ci + a) / BLOCKW, bj = (cj + b) / BLOCKW;
+                *wp::address(blocks, bi, bj, ck / BLOCKW) = tag;
+                *wp::address(blocks, bi, bj, (ck + 2) / BLOCKW) = tag;
+            }
+        }
+    }
+#endif
+""".replace("PBLOCK", str(PARTICLE_BLOCK)).replace("BLOCKW", str(BLOCK))
+
+
+@wp.func_native(_WARP_ROW_SUMS)
+def warp_row_sums(cell: int, r0: wp.vec4, r1: wp.vec4, r2: wp.vec4, mv: wp.vec4, dx: float, nodes: wp.vec3i,
+                  out: wp.array3d(dtype=wp.vec4), blocks: wp.array3d(dtype=int), tag: int):
+    """Add the P2G shares of the warp's particles to `out` and tag their activity blocks
+    (unless tag is 0); each lane gives its particle's stencil cell (-1: adds nothing) and
+    payload (store_payload's four vec4s). Untaped kernels only."""
+    ...
+
+
+@wp.kernel(enable_backward=False)
+def g2p2g_rows(
+    do_g2p: int,
+    keep_vc: int,
+    count: int,
+    ptcl: K.Particles,
+    s_in: K.ParticleVars,
+    state: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
+    t_offset_next: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
+    blocks: wp.array3d(dtype=int),
+    tag: int,
+    stats: wp.array(dtype=float),
+):
+    """g2p_bin and the next substep's p2g_chunks in one launch: G2P of this substep from
+    s_in into `state` (unless do_g2p is 0: a call's first P2G, from `state`), then the P2G
+    of `state` at t_frame + t_offset_next (s) into `out`, tagging the activity blocks with
+    `tag` (warp_row_sums). keep_vc as in g2p_bin. Launched over rows_threads(count)
+    threads: lanes past the last particle add nothing but take part in their warp's sums."""
+    t = wp.tid()
+    p = wp.min(t, count - 1)
+    live = t < count
+    un = wp.vec3(0.0)
+    vel = wp.vec3(0.0)
+    Cn = wp.mat33(0.0)
+    Gn = wp.mat33(0.0)
+    if do_g2p != 0:
+        un, vel, Cn, Gn = K.g2p_values(p, ptcl, s_in, step, grid_v)
+        if live:
+            state.u[p] = un
+            state.G[p] = Gn
+            if keep_vc != 0:
+                state.v[p] = vel
+                state.C[p] = Cn
+            K.g2p_guard(ptcl.base[p] + un, vel, Gn, step, stats)
+    else:
+        un = state.u[p]
+        vel = state.v[p]
+        Cn = state.C[p]
+        Gn = state.G[p]
+    inv_dx = 1.0 / step.dx
+    x = ptcl.base[p] + un
+    b = K.stencil_base(x, inv_dx, step.nodes)
+    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
+    cell = int(-1)
+    if live:
+        cell = (b[0] * step.nodes[1] + b[1]) * step.nodes[2] + b[2]
+    m = ptcl.mass[p]
+    lm = K.lame(ptcl.E[p], step.nu)
+    tau = K.kirchhoff_stress(K.deformation_gradient(Gn), lm[0], lm[1])
+    A = m * Cn - (4.0 * inv_dx * inv_dx * step.dt * ptcl.volume[p]) * tau
+    mom = m * (vel + K.external_accel(p, t_offset_next, forces) * step.dt)
+    warp_row_sums(cell, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]), wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]),
+                  wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]), wp.vec4(mom[0], mom[1], mom[2], m),
+                  step.dx, step.nodes, out, blocks, tag)
+
+
+def rows_threads(n_particles: int) -> int:
+    """Threads of a g2p2g_rows launch: the particles rounded up to whole warps."""
+    return 32 * max(1, -(-n_particles // 32))
+
+
+def launch_g2p2g_rows(ctx, do_g2p: int, keep_vc: int, s_in, state, step, t_offset: float, grid_v, out,
+                      blocks, tag: int) -> None:
+    """One g2p2g_rows launch (s_in, state: ParticleVars structs; t_offset in s)."""
+    count = state.u.shape[0]
+    wp.launch(g2p2g_rows, dim=rows_threads(count), device=ctx.device, block_dim=PARTICLE_BLOCK, inputs=[
+        do_g2p, keep_vc, count, ctx.particles(), s_in, state, step, ctx.forces_struct(), float(t_offset), grid_v,
+        out, blocks, tag, ctx.stats])
+
+
+def run_substeps_rows(ctx, n: int, dt: float, st, g) -> None:
+    """n substeps in place without a tape, each G2P and the next P2G in one launch
+    (g2p2g_rows): two launches per substep. Same arguments as solver.run_substeps_fused;
+    the same result up to the order of float sums."""
+    dev, geo = ctx.device, ctx.geo
+    step, sv = ctx.step(dt), st.struct
+    g.mmv.zero_()
+    launch_g2p2g_rows(ctx, 0, 0, sv, sv, step, 0.0, g.v, g.mmv, g.blocks, block_tag(0, 0))
+    for s in range(n):
+        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev,
+                  inputs=[step, g.mmv, g.v, 1, g.blocks, block_tag(0, s)])
+        if s < n - 1:
+            launch_g2p2g_rows(ctx, 1, 0, sv, sv, step, (s + 1) * dt, g.v, g.mmv, g.blocks, block_tag(0, s + 1))
+        else:
+            wp.launch(K.g2p, dim=st.u.shape[0], device=dev, block_dim=PARTICLE_BLOCK,
+                      inputs=[ctx.particles(), sv, step, g.v, sv, ctx.stats])

@@ -17,7 +17,7 @@ import warp as wp
 from pd_tool.core.errors import PdToolError
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
-from pd_tool.sim.gather import alloc_cell_lists, block_shape, run_substeps_binned
+from pd_tool.sim.gather import alloc_cell_lists, block_shape, run_substeps_binned, run_substeps_rows
 from pd_tool.sim.guard import check_stats, fold_stat_lanes
 
 wp.config.quiet = True
@@ -421,12 +421,15 @@ class MPMSolver:
             node before one atomic (gather.py). Default: on CUDA when `optimized` (the
             atomics bound the substep there); off on the CPU, where warp runs threads
             serially and an atomic add costs no more than a plain one.
+        warp_sums: with gather_p2g, each G2P and the next P2G in one launch, the chunk sums
+            taken within each warp from shared memory (gather.g2p2g_rows; default) rather
+            than in a launch of their own from a payload in global memory (False).
     """
 
     def __init__(self, x0, volume, mass, E, static, config: SimConfig | None = None,
                  device: str = "cpu", optimized: bool = True, *, sort_particles: bool | None = None,
                  fuse_kernels: bool | None = None, cuda_graph: bool | None = None,
-                 gather_p2g: bool | None = None) -> None:
+                 gather_p2g: bool | None = None, warp_sums: bool = True) -> None:
         cfg = config or SimConfig()
         cfg.validate()
         x0 = np.ascontiguousarray(np.asarray(x0, np.float32))
@@ -476,7 +479,8 @@ class MPMSolver:
         self._stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=d)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
-        self._bins = alloc_cell_lists(self.n, d) if self._gather else None
+        self._rows = self._gather and bool(warp_sums)
+        self._bins = alloc_cell_lists(self.n, d) if self._gather and not self._rows else None
         self._ctx: SubstepContext | None = None
 
     # ---------------------------------------------------------------- inputs
@@ -526,7 +530,9 @@ class MPMSolver:
 
     def _run_substeps(self, n: int, dt: float) -> None:
         ctx = self._context()
-        if self._gather:
+        if self._rows:
+            run_substeps_rows(ctx, n, dt, self.state, self.grid)
+        elif self._gather:
             run_substeps_binned(ctx, n, dt, self.state, self.grid, self._bins)
         elif self._fuse:
             run_substeps_fused(ctx, n, dt, self.state, self.grid)
