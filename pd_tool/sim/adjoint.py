@@ -6,8 +6,8 @@ each stage's adjoint is written out:
 
 - `g2p_adjoint` (per particle): the G2P's adjoint. Its only grid output, the cotangent of
   the grid velocity, is a scatter of the same form as the P2G (w_n (q + A dpos_n)), so on
-  CUDA it goes through the cell lists of gather.py (few atomics) and elsewhere straight
-  to the grid.
+  CUDA each warp sums its particles' shares as the forward's P2G does
+  (gather.warp_row_sums: few atomics), and elsewhere they go straight to the grid.
 - `grid_adjoint` (per node): the cotangents of node mass and momentum, with the boundary
   conditions' masks rebuilt from the stored forward values.
 - `p2g_adjoint` (per particle): the P2G's adjoint is a gather (each particle reads its 27
@@ -32,17 +32,14 @@ import warp as wp
 
 from pd_tool.sim import kernels as K
 from pd_tool.sim.gather import (
-    CELL_BLOCK,
     PARTICLE_BLOCK,
-    CellLists,
     block_tag,
     block_tagged,
-    chunk_threads,
     grid_update_tagged,
     launch_g2p2g_rows,
-    p2g_chunks,
     red_add_vec4,
-    store_payload,
+    rows_threads,
+    warp_row_sums,
 )
 
 K.lean_launches(__name__)
@@ -115,26 +112,28 @@ def g2p_adjoint_particle(
     step: K.StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
     adj: K.ParticleVars,
-    lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """Adjoint of G2P for particle p from state s (its u, G) to s_next (its v, C, read
     back): adj holds the cotangents of the substep's output state and its u, G are
     overwritten with the partial cotangents of the input u and G (the P2G adjoint adds the
     rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity
-    cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes to the cell lists (binned != 0,
-    summed by gather.p2g_chunks) or straight to adj_grid_v."""
+    cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes straight to adj_grid_v (binned 0)
+    or is returned, for the warp's sums (adjoint_row_sums), as the particle's stencil cell
+    (-1: adds nothing) and its payload (fx, gv, A')."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
     gu = adj.u[p]
     gFn = adj.G[p]
     adj.G[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
+    cell = int(-1)
+    fx = wp.vec3(0.0)
+    gvel = wp.vec3(0.0)
+    Ag = wp.mat33(0.0)
     if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
-        if binned != 0:
-            lists.cell[p] = -1  # adds nothing
     else:
         inv_dx = 1.0 / dx
         gvel = adj.v[p] + dt * gu
@@ -160,8 +159,18 @@ def g2p_adjoint_particle(
         if binned == 0:
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
         else:
-            lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-            store_payload(lists, p, fx, wp.vec4(gvel[0], gvel[1], gvel[2], 0.0), Ag)
+            cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+    return cell, fx, gvel, Ag
+
+
+@wp.func
+def adjoint_row_sums(cell: int, fx: wp.vec3, gvel: wp.vec3, Ag: wp.mat33, step: K.StepParams,
+                     adj_grid_v: wp.array3d(dtype=wp.vec4)):
+    """The warp's grid-velocity cotangents (g2p_adjoint_particle's payloads, mass 0) summed
+    into adj_grid_v (gather.warp_row_sums; tags nothing). Every lane of the warp calls it."""
+    warp_row_sums(cell, wp.vec4(Ag[0, 0], Ag[0, 1], Ag[0, 2], fx[0]), wp.vec4(Ag[1, 0], Ag[1, 1], Ag[1, 2], fx[1]),
+                  wp.vec4(Ag[2, 0], Ag[2, 1], Ag[2, 2], fx[2]), wp.vec4(gvel[0], gvel[1], gvel[2], 0.0),
+                  step.dx, step.nodes, adj_grid_v, step.fixed, 0)  # tag 0: no block array is written
 
 
 @wp.func
@@ -224,18 +233,28 @@ def p2g_adjoint_particle(
 @wp.kernel(enable_backward=False)
 def g2p_adjoint(
     binned: int,
+    count: int,
     ptcl: K.Particles,
     s: K.ParticleVars,
     s_next: K.ParticleVars,
     step: K.StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
     adj: K.ParticleVars,
-    lists: CellLists,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """g2p_adjoint_particle for every particle (the last substep of a segment)."""
-    p = ptcl.order[wp.tid()]
-    g2p_adjoint_particle(p, binned, ptcl, s, s_next, step, grid_v, adj, lists, adj_grid_v)
+    """g2p_adjoint_particle for each of the count particles (the last substep of a
+    segment). binned: launched over whole warps (gather.rows_threads), the warp sums the
+    grid-velocity cotangents (adjoint_row_sums)."""
+    t = wp.tid()
+    cell = int(-1)
+    fx = wp.vec3(0.0)
+    gvel = wp.vec3(0.0)
+    Ag = wp.mat33(0.0)
+    if t < count:
+        cell, fx, gvel, Ag = g2p_adjoint_particle(ptcl.order[t], binned, ptcl, s, s_next, step, grid_v, adj,
+                                                  adj_grid_v)
+    if binned != 0:
+        adjoint_row_sums(cell, fx, gvel, Ag, step, adj_grid_v)
 
 
 @wp.kernel(enable_backward=False)
@@ -269,17 +288,25 @@ def p2g_g2p_adjoint(
     adj: K.ParticleVars,
     adj_E: wp.array(dtype=float),
     binned: int,
-    lists: CellLists,
+    count: int,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
     """The P2G adjoint of substep s (state s, at t_frame + t_offset) fused with the G2P
     adjoint of substep s - 1 (state s_prev, its grid velocity grid_v_prev): each thread owns
     its particle's cotangents, so the second reads what the first wrote, and the cotangents
-    are read and written once instead of twice."""
-    p = ptcl.order[wp.tid()]
-    a_ext = K.external_accel(p, t_offset, forces)
-    p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
-    g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, lists, adj_grid_v)
+    are read and written once instead of twice. binned as in g2p_adjoint."""
+    t = wp.tid()
+    cell = int(-1)
+    fx = wp.vec3(0.0)
+    gvel = wp.vec3(0.0)
+    Ag = wp.mat33(0.0)
+    if t < count:
+        p = ptcl.order[t]
+        a_ext = K.external_accel(p, t_offset, forces)
+        p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
+        cell, fx, gvel, Ag = g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, adj_grid_v)
+    if binned != 0:
+        adjoint_row_sums(cell, fx, gvel, Ag, step, adj_grid_v)
 
 
 @wp.kernel(enable_backward=False)
@@ -343,14 +370,13 @@ def grid_adjoint(
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
-def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists: CellLists,
-                      binned: bool) -> None:
+def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, binned: bool) -> None:
     """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
     to states[1:] and keeping each substep's grid mass, momentum and velocity in grids.
 
     binned (CUDA): as the fast path, each G2P and the next substep's P2G in one launch
     (gather.g2p2g_rows with separate input and output states); otherwise the atomic scatter
-    P2G. `lists` is not used (the signature matches adjoint_segment's)."""
+    P2G."""
     geo, dev = ctx.geo, ctx.device
     ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
     n = states[0].u.shape[0]
@@ -385,40 +411,35 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, lists:
             g2p_into(i)
 
 
-def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj_grid, lists: CellLists,
-                    binned: bool) -> None:
+def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj_grid, binned: bool) -> None:
     """Reverse of substeps k0 .. k0 + len(grids) - 1 (forward values from recompute_segment):
     adj (u, v, C, F cotangents of the segment's last state as a ParticleState, plus E's
     running sum [N] float) becomes the cotangents of states[0], in place.
 
     adj_grid = (adj_grid_v, adj_mmv), vec4 arrays (adj_grid_v's w unused): adj_grid_v must
     be zero on entry and is left zero; so are the grids' momentum and mass on exit (ready
-    for the next recompute). binned: the grid-velocity cotangent goes through the cell lists
-    (CUDA) instead of atomics; unbinned, `lists` may be any (unused) set."""
+    for the next recompute). binned: each warp sums the grid-velocity cotangents of its
+    particles before one reduction a node (CUDA) instead of atomics a particle."""
     geo, dev = ctx.geo, ctx.device
     ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
-    nodes, dx = geo.nodes_vec, float(geo.dx)
     n = states[0].u.shape[0]
     adj_state, adj_E = adj
     adj_s = adj_state.struct
     adj_gv, adj_mmv = adj_grid
     count = len(grids)
     last = count - 1
-    wp.launch(g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-        int(binned), ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, lists, adj_gv])
+    threads = rows_threads(n) if binned else n
+    wp.launch(g2p_adjoint, dim=threads, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+        int(binned), n, ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, adj_gv])
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
-        if binned:
-            # the payload's mass is 0, so the sums' w stays 0; tag 0 tags nothing
-            wp.launch(p2g_chunks, dim=chunk_threads(n), device=dev, block_dim=CELL_BLOCK,
-                      inputs=[lists, dx, nodes, adj_gv, g.blocks, 0])
         wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
                   inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), g.blocks, block_tag(k0, i)])
         t_offset = float((k0 + i) * dt)
         if i > 0:
-            wp.launch(p2g_g2p_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+            wp.launch(p2g_g2p_adjoint, dim=threads, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
                 ptcl, s.struct, states[i - 1].struct, step, forces, t_offset, grids[i - 1].v, adj_mmv, adj_s, adj_E,
-                int(binned), lists, adj_gv])
+                int(binned), n, adj_gv])
         else:
             wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
                 ptcl, s.struct, step, forces, t_offset, adj_mmv, adj_s, adj_E])

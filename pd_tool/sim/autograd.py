@@ -30,7 +30,6 @@ from pd_tool.sim.cfl import cfl_substeps, wave_speed
 from pd_tool.sim.gather import (
     BLOCK,
     BLOCK_W,
-    alloc_cell_lists,
     block_shape,
     block_tag,
     run_substeps_rows,
@@ -394,8 +393,9 @@ class DiffSim:
         self.volume = wp.array(vol, dtype=float, device=self.device)
         self.mass = wp.array(m, dtype=float, device=self.device)
         self.static = wp.array(st, dtype=wp.int32, device=self.device)
-        # P2G (and the adjoint's grid scatter) through cell lists (gather.py): on CUDA,
-        # where float atomics bound the substep. Tests switch it on for the CPU too.
+        # P2G (and the adjoint's grid scatter) summed within each warp before one atomic a
+        # node (gather.py): on CUDA, where float atomics bound the substep. Tests switch it
+        # on for the CPU too.
         self.binned = wp.get_device(self.device).is_cuda
         # Replay the backward's segments as captured CUDA graphs (CUDA only).
         self.cuda_graph = True
@@ -572,18 +572,6 @@ class DiffSim:
             return None
         self._kept.append(slot)
         return _Claim(slot)
-
-    def _lists(self, binned: bool):
-        # The fast path's cell lists on CUDA; unbinned, a one-particle set that no kernel reads.
-        if binned:
-            bins = getattr(self, "_bins", None)
-            if bins is None:
-                bins = self._bins = alloc_cell_lists(self.n, self.device)
-            return bins
-        tiny = getattr(self, "_tiny_lists", None)
-        if tiny is None:
-            tiny = self._tiny_lists = alloc_cell_lists(1, self.device)
-        return tiny
 
     def _run_graphed(self, key: tuple, launches) -> None:
         """Run `launches()` (a fixed sequence of kernel launches on kept arrays) on CUDA
@@ -881,8 +869,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         if kept is None:
             sim.run_untaped(sctx, substeps, dt, st)
         else:
-            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps],
-                              sim._lists(sim.binned), sim.binned)
+            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps], sim.binned)
 
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
         sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, kept is not None), run)
@@ -960,7 +947,6 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     st0 = states[0] if single and kept is None else buf["state"]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st0)
     sctx = fr.context(base, E_sorted, t0)
-    lists = sim._lists(binned)
     starts, ckpts = [0], {}
     if not single:
         starts, ckpts = _checkpoints(sim, sctx, st0.v, st0.C, st0.G, t0, dt, substeps, seg)
@@ -983,9 +969,9 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
 
         def segment(k0=k0, k1=k1):
             if kept is None:
-                recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], lists, binned)
+                recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], binned)
             adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], (adj_st, buf["adj_E"]),
-                            adj_grid, lists, binned)
+                            adj_grid, binned)
 
         if not use_graph:
             segment()
