@@ -1,5 +1,5 @@
 """Where a fast-path MPM substep spends its GPU time: per-kernel CUDA times (warp's
-activity timing), scatter P2G against the gather P2G, without CUDA graphs (timing needs
+activity timing), the scatter P2G against the chunk launch and the shipped warp sums, without CUDA graphs (timing needs
 plain launches; a graph replays the same kernels). --backward profiles the differentiable
 path's backward of a frame instead (hand-written adjoints), with its wall time per substep,
 so that host launch overhead shows as the gap between the two. --scene profiles a bake's own
@@ -35,10 +35,11 @@ def hardware(device: str) -> str:
     return wp.get_device(device).name if device.startswith("cuda") else platform.processor() or platform.machine()
 
 
-def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: bool) -> dict:
+def profile(n: int, res: int, substeps: int, frames: int, device: str, gather: bool, warp_sums: bool = True) -> dict:
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, substeps=substeps)
-    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, cuda_graph=False, gather_p2g=gather)
+    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, cuda_graph=False, gather_p2g=gather,
+                    warp_sums=warp_sums)
     sim.step_frame(1e-3)
     wp.synchronize_device(device)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET)
@@ -142,8 +143,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="100000:64")
     ap.add_argument("--substeps", type=int, default=32)
     ap.add_argument("--frames", type=int, default=3)
-    ap.add_argument("--blocks", default="", help="PARTICLE:CELL block sizes to sweep for the binned "
-                    "P2G, comma separated, e.g. 256:256,128:128 (default: the module's)")
+    ap.add_argument("--blocks", default="", help="PARTICLE:CELL block sizes to sweep for the chunk "
+                    "launch's P2G, comma separated, e.g. 256:256,128:128 (default: the module's)")
     ap.add_argument("--backward", action="store_true", help="profile the differentiable backward instead")
     ap.add_argument("--segment", type=int, default=None, help="backward: substeps per recomputed segment "
                     "(default SimConfig's)")
@@ -203,14 +204,17 @@ def main(argv=None) -> int:
     blocks = [tuple(int(v) for v in b.split(":")) for b in args.blocks.split(",") if b]
     for item in args.sizes.split(","):
         n, res = (int(v) for v in item.split(":"))
-        runs = [(False, None)] + [(True, b) for b in (blocks or [None])]
-        for gather, block in runs:
+        # the scatter, the chunk launch, then the shipped warp sums (whose block is fixed)
+        runs = ([(False, False, None)] + [(True, False, b) for b in (blocks or [None])]
+                + [(True, True, None)])
+        for gather, warp_sums, block in runs:
             if block is not None:
                 G.PARTICLE_BLOCK, G.CELL_BLOCK = block
-            prof = profile(n, res, args.substeps, args.frames, args.device, gather)
-            out["rows"].append({"particles": n, "grid": res, "gather": gather, "blocks": block, "kernels": prof})
+            prof = profile(n, res, args.substeps, args.frames, args.device, gather, warp_sums)
+            out["rows"].append({"particles": n, "grid": res, "gather": gather, "warp_sums": warp_sums, "blocks": block,
+                                "kernels": prof})
             total = sum(k["us_per_substep"] for k in prof.values())
-            label = "gather" if gather else "scatter"
+            label = "warp sums" if warp_sums else ("chunks" if gather else "scatter")
             print(f"N={n} grid={res}^3 {label}{'' if block is None else f' blocks {block}'}: {total:.1f} us/substep")
             for name, k in prof.items():
                 print(f"    {k['us_per_substep']:8.2f} us  {name} ({k['calls']} calls)")

@@ -33,6 +33,7 @@ import warp as wp
 from pd_tool.sim import kernels as K
 from pd_tool.sim.gather import (
     PARTICLE_BLOCK,
+    ROWS_BLOCK,
     block_tag,
     block_tagged,
     grid_update_tagged,
@@ -429,7 +430,8 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     count = len(grids)
     last = count - 1
     threads = rows_threads(n) if binned else n
-    wp.launch(g2p_adjoint, dim=threads, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+    # ROWS_BLOCK: warp_row_sums' shared arrays are sized for it
+    wp.launch(g2p_adjoint, dim=threads, device=dev, block_dim=ROWS_BLOCK, inputs=[
         int(binned), n, ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, adj_gv])
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
@@ -437,7 +439,7 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
                   inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), g.blocks, block_tag(k0, i)])
         t_offset = float((k0 + i) * dt)
         if i > 0:
-            wp.launch(p2g_g2p_adjoint, dim=threads, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+            wp.launch(p2g_g2p_adjoint, dim=threads, device=dev, block_dim=ROWS_BLOCK, inputs=[
                 ptcl, s.struct, states[i - 1].struct, step, forces, t_offset, grids[i - 1].v, adj_mmv, adj_s, adj_E,
                 int(binned), n, adj_gv])
         else:

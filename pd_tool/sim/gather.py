@@ -51,6 +51,8 @@ CHUNK_W = wp.constant(CHUNK)
 # takes 32 us at 256, 25 at 128, 24 at 64; the per-cell sums 29-31 us at any size.
 PARTICLE_BLOCK = 64
 CELL_BLOCK = 256
+# Threads a block of g2p2g_rows, fixed: its shared arrays are sized for it at import.
+ROWS_BLOCK = 64
 # Grid nodes per edge of an activity block: the chunk sums tag the blocks their nodes lie
 # in, and the grid kernels visit only nodes of blocks tagged this substep (block_tagged).
 BLOCK = 4
@@ -450,7 +452,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 # nine, each sum one row of three stencil nodes over a third of the warp's particles (10,
 # 11, 11), adding at each change of cell. The payload never goes through global memory and
 # the P2G needs no launch of its own. Every lane of a warp must call it (the launch covers
-# whole warps, rows_threads); blocks are PARTICLE_BLOCK threads (the shared arrays' size).
+# whole warps, rows_threads); blocks are ROWS_BLOCK threads (the shared arrays' size).
 # The CPU runs one thread at a time and scatters its particle.
 _WARP_ROW_SUMS = """
 #if defined(__CUDA_ARCH__)
@@ -556,7 +558,7 @@ _WARP_ROW_SUMS = """
         }
     }
 #endif
-""".replace("PBLOCK", str(PARTICLE_BLOCK)).replace("BLOCKW", str(BLOCK))
+""".replace("PBLOCK", str(ROWS_BLOCK)).replace("BLOCKW", str(BLOCK))
 
 
 @wp.func_native(_WARP_ROW_SUMS)
@@ -637,7 +639,7 @@ def launch_g2p2g_rows(ctx, do_g2p: int, keep_vc: int, s_in, state, step, t_offse
                       blocks, tag: int) -> None:
     """One g2p2g_rows launch (s_in, state: ParticleVars structs; t_offset in s)."""
     count = state.u.shape[0]
-    wp.launch(g2p2g_rows, dim=rows_threads(count), device=ctx.device, block_dim=PARTICLE_BLOCK, inputs=[
+    wp.launch(g2p2g_rows, dim=rows_threads(count), device=ctx.device, block_dim=ROWS_BLOCK, inputs=[
         do_g2p, keep_vc, count, ctx.particles(), s_in, state, step, ctx.forces_struct(), float(t_offset), grid_v,
         out, blocks, tag, ctx.stats])
 
