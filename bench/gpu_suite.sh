@@ -130,14 +130,13 @@ if [ "$part" = o ]; then
 fi
 # the fast path's forward under warp's per-kernel compile options (bench/kernel_ptx.py
 # --kernel-options): warp's grid-stride loop put back in every simulator module (shipped
-# without it), register caps on the particle kernel, launch bounds on the chunk sums (its
-# launches use 256 threads a block, the particle kernel's 64), each against the shipped
-# build in the same call
+# without it), register caps and launch bounds on the one-launch G2P + P2G (its blocks are
+# 64 threads, gather.ROWS_BLOCK), each against the shipped build in the same call
 LOOP="gather.*:grid_stride=1;kernels.*:grid_stride=1;adjoint.*:grid_stride=1;autograd.*:grid_stride=1"
 if [ "$part" = p ]; then
   i=0
-  for opts in "" "$LOOP" "gather.g2p_bin:cuda_max_registers=64" "gather.g2p_bin:cuda_max_registers=96" \
-              "gather.g2p_bin:launch_bounds=64/16" "gather.p2g_chunks:launch_bounds=256/4" ""; do
+  for opts in "" "$LOOP" "gather.g2p2g_rows:cuda_max_registers=64" "gather.g2p2g_rows:cuda_max_registers=96" \
+              "gather.g2p2g_rows:launch_bounds=64/16" ""; do
     run sim_speed_options_$i 120 bench/sim_speed.py --device cuda --sizes 100000:64,300000:128 --no-backward \
       --kernel-options "$opts"
     i=$((i + 1))

@@ -19,8 +19,8 @@ as bench/sim_speed.py's and bench/sim_profile.py's (`apply_kernel_options`): a r
 loop), to sweep what bounds a kernel's occupancy.
 
     python bench/kernel_ptx.py                               # the fast path's and the adjoint's kernels
-    python bench/kernel_ptx.py --kernels g2p_bin,p2g_chunks --json ptx.json
-    python bench/kernel_ptx.py --quick --kernel-options "gather.g2p_bin:cuda_max_registers=64"
+    python bench/kernel_ptx.py --kernels g2p2g_rows,g2p_bin,p2g_chunks --json ptx.json
+    python bench/kernel_ptx.py --quick --kernel-options "gather.g2p2g_rows:cuda_max_registers=64"
 """
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def apply_kernel_options(spec: str, modules=MODULES) -> list[str]:
 
     spec: items separated by ';', each MODULE.KERNEL:OPTION=VALUE (MODULE the last part of
     the module name, KERNEL '*' for all of that module's kernels), e.g.
-    'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0'; OPTION one of
+    'gather.g2p2g_rows:cuda_max_registers=64;gather.*:grid_stride=0'; OPTION one of
     KERNEL_OPTIONS (launch_bounds as THREADS or THREADS/BLOCKS_PER_SM). Returns the kernels
     set, as MODULE.KERNEL:OPTION=VALUE. Raises ValueError naming what is wrong."""
     if not spec.strip():

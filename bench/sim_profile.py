@@ -159,7 +159,7 @@ def main(argv=None) -> int:
                     "(gather.CHUNK; compile-time, one value per process)")
     ap.add_argument("--kernel-options", default="", metavar="SPEC",
                     help="warp compile options per kernel before the first launch, e.g. "
-                         "'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
+                         "'gather.g2p2g_rows:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     try:

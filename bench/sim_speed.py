@@ -185,7 +185,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 particles on a 32-cell grid, 4 substeps, 1 frame")
     ap.add_argument("--kernel-options", default="", metavar="SPEC",
                     help="warp compile options per kernel before the first launch, e.g. "
-                         "'gather.g2p_bin:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
+                         "'gather.g2p2g_rows:cuda_max_registers=64;gather.*:grid_stride=0' (bench/kernel_ptx.py)")
     ap.add_argument("--json", type=Path, help="write results here")
     args = ap.parse_args(argv)
     try:

@@ -42,6 +42,12 @@ def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(shipp
     # the G2P reads 27 nodes of three floats each, and writes no grid node
     g2p = rows["gather.g2p_bin"]
     assert g2p["global_loads"] >= 81 and g2p["instructions"] > sums["instructions"]
+    # the shipped one-launch G2P + P2G: the same 27 node reads; the guard's three counters
+    # and the warp's row sums, three 128-bit reductions a flush (per-component adds would
+    # make it 15)
+    rows_kernel = rows["gather.g2p2g_rows"]
+    assert rows_kernel["global_loads"] >= 81
+    assert rows_kernel["atomics"] == 6
     assert all(r["instructions"] > 0 for r in rows.values())
     assert sorted(p.name for p in cwd.iterdir()) == ["ptx.json"]
 
