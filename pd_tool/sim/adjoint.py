@@ -165,6 +165,12 @@ def g2p_adjoint_particle(
 
 
 @wp.func
+def no_payload():
+    """The (cell, fx, gv, A') of a lane with nothing to add (g2p_adjoint_particle's payload)."""
+    return int(-1), wp.vec3(0.0), wp.vec3(0.0), wp.mat33(0.0)
+
+
+@wp.func
 def adjoint_row_sums(cell: int, fx: wp.vec3, gvel: wp.vec3, Ag: wp.mat33, step: K.StepParams,
                      adj_grid_v: wp.array3d(dtype=wp.vec4)):
     """The warp's grid-velocity cotangents (g2p_adjoint_particle's payloads, mass 0) summed
@@ -247,10 +253,7 @@ def g2p_adjoint(
     segment). binned: launched over whole warps (gather.rows_threads), the warp sums the
     grid-velocity cotangents (adjoint_row_sums)."""
     t = wp.tid()
-    cell = int(-1)
-    fx = wp.vec3(0.0)
-    gvel = wp.vec3(0.0)
-    Ag = wp.mat33(0.0)
+    cell, fx, gvel, Ag = no_payload()
     if t < count:
         cell, fx, gvel, Ag = g2p_adjoint_particle(ptcl.order[t], binned, ptcl, s, s_next, step, grid_v, adj,
                                                   adj_grid_v)
@@ -297,10 +300,7 @@ def p2g_g2p_adjoint(
     its particle's cotangents, so the second reads what the first wrote, and the cotangents
     are read and written once instead of twice. binned as in g2p_adjoint."""
     t = wp.tid()
-    cell = int(-1)
-    fx = wp.vec3(0.0)
-    gvel = wp.vec3(0.0)
-    Ag = wp.mat33(0.0)
+    cell, fx, gvel, Ag = no_payload()
     if t < count:
         p = ptcl.order[t]
         a_ext = K.external_accel(p, t_offset, forces)

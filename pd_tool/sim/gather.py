@@ -154,8 +154,7 @@ def load_payload(lists: CellLists, q: int):
 
 
 @wp.func
-def bin_particle(
-    p: int,
+def particle_payload(
     x: wp.vec3,
     v: wp.vec3,
     C: wp.mat33,
@@ -168,17 +167,58 @@ def bin_particle(
     dx: float,
     dt: float,
     nodes: wp.vec3i,
-    lists: CellLists,
 ):
-    """Write particle p's P2G payload and stencil cell."""
+    """A particle's stencil cell (linear index) and P2G payload: offset fx, (momentum, mass)
+    and the MLS affine matrix A (CellLists' layout)."""
     inv_dx = 1.0 / dx
     b = K.stencil_base(x, inv_dx, nodes)
-    lists.cell[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
     lm = K.lame(E, nu)
     tau = K.kirchhoff_stress(F, lm[0], lm[1])
     mv = m * (v + a_ext * dt)
-    store_payload(lists, p, x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2])),
-                  wp.vec4(mv[0], mv[1], mv[2], m), m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau)
+    return ((b[0] * nodes[1] + b[1]) * nodes[2] + b[2], x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2])),
+            wp.vec4(mv[0], mv[1], mv[2], m), m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau)
+
+
+@wp.func
+def particle_values(
+    do_g2p: int,
+    keep_vc: int,
+    live: bool,
+    p: int,
+    ptcl: K.Particles,
+    s_in: K.ParticleVars,
+    state: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
+    t_offset_next: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    stats: wp.array(dtype=float),
+):
+    """Particle p's G2P of this substep from s_in, written to `state` (v and C only with
+    keep_vc; nothing unless live), or its state read from `state` when do_g2p is 0; then its
+    stencil cell and payload for the next substep's P2G at t_frame + t_offset_next
+    (particle_payload)."""
+    un = wp.vec3(0.0)
+    vel = wp.vec3(0.0)
+    Cn = wp.mat33(0.0)
+    Gn = wp.mat33(0.0)
+    if do_g2p != 0:
+        un, vel, Cn, Gn = K.g2p_values(p, ptcl, s_in, step, grid_v)
+        if live:
+            state.u[p] = un
+            state.G[p] = Gn
+            if keep_vc != 0:
+                state.v[p] = vel
+                state.C[p] = Cn
+            K.g2p_guard(ptcl.base[p] + un, vel, Gn, step, stats)
+    else:
+        un = state.u[p]
+        vel = state.v[p]
+        Cn = state.C[p]
+        Gn = state.G[p]
+    return particle_payload(ptcl.base[p] + un, vel, Cn, K.deformation_gradient(Gn), ptcl.E[p], ptcl.volume[p],
+                            ptcl.mass[p], K.external_accel(p, t_offset_next, forces), step.nu, step.dx, step.dt,
+                            step.nodes)
 
 
 @wp.kernel(enable_backward=False)
@@ -208,26 +248,10 @@ def g2p_bin(
     back (H100: 26.1 to 20.3 us at 100k particles / 64^3, 28.8 to 20.6 us on the thin
     plant's 118,626)."""
     p = wp.tid()
-    un = wp.vec3(0.0)
-    vel = wp.vec3(0.0)
-    Cn = wp.mat33(0.0)
-    Gn = wp.mat33(0.0)
-    if do_g2p != 0:
-        un, vel, Cn, Gn = K.g2p_values(p, ptcl, s_in, step, grid_v)
-        state.u[p] = un
-        state.G[p] = Gn
-        if keep_vc != 0:
-            state.v[p] = vel
-            state.C[p] = Cn
-        K.g2p_guard(ptcl.base[p] + un, vel, Gn, step, stats)
-    else:
-        un = state.u[p]
-        vel = state.v[p]
-        Cn = state.C[p]
-        Gn = state.G[p]
-    a_ext = K.external_accel(p, t_offset_next, forces)
-    bin_particle(p, ptcl.base[p] + un, vel, Cn, K.deformation_gradient(Gn),
-                 ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, lists)
+    cell, fx, mv, A = particle_values(do_g2p, keep_vc, True, p, ptcl, s_in, state, step, forces, t_offset_next,
+                                      grid_v, stats)
+    lists.cell[p] = cell
+    store_payload(lists, p, fx, mv, A)
 
 
 @wp.func
@@ -593,41 +617,13 @@ def g2p2g_rows(
     `tag` (warp_row_sums). keep_vc as in g2p_bin. Launched over rows_threads(count)
     threads: lanes past the last particle add nothing but take part in their warp's sums."""
     t = wp.tid()
-    p = wp.min(t, count - 1)
     live = t < count
-    un = wp.vec3(0.0)
-    vel = wp.vec3(0.0)
-    Cn = wp.mat33(0.0)
-    Gn = wp.mat33(0.0)
-    if do_g2p != 0:
-        un, vel, Cn, Gn = K.g2p_values(p, ptcl, s_in, step, grid_v)
-        if live:
-            state.u[p] = un
-            state.G[p] = Gn
-            if keep_vc != 0:
-                state.v[p] = vel
-                state.C[p] = Cn
-            K.g2p_guard(ptcl.base[p] + un, vel, Gn, step, stats)
-    else:
-        un = state.u[p]
-        vel = state.v[p]
-        Cn = state.C[p]
-        Gn = state.G[p]
-    inv_dx = 1.0 / step.dx
-    x = ptcl.base[p] + un
-    b = K.stencil_base(x, inv_dx, step.nodes)
-    fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
-    cell = int(-1)
-    if live:
-        cell = (b[0] * step.nodes[1] + b[1]) * step.nodes[2] + b[2]
-    m = ptcl.mass[p]
-    lm = K.lame(ptcl.E[p], step.nu)
-    tau = K.kirchhoff_stress(K.deformation_gradient(Gn), lm[0], lm[1])
-    A = m * Cn - (4.0 * inv_dx * inv_dx * step.dt * ptcl.volume[p]) * tau
-    mom = m * (vel + K.external_accel(p, t_offset_next, forces) * step.dt)
+    cell, fx, mv, A = particle_values(do_g2p, keep_vc, live, wp.min(t, count - 1), ptcl, s_in, state, step, forces,
+                                      t_offset_next, grid_v, stats)
+    if not live:
+        cell = -1
     warp_row_sums(cell, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]), wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]),
-                  wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]), wp.vec4(mom[0], mom[1], mom[2], m),
-                  step.dx, step.nodes, out, blocks, tag)
+                  wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]), mv, step.dx, step.nodes, out, blocks, tag)
 
 
 def rows_threads(n_particles: int) -> int:
