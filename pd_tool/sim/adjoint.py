@@ -104,6 +104,12 @@ def scatter_direct(
 
 
 @wp.func
+def no_payload():
+    """The (cell, fx, gv, A') of a lane with nothing to add (g2p_adjoint_particle's payload)."""
+    return int(-1), wp.vec3(0.0), wp.vec3(0.0), wp.mat33(0.0)
+
+
+@wp.func
 def g2p_adjoint_particle(
     p: int,
     binned: int,
@@ -128,10 +134,7 @@ def g2p_adjoint_particle(
     gu = adj.u[p]
     gFn = adj.G[p]
     adj.G[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
-    cell = int(-1)
-    fx = wp.vec3(0.0)
-    gvel = wp.vec3(0.0)
-    Ag = wp.mat33(0.0)
+    cell, fx, gvel, Ag = no_payload()
     if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
@@ -162,12 +165,6 @@ def g2p_adjoint_particle(
         else:
             cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
     return cell, fx, gvel, Ag
-
-
-@wp.func
-def no_payload():
-    """The (cell, fx, gv, A') of a lane with nothing to add (g2p_adjoint_particle's payload)."""
-    return int(-1), wp.vec3(0.0), wp.vec3(0.0), wp.mat33(0.0)
 
 
 @wp.func

@@ -18,10 +18,10 @@ of a 100k-particle substep on an H200). Here, per substep:
    next substep. It visits only the nodes of the 4^3-node blocks that step 1 tagged this
    substep: a thin object leaves most of its grid empty.
 
-The same sums run from a payload in global memory in a launch of their own: `g2p_bin`
-writes it, `p2g_chunks` sums it in chunks of CHUNK consecutive particles, nine threads a
-chunk. The backward's grid-velocity cotangent goes that way (adjoint.py), and so does the
-fast path with `MPMSolver(warp_sums=False)`. A group's or chunk's length is fixed, so no
+The backward's grid-velocity cotangent is summed the same way, in the G2P adjoint's launch
+(adjoint.adjoint_row_sums). The same sums also run from a payload in global memory in a
+launch of their own, the fast path's with `MPMSolver(warp_sums=False)`: `g2p_bin` writes
+it, `p2g_chunks` sums it in chunks of CHUNK consecutive particles, nine threads a chunk. A group's or chunk's length is fixed, so no
 thread waits on a long loop through a crowded cell (a thin leaf on a fine grid: up to 500
 particles a cell) and no list of where cells start is built.
 
@@ -66,11 +66,23 @@ BLOCK_W = wp.constant(BLOCK)
 # docs/gpu-runs/vec4_reduction_100k_h200.json). The address is converted to a global one
 # because vector `red` exists only for the global space. Older GPUs and the CPU add per
 # component. No adjoint: only untaped kernels use it.
-_RED_ADD_VEC4 = """
-#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+def _red_v4(ptr: str, x: str, y: str, z: str, w: str) -> str:
+    """CUDA source adding the floats (x, y, z, w) to the wp::vec4 at `ptr` (C expressions):
+    one vector `red` on sm_90+, per-component atomics before."""
+    return f"""
+#if (__CUDA_ARCH__ >= 900)
+    asm volatile("{{ .reg .u64 ga; cvta.to.global.u64 ga, %0; red.global.add.v4.f32 [ga], {{%1, %2, %3, %4}}; }}"
+                 :: "l"({ptr}), "f"({x}), "f"({y}), "f"({z}), "f"({w}) : "memory");
+#else
+    wp::atomic_add({ptr}, wp::vec4({x}, {y}, {z}, {w}));
+#endif
+"""
+
+
+_RED_ADD_VEC4 = f"""
+#if defined(__CUDA_ARCH__)
     wp::vec4* p = wp::address(arr, i, j, k);
-    asm volatile("{ .reg .u64 ga; cvta.to.global.u64 ga, %0; red.global.add.v4.f32 [ga], {%1, %2, %3, %4}; }"
-                 :: "l"(p), "f"(value[0]), "f"(value[1]), "f"(value[2]), "f"(value[3]) : "memory");
+    {_red_v4("p", "value[0]", "value[1]", "value[2]", "value[3]")}
 #else
     wp::atomic_add(wp::address(arr, i, j, k), value);
 #endif
@@ -508,13 +520,7 @@ _WARP_ROW_SUMS = """
                     const int ci = cur / (nodes[1] * nodes[2]);
                     for (int z = 0; z < 3; ++z) {
                         wp::vec4* p = wp::address(out, ci + a, cj + b, ck + z);
-#if (__CUDA_ARCH__ >= 900)
-                        asm volatile("{ .reg .u64 ga; cvta.to.global.u64 ga, %0; red.global.add.v4.f32 [ga], {%1, %2, %3, %4}; }"
-                                     :: "l"(p), "f"(s[z][0]), "f"(s[z][1]), "f"(s[z][2]), "f"(s[z][3]) : "memory");
-#else
-                        atomicAdd(&(p->c[0]), s[z][0]); atomicAdd(&(p->c[1]), s[z][1]);
-                        atomicAdd(&(p->c[2]), s[z][2]); atomicAdd(&(p->c[3]), s[z][3]);
-#endif
+                        RED_V4
                     }
                     if (tag != 0) {
                         const int bi = (ci + a) / BLOCKW, bj = (cj + b) / BLOCKW;
@@ -582,7 +588,8 @@ _WARP_ROW_SUMS = """
         }
     }
 #endif
-""".replace("PBLOCK", str(ROWS_BLOCK)).replace("BLOCKW", str(BLOCK))
+""".replace("PBLOCK", str(ROWS_BLOCK)).replace("BLOCKW", str(BLOCK)).replace(
+    "RED_V4", _red_v4("p", "s[z][0]", "s[z][1]", "s[z][2]", "s[z][3]"))
 
 
 @wp.func_native(_WARP_ROW_SUMS)
