@@ -484,16 +484,18 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
 
 # p2g_chunks inside one warp, from shared memory, for the one-launch G2P + P2G
-# (g2p2g_rows): each lane stashes its particle's payload, then 27 lanes, three groups of
-# nine, each sum one row of three stencil nodes over a third of the warp's particles (10,
-# 11, 11), adding at each change of cell. The payload never goes through global memory and
-# the P2G needs no launch of its own. Every lane of a warp must call it (the launch covers
-# whole warps, rows_threads); blocks are ROWS_BLOCK threads (the shared arrays' size).
-# The CPU runs one thread at a time and scatters its particle.
+# (g2p2g_rows): each lane stashes its particle's payload and stencil cell (as a linear
+# index and as node indices, split once here: an integer division at each add cost more
+# than the add), then 27 lanes, three groups of nine, each sum one row of three stencil
+# nodes over a third of the warp's particles (10, 11, 11), adding at each change of cell.
+# The payload never goes through global memory and the P2G needs no launch of its own.
+# Every lane of a warp must call it (the launch covers whole warps, rows_threads); blocks
+# are ROWS_BLOCK threads (the shared arrays' size). The CPU runs one thread at a time and
+# scatters its particle.
 _WARP_ROW_SUMS = """
 #if defined(__CUDA_ARCH__)
     __shared__ float4 pay[PBLOCK][4];
-    __shared__ int cells[PBLOCK];
+    __shared__ int4 cells[PBLOCK];
     const int t = (int)threadIdx.x;
     const int lane = t & 31;
     const int w0 = t - lane;
@@ -501,7 +503,13 @@ _WARP_ROW_SUMS = """
     pay[t][1] = make_float4(r1[0], r1[1], r1[2], r1[3]);
     pay[t][2] = make_float4(r2[0], r2[1], r2[2], r2[3]);
     pay[t][3] = make_float4(mv[0], mv[1], mv[2], mv[3]);
-    cells[t] = cell;
+    if (cell >= 0) {
+        const int ck = cell % nodes[2];
+        const int cj = (cell / nodes[2]) % nodes[1];
+        cells[t] = make_int4(cell, cell / (nodes[1] * nodes[2]), cj, ck);
+    } else {
+        cells[t] = make_int4(-1, 0, 0, 0);
+    }
     __syncwarp();
     if (lane < 27) {
         const int g = lane / 9;
@@ -509,28 +517,31 @@ _WARP_ROW_SUMS = """
         const int a = o / 3;
         const int b = o - 3 * a;
         const int q1 = w0 + ((g + 1) * 32) / 3;
-        int cur = -1;
+        const long long sk = out.strides[2];
+        int4 cur = make_int4(-1, 0, 0, 0);
         float s[3][4] = {{0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}};
         for (int q = w0 + (g * 32) / 3; q <= q1; ++q) {
-            const int c = q < q1 ? cells[q] : -2;
-            if (c != cur) {
-                if (cur >= 0) {
-                    const int ck = cur % nodes[2];
-                    const int cj = (cur / nodes[2]) % nodes[1];
-                    const int ci = cur / (nodes[1] * nodes[2]);
+            const int4 c4 = q < q1 ? cells[q] : make_int4(-2, 0, 0, 0);
+            const int c = c4.x;
+            if (c != cur.x) {
+                if (cur.x >= 0) {
+                    const int i = cur.y + a, j = cur.z + b, k = cur.w;
+                    char* row = reinterpret_cast<char*>(wp::address(out, i, j, k));
                     for (int z = 0; z < 3; ++z) {
-                        wp::vec4* p = wp::address(out, ci + a, cj + b, ck + z);
+                        wp::vec4* p = reinterpret_cast<wp::vec4*>(row + z * sk);
                         RED_V4
                     }
                     if (tag != 0) {
-                        const int bi = (ci + a) / BLOCKW, bj = (cj + b) / BLOCKW;
-                        const int k0 = ck / BLOCKW, k1 = (ck + 2) / BLOCKW;
+                        // read before written: plain stores of one tag from many SMs to the
+                        // same word cost 10% of the substep
+                        const int bi = i / BLOCKW, bj = j / BLOCKW;
+                        const int k0 = k / BLOCKW, k1 = (k + 2) / BLOCKW;
                         int* t0 = wp::address(blocks, bi, bj, k0);
                         if (*t0 != tag) *t0 = tag;
                         if (k1 != k0) { int* t1 = wp::address(blocks, bi, bj, k1); if (*t1 != tag) *t1 = tag; }
                     }
                 }
-                cur = c;
+                cur = c4;
                 for (int z = 0; z < 3; ++z) { s[z][0] = 0.f; s[z][1] = 0.f; s[z][2] = 0.f; s[z][3] = 0.f; }
             }
             if (c >= 0) {
