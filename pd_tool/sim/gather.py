@@ -518,6 +518,10 @@ _WARP_ROW_SUMS = """
         const int b = o - 3 * a;
         const int q1 = w0 + ((g + 1) * 32) / 3;
         const long long sk = out.strides[2];
+        // the B-spline weight of offset a (b) at fx as k (fx - r)^2 + e: lane constants, no select a particle
+        const float ka = a == 1 ? -1.f : 0.5f, ra = a == 0 ? 1.5f : (a == 1 ? 1.f : 0.5f), ea = a == 1 ? 0.75f : 0.f;
+        const float kb = b == 1 ? -1.f : 0.5f, rb = b == 0 ? 1.5f : (b == 1 ? 1.f : 0.5f), eb = b == 1 ? 0.75f : 0.f;
+        const float oa = (float)a * dx, ob = (float)b * dx;
         int4 cur = make_int4(-1, 0, 0, 0);
         float s[3][4] = {{0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}, {0.f, 0.f, 0.f, 0.f}};
         for (int q = w0 + (g * 32) / 3; q <= q1; ++q) {
@@ -541,31 +545,28 @@ _WARP_ROW_SUMS = """
                         if (k1 != k0) { int* t1 = wp::address(blocks, bi, bj, k1); if (*t1 != tag) *t1 = tag; }
                     }
                 }
-                cur = c4;
-                for (int z = 0; z < 3; ++z) { s[z][0] = 0.f; s[z][1] = 0.f; s[z][2] = 0.f; s[z][3] = 0.f; }
             }
+            const float keep = c != cur.x ? 0.f : 1.f;
+            cur = c4;
             if (c >= 0) {
                 const float4 p0 = pay[q][0], p1 = pay[q][1], p2 = pay[q][2], pm = pay[q][3];
                 const float fx = p0.w, fy = p1.w, fz = p2.w;
                 // quadratic B-spline weights of offsets a, b (bspline_at) and 0..2 along z
-                const float wa = a == 1 ? 0.75f - (fx - 1.f) * (fx - 1.f)
-                                        : 0.5f * (a == 0 ? (1.5f - fx) * (1.5f - fx) : (fx - 0.5f) * (fx - 0.5f));
-                const float wb = b == 1 ? 0.75f - (fy - 1.f) * (fy - 1.f)
-                                        : 0.5f * (b == 0 ? (1.5f - fy) * (1.5f - fy) : (fy - 0.5f) * (fy - 0.5f));
-                const float wab = wa * wb;
+                const float fa = fx - ra, fb = fy - rb;
+                const float wab = (ka * fa * fa + ea) * (kb * fb * fb + eb);
                 const float w[3] = {wab * 0.5f * (1.5f - fz) * (1.5f - fz), wab * (0.75f - (fz - 1.f) * (fz - 1.f)),
                                     wab * 0.5f * (fz - 0.5f) * (fz - 0.5f)};
                 // momentum + A (off - fx) dx at z offset 0, and A's step per z offset (row_shares)
-                const float dx0 = ((float)a - fx) * dx, dy0 = ((float)b - fy) * dx, dz0 = -fz * dx;
+                const float dx0 = oa - fx * dx, dy0 = ob - fy * dx, dz0 = -fz * dx;
                 const float qx = pm.x + p0.x * dx0 + p0.y * dy0 + p0.z * dz0;
                 const float qy = pm.y + p1.x * dx0 + p1.y * dy0 + p1.z * dz0;
                 const float qz = pm.z + p2.x * dx0 + p2.y * dy0 + p2.z * dz0;
                 const float ex = p0.z * dx, ey = p1.z * dx, ez = p2.z * dx;
                 for (int z = 0; z < 3; ++z) {
-                    s[z][0] += w[z] * (qx + (float)z * ex);
-                    s[z][1] += w[z] * (qy + (float)z * ey);
-                    s[z][2] += w[z] * (qz + (float)z * ez);
-                    s[z][3] += w[z] * pm.w;
+                    s[z][0] = s[z][0] * keep + w[z] * (qx + (float)z * ex);
+                    s[z][1] = s[z][1] * keep + w[z] * (qy + (float)z * ey);
+                    s[z][2] = s[z][2] * keep + w[z] * (qz + (float)z * ez);
+                    s[z][3] = s[z][3] * keep + w[z] * pm.w;
                 }
             }
         }
