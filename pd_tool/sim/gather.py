@@ -485,9 +485,11 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
 # p2g_chunks inside one warp, from shared memory, for the one-launch G2P + P2G
 # (g2p2g_rows): each lane stashes its particle's payload and stencil cell (as a linear
-# index and as node indices, split once here: an integer division at each add cost more
-# than the add), then 27 lanes, three groups of nine, each sum one row of three stencil
-# nodes over a third of the warp's particles (10, 11, 11), adding at each change of cell.
+# index and as node indices, split once here: integer divisions at each add cost more than
+# the add), then 27 lanes, three groups of nine, each sum one row of three stencil nodes
+# over a third of the warp's particles (10, 11, 11), adding at each change of cell. A lane
+# a node over all 32 particles (no divergent adds) measured slower: a node's share alone
+# costs more arithmetic than in a row of three (docs/simulator.md, tried).
 # The payload never goes through global memory and the P2G needs no launch of its own.
 # Every lane of a warp must call it (the launch covers whole warps, rows_threads); blocks
 # are ROWS_BLOCK threads (the shared arrays' size). The CPU runs one thread at a time and
@@ -546,6 +548,9 @@ _WARP_ROW_SUMS = """
                     }
                 }
             }
+            // a new cell restarts the sums by this factor: zeroing them in the branch above made
+            // the compiler copy all twelve at every step. A non-finite sum (a particle that blew
+            // up, which the guard counts) carries into the group's next cell too.
             const float keep = c != cur.x ? 0.f : 1.f;
             cur = c4;
             if (c >= 0) {
