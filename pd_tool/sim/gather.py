@@ -21,9 +21,10 @@ of a 100k-particle substep on an H200). Here, per substep:
 The backward's grid-velocity cotangent is summed the same way, in the G2P adjoint's launch
 (adjoint.adjoint_row_sums). The same sums also run from a payload in global memory in a
 launch of their own, the fast path's with `MPMSolver(warp_sums=False)`: `g2p_bin` writes
-it, `p2g_chunks` sums it in chunks of CHUNK consecutive particles, nine threads a chunk. A group's or chunk's length is fixed, so no
-thread waits on a long loop through a crowded cell (a thin leaf on a fine grid: up to 500
-particles a cell) and no list of where cells start is built.
+it, `p2g_chunks` sums it in chunks of CHUNK consecutive particles, nine threads a chunk. A
+group's or chunk's length is fixed, so no thread waits on a long loop through a crowded
+cell (a thin leaf on a fine grid: up to 500 particles a cell) and no list of where cells
+start is built.
 
 No particle is ever left out: particles that drift out of cell order only make more
 changes of cell (one per particle at worst, 27 reductions each, as the scatter's 27).
@@ -495,6 +496,10 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 # are ROWS_BLOCK threads (the shared arrays' size). The CPU runs one thread at a time and
 # scatters its particle.
 _WARP_ROW_SUMS = """
+    // the cell's node indices (cell -1: adds nothing)
+    const int ck = cell >= 0 ? cell % nodes[2] : 0;
+    const int cj = cell >= 0 ? (cell / nodes[2]) % nodes[1] : 0;
+    const int ci = cell >= 0 ? cell / (nodes[1] * nodes[2]) : 0;
 #if defined(__CUDA_ARCH__)
     __shared__ float4 pay[PBLOCK][4];
     __shared__ int4 cells[PBLOCK];
@@ -505,13 +510,7 @@ _WARP_ROW_SUMS = """
     pay[t][1] = make_float4(r1[0], r1[1], r1[2], r1[3]);
     pay[t][2] = make_float4(r2[0], r2[1], r2[2], r2[3]);
     pay[t][3] = make_float4(mv[0], mv[1], mv[2], mv[3]);
-    if (cell >= 0) {
-        const int ck = cell % nodes[2];
-        const int cj = (cell / nodes[2]) % nodes[1];
-        cells[t] = make_int4(cell, cell / (nodes[1] * nodes[2]), cj, ck);
-    } else {
-        cells[t] = make_int4(-1, 0, 0, 0);
-    }
+    cells[t] = make_int4(cell >= 0 ? cell : -1, ci, cj, ck);
     __syncwarp();
     if (lane < 27) {
         const int g = lane / 9;
@@ -520,7 +519,7 @@ _WARP_ROW_SUMS = """
         const int b = o - 3 * a;
         const int q1 = w0 + ((g + 1) * 32) / 3;
         const long long sk = out.strides[2];
-        // the B-spline weight of offset a (b) at fx as k (fx - r)^2 + e: lane constants, no select a particle
+        // the B-spline weight of offset a (b) at fx as k (fx - r)^2 + e: lane constants, no select per particle
         const float ka = a == 1 ? -1.f : 0.5f, ra = a == 0 ? 1.5f : (a == 1 ? 1.f : 0.5f), ea = a == 1 ? 0.75f : 0.f;
         const float kb = b == 1 ? -1.f : 0.5f, rb = b == 0 ? 1.5f : (b == 1 ? 1.f : 0.5f), eb = b == 1 ? 0.75f : 0.f;
         const float oa = (float)a * dx, ob = (float)b * dx;
@@ -578,9 +577,6 @@ _WARP_ROW_SUMS = """
     }
 #else
     if (cell >= 0) {
-        const int ck = cell % nodes[2];
-        const int cj = (cell / nodes[2]) % nodes[1];
-        const int ci = cell / (nodes[1] * nodes[2]);
         const float f[3] = {r0[3], r1[3], r2[3]};
         float wt[3][3];
         for (int d = 0; d < 3; ++d) {
