@@ -140,8 +140,11 @@ def polar_rotation(F: wp.mat33) -> wp.mat33:
     it = int(0)
     while it < POLAR_MAX_ITERS:
         Xi = wp.inverse(X)
-        g = wp.sqrt(wp.sqrt(wp.ddot(Xi, Xi) / wp.ddot(X, X)))
-        Xn = 0.5 * (g * X + wp.transpose(Xi) / g)
+        g2 = wp.sqrt(wp.ddot(Xi, Xi) / wp.ddot(X, X))
+        g = wp.sqrt(g2)
+        # 1 / g as g / g^2: a matrix over a scalar divides each of its nine entries, and
+        # on CUDA each IEEE division carries a slow-path check
+        Xn = (0.5 * g) * X + (0.5 * g / g2) * wp.transpose(Xi)
         d = Xn - X
         X = Xn
         it += 1
