@@ -348,7 +348,8 @@ def grid_adjoint(
     out = wp.vec4(0.0)
     damping_factor = step.damping_factor
     if m > K.MIN_NODE_MASS and step.fixed[i, j, k] == 0:
-        vel = (mv / m + step.dt * step.gravity) * damping_factor
+        inv_m = 1.0 / m  # one division for the node's seven
+        vel = (mv * inv_m + step.dt * step.gravity) * damping_factor
         # each boundary condition zeroes one component by the sign of that component only
         if (i < pad and vel[0] < 0.0) or (i >= nodes[0] - pad and vel[0] > 0.0):
             g = wp.vec3(0.0, g[1], g[2])
@@ -360,8 +361,8 @@ def grid_adjoint(
             if float(k) * step.dx <= step.ground_z and vel[2] < 0.0:
                 g = wp.vec3(g[0], g[1], 0.0)
         gq = g * damping_factor  # cotangent of mv / m
-        gmv = gq / m
-        out = wp.vec4(gmv[0], gmv[1], gmv[2], -wp.dot(gq, mv) / (m * m))
+        gmv = gq * inv_m
+        out = wp.vec4(gmv[0], gmv[1], gmv[2], -wp.dot(gq, mv) * inv_m * inv_m)
     adj_mmv[i, j, k] = out
 
 

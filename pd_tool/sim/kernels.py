@@ -355,7 +355,8 @@ def node_velocity(mmv: wp.vec4, i: int, j: int, k: int, step: StepParams) -> wp.
     vel = wp.vec3(0.0)
     m = mmv[3]
     if m > MIN_NODE_MASS:
-        vel = (wp.vec3(mmv[0], mmv[1], mmv[2]) / m + step.dt * step.gravity) * step.damping_factor
+        # times 1 / m: a vec3 over a scalar is three divisions
+        vel = (wp.vec3(mmv[0], mmv[1], mmv[2]) * (1.0 / m) + step.dt * step.gravity) * step.damping_factor
         if i < pad and vel[0] < 0.0:
             vel = wp.vec3(0.0, vel[1], vel[2])
         if i >= nodes[0] - pad and vel[0] > 0.0:
