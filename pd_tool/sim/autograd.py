@@ -14,7 +14,6 @@ segment's stores, whatever the number of frames.
 """
 from __future__ import annotations
 
-import itertools
 import math
 import weakref
 from contextlib import contextmanager
@@ -115,25 +114,25 @@ class _Substeps:
         self.fields = [wp.zeros((count + 1, n), dtype=t, device=device) for t in (wp.vec3, wp.vec3, wp.mat33, wp.mat33)]
         self.fields += [wp.zeros((count, *geo.nodes), dtype=t, device=device) for t in (wp.vec4, wp.vec3)]
         self.fields.append(wp.zeros((count, *block_shape(geo.nodes)), dtype=int, device=device))
-        self._states = self._grids = None
+        self._views = None
 
     @property
     def states(self) -> list[ParticleState]:
-        if self._states is None:
-            u, v, C, G = self.fields[:4]
-            self._states = [ParticleState(u[i], v[i], C[i], G[i]) for i in range(self.count + 1)]
-        return self._states
+        return self._split()[0]
 
     @property
     def grids(self) -> list[GridArrays]:
-        if self._grids is None:
-            mmv, gv, blocks = self.fields[4:7]
-            self._grids = [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)]
-        return self._grids
+        return self._split()[1]
 
-    def copy_from(self, other: "_Substeps", substeps: int, tagged: bool = False, states: bool = True) -> None:
-        """The first `substeps` substeps of `other` (states 0..substeps unless not `states`,
-        grids 0..substeps-1).
+    def _split(self):
+        if self._views is None:
+            u, v, C, G, mmv, gv, blocks = self.fields
+            self._views = ([ParticleState(u[i], v[i], C[i], G[i]) for i in range(self.count + 1)],
+                           [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)])
+        return self._views
+
+    def copy_from(self, other: "_Substeps", substeps: int, tagged: bool = False) -> None:
+        """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1).
 
         tagged: copy only the grid nodes of the activity blocks that each substep's binned
         P2G tagged (gather.block_tagged, substep i's tag being block_tag(0, i) as a frame's
@@ -142,7 +141,7 @@ class _Substeps:
         substep's grid (59 MB at 300k particles on 128^3) cost what storing the frame saves
         (docs/simulator.md, "Speed")."""
         for k, (dst, src) in enumerate(zip(self.fields, other.fields)):
-            if (tagged and k in (4, 5)) or (k < 4 and not states):
+            if tagged and k in (4, 5):
                 continue
             rows = substeps + 1 if k < 4 else substeps
             wp.copy(dst[:rows], src[:rows])
@@ -192,29 +191,19 @@ NODE_BYTES = (4 + 3) * 4
 TAG_BYTES = 4
 
 
-_SLOT_SERIALS = itertools.count(1)
-
-
 class _KeptFrame(_Substeps):
     """A slot for one frame's forward values, written by forward_frame and read back by
     backward_frame instead of a recompute. A slot is held by one frame of the autograd graph
     (`owner`, a weak reference to that frame's _Claim), and free again after the frame's
-    backward or once the graph that held it is gone. Where CUDA graphs replay
-    (DiffSim._pooled), the grids run in the simulator's pool and are copied to and from
-    the slot. The particle states run in the pool too, copied likewise, until the slot
-    sees a graph key (substep count, dt) a second time; from then on they are written and
-    read in the slot's own arrays by graphs captured for the slot (`serial` in their keys,
-    DiffSim._slot_runs). Copying the states (96 bytes a particle and substep) costs about a
-    fifth of the forward + backward, but while a fit's E changes the substep count, a
-    slot's key seldom repeats and the pool's one graph replays for every frame. Elsewhere
-    everything runs on the slot's own arrays."""
+    backward or once the graph that held it is gone. Where CUDA graphs replay, the substeps
+    run in the simulator's pool and are copied to and from the slot, so that every frame
+    replays the pool's graphs; elsewhere they run on the slot's own arrays."""
 
     holds = True  # the frame stored last fitted (a packed slot's blocks may not)
 
     def __init__(self, n: int, geo: GridGeometry, capacity: int, device: str) -> None:
         super().__init__(n, geo, capacity, device)  # `count`: the most substeps it holds
         self.owner: weakref.ref | None = None
-        self.serial = next(_SLOT_SERIALS)  # unique for the process: graph keys name it
 
     def free(self) -> bool:
         return self.owner is None or self.owner() is None
@@ -230,15 +219,13 @@ class _KeptFrame(_Substeps):
         """Whether a frame of `substeps` whose P2G tags about `blocks` blocks in all fits."""
         return self.count >= substeps
 
-    def store_from(self, pool: _Substeps, substeps: int, tagged: bool, states: bool) -> None:
-        """The grids of a frame run in `pool` (copy_from), and its particle states unless
-        they ran in the slot."""
-        self.copy_from(pool, substeps, tagged=tagged, states=states)
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """The forward's values of a frame run in `pool` (copy_from)."""
+        self.copy_from(pool, substeps, tagged=tagged)
 
-    def load_into(self, pool: _Substeps, substeps: int, tagged: bool, states: bool) -> None:
-        """Back into `pool` for the frame's backward: the grids, and the particle states
-        unless the backward reads them in the slot."""
-        pool.copy_from(self, substeps, tagged=tagged, states=states)
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """Back into `pool` for the frame's backward."""
+        pool.copy_from(self, substeps, tagged=tagged)
 
 
 # A packed slot's blocks over the most a substep tagged so far (or over what the particles'
@@ -268,9 +255,8 @@ class _PackedFrame(_KeptFrame):
         self.filled = wp.zeros(1, dtype=int, device=device)
         self.filled_blocks = 0
         self.holds = True
-        self._states = self._grids = None
+        self._views = None
         self.owner = None
-        self.serial = next(_SLOT_SERIALS)
 
     @property
     def nbytes(self) -> int:
@@ -281,11 +267,10 @@ class _PackedFrame(_KeptFrame):
     def fits(self, substeps: int, blocks: int) -> bool:
         return self.count >= substeps and self.blocks >= blocks
 
-    def store_from(self, pool: _Substeps, substeps: int, tagged: bool, states: bool) -> None:
-        """The tags of the frame whose grids ran in `pool`, its tagged blocks packed, and
-        its particle states unless they ran in the slot; reads back how many blocks that
-        was (one sync) and sets `holds`."""
-        for k in range(4 if states else 0):
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        """The particle states and tags of the frame in `pool`, and its tagged blocks packed;
+        reads back how many blocks that was (one sync) and sets `holds`."""
+        for k in range(4):
             wp.copy(self.fields[k][: substeps + 1], pool.fields[k][: substeps + 1])
         wp.copy(self.fields[4][:substeps], pool.fields[6][:substeps])
         self.filled.zero_()
@@ -296,8 +281,8 @@ class _PackedFrame(_KeptFrame):
         self.filled_blocks = int(self.filled.numpy()[0])
         self.holds = self.filled_blocks <= self.blocks
 
-    def load_into(self, pool: _Substeps, substeps: int, tagged: bool, states: bool) -> None:
-        for k in range(4 if states else 0):
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
+        for k in range(4):
             wp.copy(pool.fields[k][: substeps + 1], self.fields[k][: substeps + 1])
         wp.copy(pool.fields[6][:substeps], self.fields[4][:substeps])
         wp.launch(_unpack_blocks, dim=self.blocks, device=self.filled.device,
@@ -414,10 +399,9 @@ class DiffSim:
         self.binned = wp.get_device(self.device).is_cuda
         # Replay the backward's segments as captured CUDA graphs (CUDA only).
         self.cuda_graph = True
-        # Stored frames run their grids in the pool, copied to and from their slots, where
-        # graphs replay (CUDA; see _KeptFrame); elsewhere they run on the slot's own arrays,
-        # as the copies cost one CPU thread about what a recompute does. Tests switch the
-        # pool on for the CPU.
+        # Stored frames run in the pool and are copied to their slots where graphs replay
+        # (CUDA); elsewhere they run on the slot's own arrays, as the copies cost one CPU
+        # thread about what a recompute does. Tests switch the pool on for the CPU.
         self.store_in_pool = False
         self._graphs: dict = {}
         self._seen: set = set()  # graph keys run once without a capture (see _run_graphed)
@@ -575,7 +559,6 @@ class DiffSim:
                 return None
         if drop is not None:
             self._kept.remove(drop)  # grown: a larger slot replaces the largest free one
-            self._graphs = {k: g for k, g in self._graphs.items() if k[-1] != drop.serial}
         try:
             if packed:
                 slot = _PackedFrame(self.n, self.geo, capacity, blocks * capacity // substeps, self.device)
@@ -590,32 +573,18 @@ class DiffSim:
         self._kept.append(slot)
         return _Claim(slot)
 
-    def _slot_runs(self, key: tuple) -> bool:
-        """Whether a stored frame whose graph key is `key` (its last item the slot's serial)
-        runs on the slot's own particle states: from the key's second run on, when
-        _run_graphed captures it. A first run goes through the pool (_KeptFrame)."""
-        if key in self._graphs or key in self._seen:
-            return True
-        self._see(key)
-        return False
-
-    def _see(self, key: tuple) -> None:
-        if len(self._seen) > 4096:
-            self._seen.clear()
-        self._seen.add(key)
-
     def _run_graphed(self, key: tuple, launches) -> None:
         """Run `launches()` (a fixed sequence of kernel launches on kept arrays) on CUDA
-        from a graph captured for `key`, whose last item says whose particle states the
-        launches use: a slot's serial, 0 for the pool, None for the frame's own buffers
-        (nothing stored). A key's first run launches directly and its second
+        from a graph captured for `key`. A key's first run launches directly and its second
         captures: the substep count and dt change with E, and a key run only once (a
         one-frame pass, an iteration whose E gave a new count) would otherwise pay for a
         capture that is never replayed."""
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen:
-                self._see(key)
+                if len(self._seen) > 4096:
+                    self._seen.clear()
+                self._seen.add(key)
                 launches()
                 return
             with wp.ScopedCapture(device=self.device) as cap:
@@ -641,8 +610,7 @@ class DiffSim:
         return grid
 
     def _pooled(self) -> bool:
-        # with graphs always: a slot's grids packed, or dense in each of its graphs, would
-        # not be arrays that one capture can keep
+        # with graphs always: a graph's key does not name the slot whose arrays it captured
         return self.store_in_pool or (wp.get_device(self.device).is_cuda and self.cuda_graph)
 
     def _tape_pool(self, count: int) -> tuple[list[ParticleState], list[GridArrays]]:
@@ -880,19 +848,16 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     array (read it once, after the frame). With `kept` (a slot of at least `substeps`), each
     substep's state and grid are stored there for backward_frame; without, the substeps run
     in place. On CUDA the substeps replay a captured graph keyed by (substeps, dt, forces,
-    where the states run): every array they touch is a kept buffer, the grids running in
-    the simulator's pool and copied to the slot after (DiffSim._pooled, _KeptFrame)."""
+    stored or not): every array they touch is a kept buffer, the stores running in the
+    simulator's pool and copied to the slot after (DiffSim._pooled)."""
     dev, n = sim.device, sim.n
     dt = frame_dt / substeps
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     pooled = kept is not None and sim._pooled()
-    key = ("forward", substeps, dt, forces.n, sim.binned)
-    store, grids, where = kept, kept, None
+    store = kept
     if pooled:
-        grids = sim._adjoint_pool(substeps)
-        where = kept.serial if sim._slot_runs(key + (kept.serial,)) else 0
-        store = kept if where else grids
+        store = sim._adjoint_pool(substeps)
     elif kept is not None:
         kept.zero_mass(substeps)  # the recompute adds to zero mass and momentum
     st = buf["state"] if kept is None else store.states[0]
@@ -904,10 +869,10 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         if kept is None:
             sim.run_untaped(sctx, substeps, dt, st)
         else:
-            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], grids.grids[:substeps], sim.binned)
+            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps], sim.binned)
 
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
-        sim._run_graphed(key + (where,), run)
+        sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, kept is not None), run)
     else:
         run()
     end = st if kept is None else store.states[substeps]
@@ -915,8 +880,8 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
     if pooled:
         # the binned P2G tags what it touches: only those blocks are copied and cleared
-        kept.store_from(grids, substeps, tagged=sim.binned, states=store is not kept)
-        grids.zero_mass(substeps, tagged=sim.binned)  # the next recompute adds to zero
+        kept.store_from(store, substeps, tagged=sim.binned)
+        store.zero_mass(substeps, tagged=sim.binned)  # the next recompute adds to zero
     return sctx.stats
 
 
@@ -970,17 +935,13 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     seg = substeps if kept is not None else sim.segment_length(substeps)
     adj_grid = sim._adjoint_grid()
     binned = sim.binned
-    where = None  # whose particle states the segments use (DiffSim._run_graphed)
     if kept is not None and not sim._pooled():
-        states, grids = kept.states, kept.grids
+        store = kept
     else:
-        pool = sim._adjoint_pool(min(seg, substeps))
-        states, grids = pool.states, pool.grids
+        store = sim._adjoint_pool(min(seg, substeps))
         if kept is not None:
-            where = kept.serial if sim._slot_runs((0, substeps, dt, forces.n, binned, kept.serial)) else 0
-            kept.load_into(pool, substeps, tagged=binned, states=not where)
-            if where:
-                states = kept.states
+            kept.load_into(store, substeps, tagged=binned)
+    states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
     st0 = states[0] if single and kept is None else buf["state"]
@@ -1015,7 +976,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
         if not use_graph:
             segment()
             continue
-        sim._run_graphed((k0, k1 - k0, dt, forces.n, binned, where), segment)
+        sim._run_graphed((k0, k1 - k0, dt, forces.n, binned, kept is not None), segment)
     grads = tuple(wp.empty_like(a) for a in (gu,) + adj[1:])
     wp.launch(_scatter_gradients, dim=n, device=dev, inputs=[fr.order, adj[0], gu_sorted, *adj[1:], *grads])
     return grads
