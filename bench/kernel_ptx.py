@@ -3,7 +3,9 @@
 Warp compiles the simulator's modules ahead of time for a CUDA architecture (`--arch`, 90 =
 Hopper) to PTX, on any machine, and this counts, per forward kernel, its static PTX
 instructions, its global loads (and how many of them are 128-bit vector loads), stores,
-atomics and reductions (inline `red` included), branches and f32 arithmetic. Loops with a
+atomics and reductions (inline `red` included), branches, f32 arithmetic, and divisions
+(IEEE float divisions and reciprocals, integer divisions and remainders: one PTX instruction
+each, but a sequence of ten or more in the GPU's own code). Loops with a
 fixed trip count are unrolled in PTX, so the counts follow the 27-node stencil loops; a
 loop that runs until it converges (the polar decomposition) counts once, and both sides of
 a branch count whichever a thread takes.
@@ -59,6 +61,9 @@ def count_ops(body: str) -> dict:
         "f32_arithmetic": sum(o.endswith(".f32") and o.split(".")[0] in ("add", "sub", "mul", "fma", "div", "sqrt",
                                                                           "rcp", "rsqrt", "neg", "abs", "min", "max")
                               for o in ops),
+        # IEEE float divisions and reciprocals and integer divisions and remainders: one PTX
+        # instruction each, a sequence of ten or more (with a slow-path check) in SASS
+        "divisions": sum(o.split(".")[0] in ("div", "rcp", "rem") and ".approx" not in o for o in ops),
     }
 
 
@@ -165,7 +170,8 @@ def main(argv=None) -> int:
             for name, counts in kernel_counts(compile_ptx(m, args.arch, Path(tmp))).items():
                 if not wanted or any(w in name for w in wanted):
                     rows[f"{m.rsplit('.', 1)[-1]}.{name}"] = counts
-    cols = ("instructions", "global_loads", "vector_loads", "global_stores", "atomics", "branches", "f32_arithmetic")
+    cols = ("instructions", "global_loads", "vector_loads", "global_stores", "atomics", "branches", "f32_arithmetic",
+            "divisions")
     print(f"{'kernel':44s}" + "".join(f"{c.replace('_', ' '):>15s}" for c in cols))
     for name, c in sorted(rows.items(), key=lambda kv: -kv[1]["instructions"]):
         print(f"{name:44s}" + "".join(f"{c[k]:15d}" for k in cols))

@@ -32,6 +32,7 @@ import warp as wp
 
 from pd_tool.sim import kernels as K
 from pd_tool.sim.gather import (
+    NO_CELL,
     PARTICLE_BLOCK,
     ROWS_BLOCK,
     block_tag,
@@ -60,13 +61,13 @@ def cofactor(F: wp.mat33) -> wp.mat33:
 
 
 @wp.func
-def stress_vjp(F: wp.mat33, R: wp.mat33, E: float, nu: float, G: wp.mat33):
+def stress_vjp(F: wp.mat33, R: wp.mat33, E: float, lame_per_E: wp.vec2, G: wp.mat33):
     """Cotangents (dL/dF, dL/dE) of the fixed-corotated Kirchhoff stress, given G = dL/dtau
     and R = K.polar_rotation(F).
 
     tau = 2 mu (F F^T - R F^T) + lam (J^2 - J) I.
     """
-    lm = K.lame(E, nu)
+    lm = E * lame_per_E
     mu = lm[0]
     lam = lm[1]
     J = wp.determinant(F)
@@ -77,7 +78,7 @@ def stress_vjp(F: wp.mat33, R: wp.mat33, E: float, nu: float, G: wp.mat33):
     gF += (lam * (2.0 * J - 1.0) * trG) * cofactor(F)
     g_mu = 2.0 * wp.ddot(G, (F - R) * wp.transpose(F))
     g_lam = (J - 1.0) * J * trG
-    g_E = g_mu / (2.0 * (1.0 + nu)) + g_lam * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    g_E = g_mu * lame_per_E[0] + g_lam * lame_per_E[1]
     return gF, g_E
 
 
@@ -105,8 +106,8 @@ def scatter_direct(
 
 @wp.func
 def no_payload():
-    """The (cell, fx, gv, A') of a lane with nothing to add (g2p_adjoint_particle's payload)."""
-    return int(-1), wp.vec3(0.0), wp.vec3(0.0), wp.mat33(0.0)
+    """The (stencil base, fx, gv, A') of a lane with nothing to add (g2p_adjoint_particle's payload)."""
+    return NO_CELL, wp.vec3(0.0), wp.vec3(0.0), wp.mat33(0.0)
 
 
 @wp.func
@@ -126,20 +127,20 @@ def g2p_adjoint_particle(
     overwritten with the partial cotangents of the input u and G (the P2G adjoint adds the
     rest). G = F - I, so the cotangents of G and F are the same. The grid-velocity
     cotangent w_n (gv + A' dpos_n), A' = 4/dx^2 gC, goes straight to adj_grid_v (binned 0)
-    or is returned, for the warp's sums (adjoint_row_sums), as the particle's stencil cell
-    (-1: adds nothing) and its payload (fx, gv, A')."""
+    or is returned, for the warp's sums (adjoint_row_sums), as the particle's stencil base
+    node (NO_CELL: adds nothing) and its payload (fx, gv, A')."""
     dx = step.dx
     dt = step.dt
     nodes = step.nodes
     gu = adj.u[p]
     gFn = adj.G[p]
     adj.G[p] = wp.transpose(wp.identity(n=3, dtype=float) + dt * s_next.C[p]) * gFn
-    cell, fx, gvel, Ag = no_payload()
+    base, fx, gvel, Ag = no_payload()
     if ptcl.is_static[p] != 0:
         # G2P gave a static particle zero velocity and C: nothing flows to the grid or x.
         adj.u[p] = gu
     else:
-        inv_dx = 1.0 / dx
+        inv_dx = step.inv_dx
         gvel = adj.v[p] + dt * gu
         Ag = (4.0 * inv_dx * inv_dx) * (adj.C[p] + dt * gFn * wp.transpose(K.deformation_gradient(s.G[p])))
         x = ptcl.base[p] + s.u[p]
@@ -163,16 +164,16 @@ def g2p_adjoint_particle(
         if binned == 0:
             scatter_direct(b, fx, gvel, Ag, dx, adj_grid_v)
         else:
-            cell = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-    return cell, fx, gvel, Ag
+            base = b
+    return base, fx, gvel, Ag
 
 
 @wp.func
-def adjoint_row_sums(cell: int, fx: wp.vec3, gvel: wp.vec3, Ag: wp.mat33, step: K.StepParams,
+def adjoint_row_sums(base: wp.vec3i, fx: wp.vec3, gvel: wp.vec3, Ag: wp.mat33, step: K.StepParams,
                      adj_grid_v: wp.array3d(dtype=wp.vec4)):
     """The warp's grid-velocity cotangents (g2p_adjoint_particle's payloads, mass 0) summed
     into adj_grid_v (gather.warp_row_sums; tags nothing). Every lane of the warp calls it."""
-    warp_row_sums(cell, wp.vec4(Ag[0, 0], Ag[0, 1], Ag[0, 2], fx[0]), wp.vec4(Ag[1, 0], Ag[1, 1], Ag[1, 2], fx[1]),
+    warp_row_sums(base, wp.vec4(Ag[0, 0], Ag[0, 1], Ag[0, 2], fx[0]), wp.vec4(Ag[1, 0], Ag[1, 1], Ag[1, 2], fx[1]),
                   wp.vec4(Ag[2, 0], Ag[2, 1], Ag[2, 2], fx[2]), wp.vec4(gvel[0], gvel[1], gvel[2], 0.0),
                   step.dx, step.nodes, adj_grid_v, step.fixed, 0)  # tag 0: no block array is written
 
@@ -193,14 +194,13 @@ def p2g_adjoint_particle(
     over substeps)."""
     dx = step.dx
     dt = step.dt
-    nu = step.nu
-    inv_dx = 1.0 / dx
+    inv_dx = step.inv_dx
     x = ptcl.base[p] + s.u[p]
     Fp = K.deformation_gradient(s.G[p])
     Ep = ptcl.E[p]
     m = ptcl.mass[p]
     kv = 4.0 * inv_dx * inv_dx * dt * ptcl.volume[p]
-    lm = K.lame(Ep, nu)
+    lm = Ep * step.lame_per_E
     R = K.polar_rotation(Fp)
     A = m * s.C[p] - kv * K.kirchhoff_stress_polar(Fp, R, lm[0], lm[1])
     mvp = m * (s.v[p] + a_ext * dt)
@@ -228,7 +228,7 @@ def p2g_adjoint_particle(
                 gfx += gw * wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
     adj.v[p] = m * g_mv
     adj.C[p] = m * gA
-    gF, gE = stress_vjp(Fp, R, Ep, nu, -kv * gA)
+    gF, gE = stress_vjp(Fp, R, Ep, step.lame_per_E, -kv * gA)
     adj.G[p] = adj.G[p] + gF
     adj_E[p] = adj_E[p] + gE
     adj.u[p] = adj.u[p] + gfx * inv_dx - wp.transpose(A) * g_mv
@@ -250,12 +250,12 @@ def g2p_adjoint(
     segment). binned: launched over whole warps (gather.rows_threads), the warp sums the
     grid-velocity cotangents (adjoint_row_sums)."""
     t = wp.tid()
-    cell, fx, gvel, Ag = no_payload()
+    base, fx, gvel, Ag = no_payload()
     if t < count:
-        cell, fx, gvel, Ag = g2p_adjoint_particle(ptcl.order[t], binned, ptcl, s, s_next, step, grid_v, adj,
+        base, fx, gvel, Ag = g2p_adjoint_particle(ptcl.order[t], binned, ptcl, s, s_next, step, grid_v, adj,
                                                   adj_grid_v)
     if binned != 0:
-        adjoint_row_sums(cell, fx, gvel, Ag, step, adj_grid_v)
+        adjoint_row_sums(base, fx, gvel, Ag, step, adj_grid_v)
 
 
 @wp.kernel(enable_backward=False)
@@ -297,14 +297,14 @@ def p2g_g2p_adjoint(
     its particle's cotangents, so the second reads what the first wrote, and the cotangents
     are read and written once instead of twice. binned as in g2p_adjoint."""
     t = wp.tid()
-    cell, fx, gvel, Ag = no_payload()
+    base, fx, gvel, Ag = no_payload()
     if t < count:
         p = ptcl.order[t]
         a_ext = K.external_accel(p, t_offset, forces)
         p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
-        cell, fx, gvel, Ag = g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, adj_grid_v)
+        base, fx, gvel, Ag = g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, adj_grid_v)
     if binned != 0:
-        adjoint_row_sums(cell, fx, gvel, Ag, step, adj_grid_v)
+        adjoint_row_sums(base, fx, gvel, Ag, step, adj_grid_v)
 
 
 @wp.kernel(enable_backward=False)

@@ -166,6 +166,15 @@ def load_payload(lists: CellLists, q: int):
     return wp.vec3(r0[3], r1[3], r2[3]), load_vec4(lists.pay_mv, q), A
 
 
+NO_CELL = wp.constant(wp.vec3i(-1, 0, 0))  # the stencil base of a lane that adds nothing (warp_row_sums)
+
+
+@wp.func
+def cell_index(b: wp.vec3i, nodes: wp.vec3i) -> int:
+    """Linear index of the cell whose stencil starts at node b (k fastest)."""
+    return (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+
+
 @wp.func
 def particle_payload(
     x: wp.vec3,
@@ -176,19 +185,17 @@ def particle_payload(
     vol: float,
     m: float,
     a_ext: wp.vec3,
-    nu: float,
-    dx: float,
-    dt: float,
-    nodes: wp.vec3i,
+    step: K.StepParams,
 ):
-    """A particle's stencil cell (linear index) and P2G payload: offset fx, (momentum, mass)
+    """A particle's stencil base node (i, j, k) and P2G payload: offset fx, (momentum, mass)
     and the MLS affine matrix A (CellLists' layout)."""
-    inv_dx = 1.0 / dx
-    b = K.stencil_base(x, inv_dx, nodes)
-    lm = K.lame(E, nu)
+    inv_dx = step.inv_dx
+    dt = step.dt
+    b = K.stencil_base(x, inv_dx, step.nodes)
+    lm = E * step.lame_per_E
     tau = K.kirchhoff_stress(F, lm[0], lm[1])
     mv = m * (v + a_ext * dt)
-    return ((b[0] * nodes[1] + b[1]) * nodes[2] + b[2], x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2])),
+    return (b, x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2])),
             wp.vec4(mv[0], mv[1], mv[2], m), m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau)
 
 
@@ -209,7 +216,7 @@ def particle_values(
 ):
     """Particle p's G2P of this substep from s_in, written to `state` (v and C only with
     keep_vc; nothing unless live), or its state read from `state` when do_g2p is 0; then its
-    stencil cell and payload for the next substep's P2G at t_frame + t_offset_next
+    stencil base node and payload for the next substep's P2G at t_frame + t_offset_next
     (particle_payload)."""
     un = wp.vec3(0.0)
     vel = wp.vec3(0.0)
@@ -230,8 +237,7 @@ def particle_values(
         Cn = state.C[p]
         Gn = state.G[p]
     return particle_payload(ptcl.base[p] + un, vel, Cn, K.deformation_gradient(Gn), ptcl.E[p], ptcl.volume[p],
-                            ptcl.mass[p], K.external_accel(p, t_offset_next, forces), step.nu, step.dx, step.dt,
-                            step.nodes)
+                            ptcl.mass[p], K.external_accel(p, t_offset_next, forces), step)
 
 
 @wp.kernel(enable_backward=False)
@@ -261,9 +267,9 @@ def g2p_bin(
     back (H100: 26.1 to 20.3 us at 100k particles / 64^3, 28.8 to 20.6 us on the thin
     plant's 118,626)."""
     p = wp.tid()
-    cell, fx, mv, A = particle_values(do_g2p, keep_vc, True, p, ptcl, s_in, state, step, forces, t_offset_next,
-                                      grid_v, stats)
-    lists.cell[p] = cell
+    b, fx, mv, A = particle_values(do_g2p, keep_vc, True, p, ptcl, s_in, state, step, forces, t_offset_next,
+                                   grid_v, stats)
+    lists.cell[p] = cell_index(b, step.nodes)
     store_payload(lists, p, fx, mv, A)
 
 
@@ -486,8 +492,8 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
 # p2g_chunks inside one warp, from shared memory, for the one-launch G2P + P2G
 # (g2p2g_rows): each lane stashes its particle's payload and stencil cell (as a linear
-# index and as node indices, split once here: integer divisions at each add cost more than
-# the add), then 27 lanes, three groups of nine, each sum one row of three stencil nodes
+# index and as node indices: integer divisions at each add cost more than the add, and
+# splitting the index once a lane cost three), then 27 lanes, three groups of nine, each sum one row of three stencil nodes
 # over a third of the warp's particles (10, 11, 11), adding at each change of cell. A lane
 # a node over all 32 particles (no divergent adds) measured slower: a node's share alone
 # costs more arithmetic than in a row of three (docs/simulator.md, tried).
@@ -496,10 +502,9 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 # are ROWS_BLOCK threads (the shared arrays' size). The CPU runs one thread at a time and
 # scatters its particle.
 _WARP_ROW_SUMS = """
-    // the cell's node indices (cell -1: adds nothing)
-    const int ck = cell >= 0 ? cell % nodes[2] : 0;
-    const int cj = cell >= 0 ? (cell / nodes[2]) % nodes[1] : 0;
-    const int ci = cell >= 0 ? cell / (nodes[1] * nodes[2]) : 0;
+    // the stencil's base node, and the cell's linear index that tells cells apart (-1: adds nothing)
+    const int ci = base[0], cj = base[1], ck = base[2];
+    const int cell = ci >= 0 ? (ci * nodes[1] + cj) * nodes[2] + ck : -1;
 #if defined(__CUDA_ARCH__)
     __shared__ float4 pay[PBLOCK][4];
     __shared__ int4 cells[PBLOCK];
@@ -606,11 +611,11 @@ _WARP_ROW_SUMS = """
 
 
 @wp.func_native(_WARP_ROW_SUMS)
-def warp_row_sums(cell: int, r0: wp.vec4, r1: wp.vec4, r2: wp.vec4, mv: wp.vec4, dx: float, nodes: wp.vec3i,
+def warp_row_sums(base: wp.vec3i, r0: wp.vec4, r1: wp.vec4, r2: wp.vec4, mv: wp.vec4, dx: float, nodes: wp.vec3i,
                   out: wp.array3d(dtype=wp.vec4), blocks: wp.array3d(dtype=int), tag: int):
     """Add the P2G shares of the warp's particles to `out` and tag their activity blocks
-    (unless tag is 0); each lane gives its particle's stencil cell (-1: adds nothing) and
-    payload (store_payload's four vec4s). Untaped kernels only."""
+    (unless tag is 0); each lane gives its particle's stencil base node (NO_CELL: adds
+    nothing) and payload (store_payload's four vec4s). Untaped kernels only."""
     ...
 
 
@@ -638,11 +643,11 @@ def g2p2g_rows(
     threads: lanes past the last particle add nothing but take part in their warp's sums."""
     t = wp.tid()
     live = t < count
-    cell, fx, mv, A = particle_values(do_g2p, keep_vc, live, wp.min(t, count - 1), ptcl, s_in, state, step, forces,
-                                      t_offset_next, grid_v, stats)
+    b, fx, mv, A = particle_values(do_g2p, keep_vc, live, wp.min(t, count - 1), ptcl, s_in, state, step, forces,
+                                   t_offset_next, grid_v, stats)
     if not live:
-        cell = -1
-    warp_row_sums(cell, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]), wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]),
+        b = NO_CELL
+    warp_row_sums(b, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]), wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]),
                   wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]), mv, step.dx, step.nodes, out, blocks, tag)
 
 

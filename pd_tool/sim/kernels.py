@@ -85,15 +85,18 @@ class ParticleVars:
 class StepParams:
     """Grid, material and boundary constants of a substep.
 
-    dx: cell size (m); dt: substep (s); nodes: grid nodes per axis; nu: Poisson's ratio;
-    min_det_f: guard threshold on det F; edge_lo, edge_hi: guard box (m); pad: wall layers
-    (nodes); gravity (m/s^2); damping_factor: exp(-damping dt); use_ground (0/1),
-    ground_z (m); fixed [nodes] int: Dirichlet nodes."""
+    dx: cell size (m); inv_dx: 1 / dx (1/m); dt: substep (s); nodes: grid nodes per axis;
+    lame_per_E: (mu, lambda) / E for the Poisson's ratio (lame_per_e), so that a kernel
+    multiplies where it would divide per particle; min_det_f: guard threshold on det F;
+    edge_lo, edge_hi: guard box (m); pad: wall layers (nodes); gravity (m/s^2);
+    damping_factor: exp(-damping dt); use_ground (0/1), ground_z (m); fixed [nodes] int:
+    Dirichlet nodes."""
 
     dx: float
+    inv_dx: float
     dt: float
     nodes: wp.vec3i
-    nu: float
+    lame_per_E: wp.vec2
     min_det_f: float
     edge_lo: wp.vec3
     edge_hi: wp.vec3
@@ -197,6 +200,11 @@ def lame(E: float, nu: float) -> wp.vec2:
     return wp.vec2(E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)))
 
 
+def lame_per_e(nu: float) -> tuple[float, float]:
+    """(mu, lambda) / E for Poisson's ratio nu, in float64 (StepParams.lame_per_E)."""
+    return 1.0 / (2.0 * (1.0 + nu)), nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+
 # --------------------------------------------------------------------------------------
 # Stencil helpers
 # --------------------------------------------------------------------------------------
@@ -295,18 +303,18 @@ def p2g_scatter(
     vol: float,
     m: float,
     a_ext: wp.vec3,
-    nu: float,
+    lame_per_E: wp.vec2,
     dx: float,
     dt: float,
     nodes: wp.vec3i,
     grid_mmv: wp.array3d(dtype=wp.vec4),
 ):
     """Scatter one particle's MLS momentum (kg m/s) and mass (kg) to its 27 nodes, as
-    (momentum, mass) vec4s."""
+    (momentum, mass) vec4s (lame_per_E: StepParams')."""
     inv_dx = 1.0 / dx
     b = stencil_base(x, inv_dx, nodes)
     fx = x * inv_dx - wp.vec3(float(b[0]), float(b[1]), float(b[2]))
-    lm = lame(E, nu)
+    lm = E * lame_per_E
     tau = kirchhoff_stress(F, lm[0], lm[1])
     affine = m * C - (4.0 * inv_dx * inv_dx * dt * vol) * tau
     mv = m * (v + a_ext * dt)
@@ -340,7 +348,8 @@ def p2g(
     p = ptcl.order[wp.tid()]
     a_ext = external_accel(p, t_offset, forces)
     p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], deformation_gradient(state.G[p]),
-                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
+                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.lame_per_E, step.dx, step.dt, step.nodes,
+                grid_mmv)
 
 
 @wp.func
@@ -417,7 +426,7 @@ def g2p_values(
     as G <- G + dt C (I + G) and u <- u + dt v."""
     dx = step.dx
     dt = step.dt
-    inv_dx = 1.0 / dx
+    inv_dx = step.inv_dx
     up = s_in.u[p]
     x = ptcl.base[p] + up
     Gp = s_in.G[p]
@@ -518,7 +527,8 @@ def g2p_p2g(
     g2p_gather(p, ptcl, state, step, grid_v, state, stats)
     a_ext = external_accel(p, t_offset_next, forces)
     p2g_scatter(ptcl.base[p] + state.u[p], state.v[p], state.C[p], deformation_gradient(state.G[p]),
-                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.nu, step.dx, step.dt, step.nodes, grid_mmv)
+                ptcl.E[p], ptcl.volume[p], ptcl.mass[p], a_ext, step.lame_per_E, step.dx, step.dt, step.nodes,
+                grid_mmv)
 
 
 @wp.kernel(enable_backward=False)

@@ -11,7 +11,7 @@ import warp as wp
 from pd_tool.sim import DiffSim, Force, SimConfig
 from pd_tool.sim import gather
 from pd_tool.sim.adjoint import stress_vjp
-from pd_tool.sim.kernels import kirchhoff_stress, lame, polar_rotation
+from pd_tool.sim.kernels import kirchhoff_stress, lame, lame_per_e, polar_rotation
 
 TOL = 1e-4  # both are float32 sums of the same terms in different orders
 
@@ -94,10 +94,10 @@ def test_stress_vjp_matches_torch_autograd():
     G = rng.normal(0, 1, (n, 3, 3))
 
     @wp.kernel
-    def vjp(F: wp.array(dtype=wp.mat33), E: wp.array(dtype=float), G: wp.array(dtype=wp.mat33),
+    def vjp(F: wp.array(dtype=wp.mat33), E: wp.array(dtype=float), G: wp.array(dtype=wp.mat33), lpe: wp.vec2,
             gF: wp.array(dtype=wp.mat33), gE: wp.array(dtype=float), tau: wp.array(dtype=wp.mat33)):
         p = wp.tid()
-        a, b = stress_vjp(F[p], polar_rotation(F[p]), E[p], 0.3, G[p])
+        a, b = stress_vjp(F[p], polar_rotation(F[p]), E[p], lpe, G[p])
         gF[p] = a
         gE[p] = b
         lm = lame(E[p], 0.3)
@@ -105,7 +105,8 @@ def test_stress_vjp_matches_torch_autograd():
 
     arr = lambda a, t: wp.array(a.astype(np.float32), dtype=t)  # noqa: E731
     gF, gE, tau = wp.zeros(n, dtype=wp.mat33), wp.zeros(n, dtype=float), wp.zeros(n, dtype=wp.mat33)
-    wp.launch(vjp, dim=n, inputs=[arr(F, wp.mat33), arr(E, float), arr(G, wp.mat33), gF, gE, tau])
+    wp.launch(vjp, dim=n, inputs=[arr(F, wp.mat33), arr(E, float), arr(G, wp.mat33), wp.vec2(*lame_per_e(nu)),
+                                  gF, gE, tau])
 
     Ft = torch.tensor(F.astype(np.float32), dtype=torch.float64, requires_grad=True)
     Et = torch.tensor(E.astype(np.float32), dtype=torch.float64, requires_grad=True)
