@@ -491,10 +491,11 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
 
 
 # p2g_chunks inside one warp, from shared memory, for the one-launch G2P + P2G
-# (g2p2g_rows): each lane stashes its particle's payload and stencil cell (as a linear
-# index and as node indices: integer divisions at each add cost more than the add, and
-# splitting the index once a lane cost three), then 27 lanes, three groups of nine, each sum one row of three stencil nodes
-# over a third of the warp's particles (10, 11, 11), adding at each change of cell. A lane
+# (g2p2g_rows): each lane stashes its particle's payload and stencil cell, as the linear
+# index that tells cells apart and as the node indices that the adds address (given, not
+# split from the index: an integer division costs about twenty instructions), then 27
+# lanes, three groups of nine, each sum one row of three stencil nodes over a third of the
+# warp's particles (10, 11, 11), adding at each change of cell. A lane
 # a node over all 32 particles (no divergent adds) measured slower: a node's share alone
 # costs more arithmetic than in a row of three (docs/simulator.md, tried).
 # The payload never goes through global memory and the P2G needs no launch of its own.
