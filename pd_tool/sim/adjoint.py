@@ -37,6 +37,7 @@ from pd_tool.sim.gather import (
     ROWS_BLOCK,
     block_tag,
     block_tagged,
+    grid_threads,
     grid_update_tagged,
     launch_g2p2g_rows,
     red_add_vec4,
@@ -330,9 +331,13 @@ def grid_adjoint(
     nodes all get mass, except where a B-spline factor and its derivative are both 0).
     Most nodes are empty and the stored grids are cold in the cache, so this cut the kernel
     from 20.2 to 11.3 us at 100k / 64^3 and from 163 to 36 us at 300k / 128^3 (H200,
-    docs/gpu-runs/vec4_reduction_{100k,300k}_h200.json)."""
-    i, j, k = wp.tid()
+    docs/gpu-runs/vec4_reduction_{100k,300k}_h200.json). One thread a node over a 1-D
+    launch of gather.grid_threads (kernels.node_of)."""
     nodes = step.nodes
+    n = K.node_of(wp.tid(), nodes, step.inv_nodes)
+    i = n[0]
+    j = n[1]
+    k = n[2]
     pad = step.pad
     if binned != 0 and not block_tagged(blocks, tag, i, j, k):
         return
@@ -399,7 +404,7 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, binned
                       grids[0].blocks, block_tag(k0, 0))
     for i in range(count):
         g = grids[i]
-        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev,
+        wp.launch(grid_update_tagged, dim=grid_threads(geo), device=dev,
                   inputs=[step, g.mmv, g.v, 0, g.blocks, block_tag(k0, i)])
         if i < count - 1:
             # G2P of substep i into state i + 1, then its P2G into grid i + 1
@@ -433,7 +438,7 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
         int(binned), n, ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, adj_gv])
     for i in range(last, -1, -1):
         s, g = states[i], grids[i]
-        wp.launch(grid_adjoint, dim=geo.nodes, device=dev,
+        wp.launch(grid_adjoint, dim=grid_threads(geo), device=dev,
                   inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), g.blocks, block_tag(k0, i)])
         t_offset = float((k0 + i) * dt)
         if i > 0:

@@ -416,13 +416,22 @@ def grid_update_tagged(
 ):
     """The grid update of the nodes in blocks tagged `tag`, which, with clear_grid (the
     fast path), also zeroes mass and momentum for the next P2G; the backward's recompute
-    keeps them (its adjoint reads them)."""
-    i, j, k = wp.tid()
+    keeps them (its adjoint reads them). One thread a node over a 1-D launch of
+    grid_threads (kernels.node_of)."""
+    n = K.node_of(wp.tid(), step.nodes, step.inv_nodes)
+    i = n[0]
+    j = n[1]
+    k = n[2]
     if not block_tagged(blocks, tag, i, j, k):
         return
     grid_v[i, j, k] = K.node_velocity(grid_mmv[i, j, k], i, j, k, step)
     if clear_grid != 0:
         grid_mmv[i, j, k] = wp.vec4(0.0)
+
+
+def grid_threads(geo) -> int:
+    """Threads of a 1-D launch over every node of `geo` (grid_update_tagged, grid_adjoint)."""
+    return int(np.prod(geo.nodes))
 
 
 def block_tag(k0: int, i: int) -> int:
@@ -481,7 +490,7 @@ def run_substeps_binned(ctx, n: int, dt: float, st, g, lists: CellLists) -> None
         tag = block_tag(0, s)
         wp.launch(p2g_chunks, dim=chunk_threads(count), device=dev, block_dim=CELL_BLOCK,
                   inputs=[lists, dx, nodes, g.mmv, g.blocks, tag])
-        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v, 1, g.blocks, tag])
+        wp.launch(grid_update_tagged, dim=grid_threads(geo), device=dev, inputs=[step, g.mmv, g.v, 1, g.blocks, tag])
         if s < n - 1:
             bin_particles(1, (s + 1) * dt)
         else:
@@ -675,7 +684,7 @@ def run_substeps_rows(ctx, n: int, dt: float, st, g) -> None:
     g.mmv.zero_()
     launch_g2p2g_rows(ctx, 0, 0, sv, sv, step, 0.0, g.v, g.mmv, g.blocks, block_tag(0, 0))
     for s in range(n):
-        wp.launch(grid_update_tagged, dim=geo.nodes, device=dev,
+        wp.launch(grid_update_tagged, dim=grid_threads(geo), device=dev,
                   inputs=[step, g.mmv, g.v, 1, g.blocks, block_tag(0, s)])
         if s < n - 1:
             launch_g2p2g_rows(ctx, 1, 0, sv, sv, step, (s + 1) * dt, g.v, g.mmv, g.blocks, block_tag(0, s + 1))

@@ -86,7 +86,7 @@ class StepParams:
     """Grid, material and boundary constants of a substep.
 
     dx: cell size (m); inv_dx: 1 / dx (1/m); dt: substep (s); nodes: grid nodes per axis;
-    lame_per_E: (mu, lambda) / E for the Poisson's ratio (lame_per_e), so that a kernel
+    inv_nodes: their reciprocals (node_of); lame_per_E: (mu, lambda) / E for the Poisson's ratio (lame_per_e), so that a kernel
     multiplies where it would divide per particle; min_det_f: guard threshold on det F;
     edge_lo, edge_hi: guard box (m); pad: wall layers (nodes); gravity (m/s^2);
     damping_factor: exp(-damping dt); use_ground (0/1), ground_z (m); fixed [nodes] int:
@@ -96,6 +96,7 @@ class StepParams:
     inv_dx: float
     dt: float
     nodes: wp.vec3i
+    inv_nodes: wp.vec3
     lame_per_E: wp.vec2
     min_det_f: float
     edge_lo: wp.vec3
@@ -208,6 +209,38 @@ def lame_per_e(nu: float) -> tuple[float, float]:
 # --------------------------------------------------------------------------------------
 # Stencil helpers
 # --------------------------------------------------------------------------------------
+# The grid kernels run one thread a node over a 1-D launch and find the node here: warp's
+# 3-D thread index divides by the launch's shape at run time, and an integer division by a
+# run-time value costs about twenty instructions on a GPU, paid by every node's thread.
+MAX_NODE_ROWS = 1 << 22  # nodes[0] * nodes[1] below this keeps node_of exact (GridGeometry checks it)
+
+
+@wp.func
+def split_index(t: int, n: int, inv_n: float) -> wp.vec2i:
+    """(t // n, t % n) for t >= 0 with t // n < MAX_NODE_ROWS, n >= 1, inv_n = float32(1 / n).
+
+    The float product is within 3 2^-24 of t / n relative, under 1 absolutely below
+    MAX_NODE_ROWS, so its truncation is the quotient or one off, which the remainder's
+    sign corrects."""
+    q = int(float(t) * inv_n)
+    r = t - q * n
+    if r < 0:
+        q -= 1
+        r += n
+    elif r >= n:
+        q += 1
+        r -= n
+    return wp.vec2i(q, r)
+
+
+@wp.func
+def node_of(t: int, nodes: wp.vec3i, inv_nodes: wp.vec3) -> wp.vec3i:
+    """Node (i, j, k) of linear index t = (i nodes[1] + j) nodes[2] + k."""
+    ij_k = split_index(t, nodes[2], inv_nodes[2])
+    i_j = split_index(ij_k[0], nodes[1], inv_nodes[1])
+    return wp.vec3i(i_j[0], i_j[1], ij_k[1])
+
+
 @wp.func
 def stencil_base(x: wp.vec3, inv_dx: float, nodes: wp.vec3i) -> wp.vec3i:
     """Lowest node of the 3x3x3 stencil, clamped so that a runaway (even NaN) particle

@@ -132,6 +132,10 @@ class GridGeometry:
     def from_config(cls, cfg: SimConfig) -> "GridGeometry":
         dx = max(cfg.domain) / cfg.grid_res
         cells = tuple(max(4, int(math.ceil(L / dx - 1e-6))) for L in cfg.domain)
+        if (cells[0] + 1) * (cells[1] + 1) >= K.MAX_NODE_ROWS:
+            raise SimConfigError(f"SimConfig.grid_res={cfg.grid_res} gives {cells[0]} x {cells[1]} cells across x and "
+                                 f"y, more than the grid kernels index ({K.MAX_NODE_ROWS:,} nodes in a z layer); "
+                                 "use a coarser grid")
         return cls(dx=dx, cells=cells, pad=cfg.boundary_pad)
 
     @property
@@ -299,6 +303,7 @@ class SubstepContext:
             # 1 / dx as a float32 division, as a kernel's 1.0 / dx gives it: the same stencil cells everywhere
             sp.dx, sp.inv_dx = float(geo.dx), float(np.float32(1.0) / np.float32(geo.dx))
             sp.dt, sp.nodes = float(dt), geo.nodes_vec
+            sp.inv_nodes = wp.vec3(*(float(np.float32(1.0) / np.float32(n)) for n in geo.nodes))
             sp.lame_per_E, sp.min_det_f = wp.vec2(*K.lame_per_e(float(cfg.nu))), float(cfg.min_det_f)
             sp.edge_lo, sp.edge_hi = geo.edge_lo, geo.edge_hi
             sp.pad, sp.gravity = int(geo.pad), wp.vec3(*cfg.gravity)

@@ -12,6 +12,7 @@ import pytest
 import warp as wp
 
 from pd_tool.sim import MPMSolver, SimConfig
+from pd_tool.sim import kernels as K
 from pd_tool.sim.gather import CHUNK, red_add_vec4
 
 
@@ -116,3 +117,42 @@ def test_gather_follows_a_block_across_activity_blocks(device: str) -> None:
     for a, b in zip(*outs):
         assert np.all(np.isfinite(b))
         assert np.abs(a - b).max() <= 2e-5 * max(float(np.abs(a).max()), 1e-3) + 1e-7
+
+
+@wp.kernel
+def _nodes_of(t: wp.array(dtype=int), nodes: wp.vec3i, inv_nodes: wp.vec3, out: wp.array(dtype=wp.vec3i)):
+    p = wp.tid()
+    out[p] = K.node_of(t[p], nodes, inv_nodes)
+
+
+@pytest.mark.parametrize("nodes", [(5, 7, 3), (65, 65, 65), (129, 97, 1), (3, 2047, 2049), (2047, 2047, 3),
+                                   (1, 1, 4_000_000)])
+def test_node_of_unravels_every_index_the_grid_kernels_launch(nodes: tuple[int, int, int]) -> None:
+    """kernels.node_of (the grid kernels' 1-D launch) against numpy's unravel_index: every
+    index of small grids; on large ones the first and last indices, both sides of every
+    multiple of nodes[2] and nodes[1] nodes[2] sampled, and random ones, up to the widest
+    x-y layer GridGeometry allows."""
+    nx, ny, nz = nodes
+    total = nx * ny * nz
+    rng = np.random.default_rng(1)
+    if total <= 300_000:
+        t = np.arange(total)
+    else:
+        rows = rng.integers(0, nx * ny, 4000) + 1
+        layers = (rng.integers(0, nx, 1000) + 1) * ny
+        t = np.concatenate([[0, 1, total - 2, total - 1], rows * nz - 1, rows * nz, layers * nz - 1, layers * nz,
+                            rng.integers(0, total, 20_000)])
+    t = np.unique(np.clip(t, 0, total - 1)).astype(np.int32)
+    inv = wp.vec3(*(float(np.float32(1.0) / np.float32(n)) for n in nodes))
+    out = wp.zeros(len(t), dtype=wp.vec3i)
+    wp.launch(_nodes_of, dim=len(t), inputs=[wp.array(t, dtype=int), wp.vec3i(*nodes), inv, out])
+    np.testing.assert_array_equal(out.numpy(), np.stack(np.unravel_index(t, nodes), axis=1))
+
+
+def test_a_grid_wider_than_the_node_index_allows_is_refused() -> None:
+    from pd_tool.sim import SimConfigError
+    from pd_tool.sim.solver import GridGeometry
+
+    with pytest.raises(SimConfigError, match="coarser grid"):
+        GridGeometry.from_config(SimConfig(grid_res=2048, domain=(1.0, 1.0, 0.01)))
+    assert GridGeometry.from_config(SimConfig(grid_res=2040, domain=(1.0, 1.0, 0.01))).nodes[:2] == (2041, 2041)
