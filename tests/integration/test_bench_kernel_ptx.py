@@ -48,9 +48,10 @@ def test_the_binned_kernels_compile_for_hopper_with_their_vector_reduction(shipp
     rows_kernel = rows["gather.g2p2g_rows"]
     assert rows_kernel["global_loads"] >= 81
     assert rows_kernel["atomics"] == 6
-    # the polar step's three (1 / det, the Frobenius ratio, 1 / g) and warp's 64-bit index
-    # division with its 32-bit path: no division per matrix entry, none by the particle's
-    # mass or the cell size, no stencil cell split into node indices
+    # the polar step's three (1 / det, the Frobenius ratio, 1 / g) and warp's launch-index
+    # division (64-bit, with a 32-bit path) behind a branch these launches do not take: no
+    # division per matrix entry, none by the Lame factors or the cell size, no stencil cell
+    # split into node indices
     assert rows_kernel["divisions"] <= 5
     assert all(r["instructions"] > 0 for r in rows.values())
     assert sorted(p.name for p in cwd.iterdir()) == ["ptx.json"]
