@@ -170,12 +170,6 @@ NO_CELL = wp.constant(wp.vec3i(-1, 0, 0))  # the stencil base of a lane that add
 
 
 @wp.func
-def cell_index(b: wp.vec3i, nodes: wp.vec3i) -> int:
-    """Linear index of the cell whose stencil starts at node b (k fastest)."""
-    return (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
-
-
-@wp.func
 def particle_payload(
     x: wp.vec3,
     v: wp.vec3,
@@ -269,7 +263,7 @@ def g2p_bin(
     p = wp.tid()
     b, fx, mv, A = particle_values(do_g2p, keep_vc, True, p, ptcl, s_in, state, step, forces, t_offset_next,
                                    grid_v, stats)
-    lists.cell[p] = cell_index(b, step.nodes)
+    lists.cell[p] = K.cell_index(b, step.nodes)
     store_payload(lists, p, fx, mv, A)
 
 
@@ -525,7 +519,7 @@ _WARP_ROW_SUMS = """
     pay[t][1] = make_float4(r1[0], r1[1], r1[2], r1[3]);
     pay[t][2] = make_float4(r2[0], r2[1], r2[2], r2[3]);
     pay[t][3] = make_float4(mv[0], mv[1], mv[2], mv[3]);
-    cells[t] = make_int4(cell >= 0 ? cell : -1, ci, cj, ck);
+    cells[t] = make_int4(cell, ci, cj, ck);
     __syncwarp();
     if (lane < 27) {
         const int g = lane / 9;

@@ -23,6 +23,7 @@ Conventions shared by every kernel:
 """
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 # Stats slots written by the kernels and read once per frame by the guard (solver.py).
@@ -86,8 +87,9 @@ class StepParams:
     """Grid, material and boundary constants of a substep.
 
     dx: cell size (m); inv_dx: 1 / dx (1/m); dt: substep (s); nodes: grid nodes per axis;
-    inv_nodes: their reciprocals (node_of); lame_per_E: (mu, lambda) / E for the Poisson's ratio (lame_per_e), so that a kernel
-    multiplies where it would divide per particle; min_det_f: guard threshold on det F;
+    inv_nodes: their reciprocals (node_of); lame_per_E: (mu, lambda) / E for the Poisson's
+    ratio (lame_per_e), so that a kernel multiplies where it would divide per particle;
+    min_det_f: guard threshold on det F;
     edge_lo, edge_hi: guard box (m); pad: wall layers (nodes); gravity (m/s^2);
     damping_factor: exp(-damping dt); use_ground (0/1), ground_z (m); fixed [nodes] int:
     Dirichlet nodes."""
@@ -206,6 +208,12 @@ def lame_per_e(nu: float) -> tuple[float, float]:
     return 1.0 / (2.0 * (1.0 + nu)), nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
 
+def reciprocal_f32(x: float) -> float:
+    """1 / x as a float32 division, the value a kernel's 1.0 / x gives (StepParams.inv_dx,
+    inv_nodes): host and kernels then find the same stencil cells and nodes."""
+    return float(np.float32(1.0) / np.float32(x))
+
+
 # --------------------------------------------------------------------------------------
 # Stencil helpers
 # --------------------------------------------------------------------------------------
@@ -239,6 +247,12 @@ def node_of(t: int, nodes: wp.vec3i, inv_nodes: wp.vec3) -> wp.vec3i:
     ij_k = split_index(t, nodes[2], inv_nodes[2])
     i_j = split_index(ij_k[0], nodes[1], inv_nodes[1])
     return wp.vec3i(i_j[0], i_j[1], ij_k[1])
+
+
+@wp.func
+def cell_index(b: wp.vec3i, nodes: wp.vec3i) -> int:
+    """Linear index of the cell whose stencil starts at node b (k fastest)."""
+    return (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
 
 
 @wp.func
@@ -296,8 +310,7 @@ def cell_keys(
 ):
     """Linear stencil-base cell of every particle, the key for sorting by cell."""
     p = wp.tid()
-    b = stencil_base(base[p] + u[p], inv_dx, nodes)
-    keys[p] = (b[0] * nodes[1] + b[1]) * nodes[2] + b[2]
+    keys[p] = cell_index(stencil_base(base[p] + u[p], inv_dx, nodes), nodes)
     values[p] = p
 
 

@@ -300,10 +300,9 @@ class SubstepContext:
         if sp is None:
             geo, cfg = self.geo, self.cfg
             sp = K.StepParams()
-            # 1 / dx as a float32 division, as a kernel's 1.0 / dx gives it: the same stencil cells everywhere
-            sp.dx, sp.inv_dx = float(geo.dx), float(np.float32(1.0) / np.float32(geo.dx))
+            sp.dx, sp.inv_dx = float(geo.dx), K.reciprocal_f32(geo.dx)
             sp.dt, sp.nodes = float(dt), geo.nodes_vec
-            sp.inv_nodes = wp.vec3(*(float(np.float32(1.0) / np.float32(n)) for n in geo.nodes))
+            sp.inv_nodes = wp.vec3(*(K.reciprocal_f32(n) for n in geo.nodes))
             sp.lame_per_E, sp.min_det_f = wp.vec2(*K.lame_per_e(float(cfg.nu))), float(cfg.min_det_f)
             sp.edge_lo, sp.edge_hi = geo.edge_lo, geo.edge_hi
             sp.pad, sp.gravity = int(geo.pad), wp.vec3(*cfg.gravity)

@@ -143,7 +143,7 @@ def test_node_of_unravels_every_index_the_grid_kernels_launch(nodes: tuple[int, 
         t = np.concatenate([[0, 1, total - 2, total - 1], rows * nz - 1, rows * nz, layers * nz - 1, layers * nz,
                             rng.integers(0, total, 20_000)])
     t = np.unique(np.clip(t, 0, total - 1)).astype(np.int32)
-    inv = wp.vec3(*(float(np.float32(1.0) / np.float32(n)) for n in nodes))
+    inv = wp.vec3(*(K.reciprocal_f32(n) for n in nodes))
     out = wp.zeros(len(t), dtype=wp.vec3i)
     wp.launch(_nodes_of, dim=len(t), inputs=[wp.array(t, dtype=int), wp.vec3i(*nodes), inv, out])
     np.testing.assert_array_equal(out.numpy(), np.stack(np.unravel_index(t, nodes), axis=1))
