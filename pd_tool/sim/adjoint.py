@@ -39,7 +39,7 @@ from pd_tool.sim.gather import (
     block_tagged,
     grid_threads,
     grid_update_tagged,
-    launch_g2p2g_rows,
+    launch_g2p2g_stored,
     red_add_vec4,
     rows_threads,
     warp_row_sums,
@@ -240,19 +240,21 @@ def g2p_adjoint(
     binned: int,
     count: int,
     ptcl: K.Particles,
-    s: K.ParticleVars,
-    s_next: K.ParticleVars,
+    states: wp.array(dtype=wp.uint64),
+    row: int,
     step: K.StepParams,
     grid_v: wp.array3d(dtype=wp.vec3),
     adj: K.ParticleVars,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """g2p_adjoint_particle for each of the count particles (the last substep of a
-    segment). binned: launched over whole warps (gather.rows_threads), the warp sums the
-    grid-velocity cotangents (adjoint_row_sums)."""
+    """g2p_adjoint_particle for each of the count particles from stored state `row` to
+    row + 1 (the last substep of a segment). binned: launched over whole warps
+    (gather.rows_threads), the warp sums the grid-velocity cotangents (adjoint_row_sums)."""
     t = wp.tid()
     base, fx, gvel, Ag = no_payload()
     if t < count:
+        s = K.stored_state(states, row, count)
+        s_next = K.stored_state(states, row + 1, count)
         base, fx, gvel, Ag = g2p_adjoint_particle(ptcl.order[t], binned, ptcl, s, s_next, step, grid_v, adj,
                                                   adj_grid_v)
     if binned != 0:
@@ -262,7 +264,8 @@ def g2p_adjoint(
 @wp.kernel(enable_backward=False)
 def p2g_adjoint(
     ptcl: K.Particles,
-    s: K.ParticleVars,
+    states: wp.array(dtype=wp.uint64),
+    row: int,
     step: K.StepParams,
     forces: K.Forces,
     t_offset: float,
@@ -270,18 +273,18 @@ def p2g_adjoint(
     adj: K.ParticleVars,
     adj_E: wp.array(dtype=float),
 ):
-    """p2g_adjoint_particle for every particle (the first substep of a segment, at
-    t_frame + t_offset s)."""
+    """p2g_adjoint_particle for every particle from stored state `row` (the first substep
+    of a segment, at t_frame + t_offset s)."""
     p = ptcl.order[wp.tid()]
     a_ext = K.external_accel(p, t_offset, forces)
-    p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
+    p2g_adjoint_particle(p, ptcl, K.stored_state(states, row, adj.u.shape[0]), step, a_ext, adj_mmv, adj, adj_E)
 
 
 @wp.kernel(enable_backward=False)
 def p2g_g2p_adjoint(
     ptcl: K.Particles,
-    s: K.ParticleVars,
-    s_prev: K.ParticleVars,
+    states: wp.array(dtype=wp.uint64),
+    row: int,
     step: K.StepParams,
     forces: K.Forces,
     t_offset: float,
@@ -293,14 +296,17 @@ def p2g_g2p_adjoint(
     count: int,
     adj_grid_v: wp.array3d(dtype=wp.vec4),
 ):
-    """The P2G adjoint of substep s (state s, at t_frame + t_offset) fused with the G2P
-    adjoint of substep s - 1 (state s_prev, its grid velocity grid_v_prev): each thread owns
-    its particle's cotangents, so the second reads what the first wrote, and the cotangents
-    are read and written once instead of twice. binned as in g2p_adjoint."""
+    """The P2G adjoint of a substep (stored state `row`, at t_frame + t_offset) fused with
+    the G2P adjoint of the substep before (state row - 1, its grid velocity grid_v_prev):
+    each thread owns its particle's cotangents, so the second reads what the first wrote,
+    and the cotangents are read and written once instead of twice. binned as in
+    g2p_adjoint."""
     t = wp.tid()
     base, fx, gvel, Ag = no_payload()
     if t < count:
         p = ptcl.order[t]
+        s = K.stored_state(states, row, count)
+        s_prev = K.stored_state(states, row - 1, count)
         a_ext = K.external_accel(p, t_offset, forces)
         p2g_adjoint_particle(p, ptcl, s, step, a_ext, adj_mmv, adj, adj_E)
         base, fx, gvel, Ag = g2p_adjoint_particle(p, binned, ptcl, s_prev, s, step, grid_v_prev, adj, adj_grid_v)
@@ -374,34 +380,31 @@ def grid_adjoint(
 # --------------------------------------------------------------------------------------
 # Launchers
 # --------------------------------------------------------------------------------------
-def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, binned: bool) -> None:
-    """Forward substeps k0 .. k0 + len(grids) - 1 from states[0], writing every later state
-    to states[1:] and keeping each substep's grid mass, momentum and velocity in grids.
+def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, binned: bool,
+                      table: wp.array | None = None) -> None:
+    """Forward substeps k0 .. k0 + len(grids) - 1 from the segment's first state, writing
+    every later state and keeping each substep's grid mass, momentum and velocity in grids.
 
     binned (CUDA): as the fast path, each G2P and the next substep's P2G in one launch
-    (gather.g2p2g_rows with separate input and output states); otherwise the atomic scatter
-    P2G."""
+    (gather.g2p2g_rows_stored), over the states whose table (kernels.state_table) is
+    `table`, rows 0 .. len(grids); otherwise the atomic scatter P2G over `states`
+    (ParticleStates)."""
     geo, dev = ctx.geo, ctx.device
     ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
-    n = states[0].u.shape[0]
+    n = ctx.base.shape[0]
     count = len(grids)
     # grids arrive with zero mass and momentum: adjoint_segment's grid_adjoint leaves them so
-
-    def g2p_into(i: int) -> None:
-        wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-            ptcl, states[i].struct, step, grids[i].v, states[i + 1].struct, ctx.stats])
-
     if not binned:
         for i in range(count):
             g = grids[i]
             wp.launch(K.p2g, dim=n, device=dev, inputs=[
                 ptcl, states[i].struct, step, forces, float((k0 + i) * dt), g.mmv])
             wp.launch(K.grid_update, dim=geo.nodes, device=dev, inputs=[step, g.mmv, g.v])
-            g2p_into(i)
+            wp.launch(K.g2p, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+                ptcl, states[i].struct, step, g.v, states[i + 1].struct, ctx.stats])
         return
 
-    launch_g2p2g_rows(ctx, 0, 0, states[0].struct, states[0].struct, step, k0 * dt, grids[0].v, grids[0].mmv,
-                      grids[0].blocks, block_tag(k0, 0))
+    launch_g2p2g_stored(ctx, 0, table, 0, step, k0 * dt, grids[0].v, grids[0].mmv, grids[0].blocks, block_tag(k0, 0))
     for i in range(count):
         g = grids[i]
         wp.launch(grid_update_tagged, dim=grid_threads(geo), device=dev,
@@ -409,25 +412,28 @@ def recompute_segment(ctx, dt: float, k0: int, states: list, grids: list, binned
         if i < count - 1:
             # G2P of substep i into state i + 1, then its P2G into grid i + 1
             nxt = grids[i + 1]
-            launch_g2p2g_rows(ctx, 1, 1, states[i].struct, states[i + 1].struct, step, (k0 + i + 1) * dt, g.v,
-                              nxt.mmv, nxt.blocks, block_tag(k0, i + 1))
+            launch_g2p2g_stored(ctx, 1, table, i + 1, step, (k0 + i + 1) * dt, g.v, nxt.mmv, nxt.blocks,
+                                block_tag(k0, i + 1))
         else:
-            g2p_into(i)
+            wp.launch(K.g2p_stored, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
+                ptcl, table, i, step, g.v, ctx.stats])
 
 
-def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj_grid, binned: bool) -> None:
+def adjoint_segment(ctx, dt: float, k0: int, states: wp.array, grids: list, adj, adj_grid, binned: bool) -> None:
     """Reverse of substeps k0 .. k0 + len(grids) - 1 (forward values from recompute_segment):
     adj (u, v, C, F cotangents of the segment's last state as a ParticleState, plus E's
-    running sum [N] float) becomes the cotangents of states[0], in place.
+    running sum [N] float) becomes the cotangents of the segment's first state, in place.
 
-    adj_grid = (adj_grid_v, adj_mmv), vec4 arrays (adj_grid_v's w unused): adj_grid_v must
-    be zero on entry and is left zero; so are the grids' momentum and mass on exit (ready
-    for the next recompute). binned: each warp sums the grid-velocity cotangents of its
-    particles before one reduction a node (CUDA) instead of atomics a particle."""
+    states: the table (kernels.state_table) of the segment's len(grids) + 1 stored states, rows
+    0 .. len(grids). adj_grid = (adj_grid_v, adj_mmv), vec4 arrays (adj_grid_v's w unused):
+    adj_grid_v must be zero on entry and is left zero; so are the grids' momentum and mass
+    on exit (ready for the next recompute). binned: each warp sums the grid-velocity
+    cotangents of its particles before one reduction a node (CUDA) instead of atomics a
+    particle."""
     geo, dev = ctx.geo, ctx.device
     ptcl, step, forces = ctx.particles(), ctx.step(dt), ctx.forces_struct()
-    n = states[0].u.shape[0]
     adj_state, adj_E = adj
+    n = adj_state.u.shape[0]
     adj_s = adj_state.struct
     adj_gv, adj_mmv = adj_grid
     count = len(grids)
@@ -435,16 +441,16 @@ def adjoint_segment(ctx, dt: float, k0: int, states: list, grids: list, adj, adj
     threads = rows_threads(n) if binned else n
     # ROWS_BLOCK: warp_row_sums' shared arrays are sized for it
     wp.launch(g2p_adjoint, dim=threads, device=dev, block_dim=ROWS_BLOCK, inputs=[
-        int(binned), n, ptcl, states[last].struct, states[count].struct, step, grids[last].v, adj_s, adj_gv])
+        int(binned), n, ptcl, states, last, step, grids[last].v, adj_s, adj_gv])
     for i in range(last, -1, -1):
-        s, g = states[i], grids[i]
+        g = grids[i]
         wp.launch(grid_adjoint, dim=grid_threads(geo), device=dev,
                   inputs=[step, g.mmv, adj_gv, adj_mmv, int(binned), g.blocks, block_tag(k0, i)])
         t_offset = float((k0 + i) * dt)
         if i > 0:
             wp.launch(p2g_g2p_adjoint, dim=threads, device=dev, block_dim=ROWS_BLOCK, inputs=[
-                ptcl, s.struct, states[i - 1].struct, step, forces, t_offset, grids[i - 1].v, adj_mmv, adj_s, adj_E,
+                ptcl, states, i, step, forces, t_offset, grids[i - 1].v, adj_mmv, adj_s, adj_E,
                 int(binned), n, adj_gv])
         else:
             wp.launch(p2g_adjoint, dim=n, device=dev, block_dim=PARTICLE_BLOCK, inputs=[
-                ptcl, s.struct, step, forces, t_offset, adj_mmv, adj_s, adj_E])
+                ptcl, states, 0, step, forces, t_offset, adj_mmv, adj_s, adj_E])

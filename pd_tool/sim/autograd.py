@@ -115,6 +115,14 @@ class _Substeps:
         self.fields += [wp.zeros((count, *geo.nodes), dtype=t, device=device) for t in (wp.vec4, wp.vec3)]
         self.fields.append(wp.zeros((count, *block_shape(geo.nodes)), dtype=int, device=device))
         self._views = None
+        self._table = None
+
+    @property
+    def table(self) -> wp.array:
+        """The states' base addresses, as the adjoint kernels read them (kernels.state_table)."""
+        if self._table is None:
+            self._table = K.state_table(self.fields)
+        return self._table
 
     @property
     def states(self) -> list[ParticleState]:
@@ -126,13 +134,18 @@ class _Substeps:
 
     def _split(self):
         if self._views is None:
-            u, v, C, G, mmv, gv, blocks = self.fields
-            self._views = ([ParticleState(u[i], v[i], C[i], G[i]) for i in range(self.count + 1)],
-                           [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)])
+            u, v, C, G = self.fields[:4]
+            states = [ParticleState(u[i], v[i], C[i], G[i]) for i in range(self.count + 1)]
+            grids = []
+            if len(self.fields) == 7:  # a packed slot keeps its grids elsewhere (_PackedFrame)
+                mmv, gv, blocks = self.fields[4:]
+                grids = [GridArrays(mmv=mmv[i], v=gv[i], blocks=blocks[i]) for i in range(self.count)]
+            self._views = (states, grids)
         return self._views
 
-    def copy_from(self, other: "_Substeps", substeps: int, tagged: bool = False) -> None:
-        """The first `substeps` substeps of `other` (states 0..substeps, grids 0..substeps-1).
+    def copy_from(self, other: "_Substeps", substeps: int, tagged: bool = False, states: bool = True) -> None:
+        """The first `substeps` substeps of `other` (states 0..substeps unless not `states`,
+        grids 0..substeps-1).
 
         tagged: copy only the grid nodes of the activity blocks that each substep's binned
         P2G tagged (gather.block_tagged, substep i's tag being block_tag(0, i) as a frame's
@@ -141,7 +154,7 @@ class _Substeps:
         substep's grid (59 MB at 300k particles on 128^3) cost what storing the frame saves
         (docs/simulator.md, "Speed")."""
         for k, (dst, src) in enumerate(zip(self.fields, other.fields)):
-            if tagged and k in (4, 5):
+            if (tagged and k in (4, 5)) or (not states and k < 4):
                 continue
             rows = substeps + 1 if k < 4 else substeps
             wp.copy(dst[:rows], src[:rows])
@@ -219,13 +232,15 @@ class _KeptFrame(_Substeps):
         """Whether a frame of `substeps` whose P2G tags about `blocks` blocks in all fits."""
         return self.count >= substeps
 
-    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
-        """The forward's values of a frame run in `pool` (copy_from)."""
-        self.copy_from(pool, substeps, tagged=tagged)
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool, states: bool = True) -> None:
+        """The forward's values of a frame run in `pool` (copy_from): the grids, and the
+        particle states unless the forward wrote them here (`states` False)."""
+        self.copy_from(pool, substeps, tagged=tagged, states=states)
 
-    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
-        """Back into `pool` for the frame's backward."""
-        pool.copy_from(self, substeps, tagged=tagged)
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool, states: bool = True) -> None:
+        """Back into `pool` for the frame's backward: the grids, and the particle states
+        unless the adjoint reads them from this slot (`states` False, through `table`)."""
+        pool.copy_from(self, substeps, tagged=tagged, states=states)
 
 
 # A packed slot's blocks over the most a substep tagged so far (or over what the particles'
@@ -256,6 +271,7 @@ class _PackedFrame(_KeptFrame):
         self.filled_blocks = 0
         self.holds = True
         self._views = None
+        self._table = None
         self.owner = None
 
     @property
@@ -267,10 +283,11 @@ class _PackedFrame(_KeptFrame):
     def fits(self, substeps: int, blocks: int) -> bool:
         return self.count >= substeps and self.blocks >= blocks
 
-    def store_from(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
-        """The particle states and tags of the frame in `pool`, and its tagged blocks packed;
-        reads back how many blocks that was (one sync) and sets `holds`."""
-        for k in range(4):
+    def store_from(self, pool: _Substeps, substeps: int, tagged: bool, states: bool = True) -> None:
+        """The particle states (unless the forward wrote them here: `states` False) and tags
+        of the frame in `pool`, and its tagged blocks packed; reads back how many blocks
+        that was (one sync) and sets `holds`."""
+        for k in range(4 if states else 0):
             wp.copy(self.fields[k][: substeps + 1], pool.fields[k][: substeps + 1])
         wp.copy(self.fields[4][:substeps], pool.fields[6][:substeps])
         self.filled.zero_()
@@ -281,8 +298,8 @@ class _PackedFrame(_KeptFrame):
         self.filled_blocks = int(self.filled.numpy()[0])
         self.holds = self.filled_blocks <= self.blocks
 
-    def load_into(self, pool: _Substeps, substeps: int, tagged: bool) -> None:
-        for k in range(4):
+    def load_into(self, pool: _Substeps, substeps: int, tagged: bool, states: bool = True) -> None:
+        for k in range(4 if states else 0):
             wp.copy(pool.fields[k][: substeps + 1], self.fields[k][: substeps + 1])
         wp.copy(pool.fields[6][:substeps], self.fields[4][:substeps])
         wp.launch(_unpack_blocks, dim=self.blocks, device=self.filled.device,
@@ -601,6 +618,13 @@ class DiffSim:
             pool = self._adj_pool = _Substeps(self.n, self.geo, count, self.device)
         return pool
 
+    def _slot_table(self) -> wp.array:
+        # where the backward's graphs read a stored frame's states: [4] uint64 (kernels.state_table)
+        table = getattr(self, "_slot_tab", None)
+        if table is None:
+            table = self._slot_tab = wp.zeros(4, dtype=wp.uint64, device=self.device)
+        return table
+
     def _adjoint_grid(self) -> tuple[wp.array, wp.array]:
         # the grid cotangents (adj_grid_v, adj_mmv); adj_grid_v starts zeroed and is left zeroed
         grid = getattr(self, "_adj_grid", None)
@@ -855,12 +879,20 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
     fr = _SortedFrame(sim, x, forces)
     buf = fr.buffers
     pooled = kept is not None and sim._pooled()
-    store = kept
+    # binned, the kernels write the states straight into the slot, through the table that
+    # every stored frame copies its slot's addresses into; the grids stay in the pool
+    direct = pooled and sim.binned
+    store, table = kept, None if kept is None else kept.table
     if pooled:
         store = sim._adjoint_pool(substeps)
+        table = store.table
+        if direct:
+            table = sim._slot_table()
+            wp.copy(table, kept.table)
     elif kept is not None:
         kept.zero_mass(substeps)  # the recompute adds to zero mass and momentum
-    st = buf["state"] if kept is None else store.states[0]
+    states = None if kept is None else (kept if direct else store).states
+    st = buf["state"] if kept is None else states[0]
     base, E_sorted = fr.gather_state(x, v, C, F, E, st)
     sctx = fr.context(base, E_sorted, t0)
     buf["stats"].zero_()
@@ -869,18 +901,18 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         if kept is None:
             sim.run_untaped(sctx, substeps, dt, st)
         else:
-            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps], sim.binned)
+            recompute_segment(sctx, dt, 0, store.states[: substeps + 1], store.grids[:substeps], sim.binned, table)
 
     if wp.get_device(dev).is_cuda and sim.cuda_graph:
         sim._run_graphed(("forward", substeps, dt, forces.n, sim.binned, kept is not None), run)
     else:
         run()
-    end = st if kept is None else store.states[substeps]
+    end = st if kept is None else states[substeps]
     wp.launch(_scatter_state, dim=n, device=dev, inputs=[
         fr.order, base, end.u, end.v, end.C, end.G, x_out, v_out, C_out, F_out])
     if pooled:
         # the binned P2G tags what it touches: only those blocks are copied and cleared
-        kept.store_from(store, substeps, tagged=sim.binned)
+        kept.store_from(store, substeps, tagged=sim.binned, states=not direct)
         store.zero_mass(substeps, tagged=sim.binned)  # the next recompute adds to zero
     return sctx.stats
 
@@ -937,10 +969,17 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
     binned = sim.binned
     if kept is not None and not sim._pooled():
         store = kept
+        table = kept.table
     else:
         store = sim._adjoint_pool(min(seg, substeps))
+        table = store.table
         if kept is not None:
-            kept.load_into(store, substeps, tagged=binned)
+            # the grids go back to the pool, whose arrays the graphs captured; the states
+            # are read in the slot, through a table that every slot's frame copies its own
+            # addresses into (so one graph serves them all)
+            kept.load_into(store, substeps, tagged=binned, states=False)
+            table = sim._slot_table()
+            wp.copy(table, kept.table)
     states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
@@ -969,8 +1008,8 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
 
         def segment(k0=k0, k1=k1):
             if kept is None:
-                recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], binned)
-            adjoint_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], (adj_st, buf["adj_E"]),
+                recompute_segment(sctx, dt, k0, states[: k1 - k0 + 1], grids[: k1 - k0], binned, table)
+            adjoint_segment(sctx, dt, k0, table, grids[: k1 - k0], (adj_st, buf["adj_E"]),
                             adj_grid, binned)
 
         if not use_graph:

@@ -645,7 +645,59 @@ def g2p2g_rows(
     of `state` at t_frame + t_offset_next (s) into `out`, tagging the activity blocks with
     `tag` (warp_row_sums). keep_vc as in g2p_bin. Launched over rows_threads(count)
     threads: lanes past the last particle add nothing but take part in their warp's sums."""
+    # the body of g2p2g_lane, written out: called through it, this kernel compiles to 11
+    # more PTX instructions
     t = wp.tid()
+    live = t < count
+    b, fx, mv, A = particle_values(do_g2p, keep_vc, live, wp.min(t, count - 1), ptcl, s_in, state, step, forces,
+                                   t_offset_next, grid_v, stats)
+    if not live:
+        b = NO_CELL
+    warp_row_sums(b, wp.vec4(A[0, 0], A[0, 1], A[0, 2], fx[0]), wp.vec4(A[1, 0], A[1, 1], A[1, 2], fx[1]),
+                  wp.vec4(A[2, 0], A[2, 1], A[2, 2], fx[2]), mv, step.dx, step.nodes, out, blocks, tag)
+
+
+@wp.kernel(enable_backward=False)
+def g2p2g_rows_stored(
+    do_g2p: int,
+    count: int,
+    ptcl: K.Particles,
+    states: wp.array(dtype=wp.uint64),
+    row: int,
+    step: K.StepParams,
+    forces: K.Forces,
+    t_offset_next: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
+    blocks: wp.array3d(dtype=int),
+    tag: int,
+    stats: wp.array(dtype=float),
+):
+    """g2p2g_rows over a stored frame's states (K.stored_state), keeping v and C: G2P from
+    state row - 1 into state `row` (unless do_g2p is 0), then the P2G of state `row`."""
+    g2p2g_lane(wp.tid(), do_g2p, 1, count, ptcl, K.stored_state(states, wp.max(row - 1, 0), count),
+               K.stored_state(states, row, count), step, forces, t_offset_next, grid_v, out, blocks, tag, stats)
+
+
+@wp.func
+def g2p2g_lane(
+    t: int,
+    do_g2p: int,
+    keep_vc: int,
+    count: int,
+    ptcl: K.Particles,
+    s_in: K.ParticleVars,
+    state: K.ParticleVars,
+    step: K.StepParams,
+    forces: K.Forces,
+    t_offset_next: float,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    out: wp.array3d(dtype=wp.vec4),
+    blocks: wp.array3d(dtype=int),
+    tag: int,
+    stats: wp.array(dtype=float),
+):
+    """Lane t of g2p2g_rows (every lane of a warp calls it: the sums are the warp's)."""
     live = t < count
     b, fx, mv, A = particle_values(do_g2p, keep_vc, live, wp.min(t, count - 1), ptcl, s_in, state, step, forces,
                                    t_offset_next, grid_v, stats)
@@ -667,6 +719,15 @@ def launch_g2p2g_rows(ctx, do_g2p: int, keep_vc: int, s_in, state, step, t_offse
     wp.launch(g2p2g_rows, dim=rows_threads(count), device=ctx.device, block_dim=ROWS_BLOCK, inputs=[
         do_g2p, keep_vc, count, ctx.particles(), s_in, state, step, ctx.forces_struct(), float(t_offset), grid_v,
         out, blocks, tag, ctx.stats])
+
+
+def launch_g2p2g_stored(ctx, do_g2p: int, states: wp.array, row: int, step, t_offset: float, grid_v, out, blocks,
+                        tag: int) -> None:
+    """One g2p2g_rows_stored launch (states: a K.state_table; t_offset in s)."""
+    count = ctx.base.shape[0]
+    wp.launch(g2p2g_rows_stored, dim=rows_threads(count), device=ctx.device, block_dim=ROWS_BLOCK, inputs=[
+        do_g2p, count, ctx.particles(), states, row, step, ctx.forces_struct(), float(t_offset), grid_v, out, blocks,
+        tag, ctx.stats])
 
 
 def run_substeps_rows(ctx, n: int, dt: float, st, g) -> None:

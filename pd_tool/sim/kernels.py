@@ -82,6 +82,29 @@ class ParticleVars:
     G: wp.array(dtype=wp.mat33)
 
 
+def state_table(fields: list) -> wp.array:
+    """The base addresses of a frame's stored state arrays (u, v, C, G: [rows, N] each,
+    contiguous), [4] uint64 on their device, for stored_state."""
+    return wp.array(np.array([f.ptr for f in fields[:4]], dtype=np.uint64), dtype=wp.uint64,
+                    device=fields[0].device)
+
+
+@wp.func
+def stored_state(states: wp.array(dtype=wp.uint64), row: int, n: int) -> ParticleVars:
+    """State `row` of a frame's stored substeps: views of row `row` of the [rows, n] arrays
+    u, v, C, G whose base addresses `states` holds (state_table). The differentiable path's
+    kernels read and write a stored frame's states through such a table, not through
+    arrays bound at launch, so that one captured graph serves every slot of stored frames:
+    the table's contents name the slot."""
+    r = wp.uint64(row) * wp.uint64(n)  # 64-bit: rows x N may pass 2^31
+    s = ParticleVars()  # bytes a particle: 12 a vec3, 36 a mat33
+    s.u = wp.array(ptr=states[0] + r * wp.uint64(12), shape=(n,), dtype=wp.vec3)
+    s.v = wp.array(ptr=states[1] + r * wp.uint64(12), shape=(n,), dtype=wp.vec3)
+    s.C = wp.array(ptr=states[2] + r * wp.uint64(36), shape=(n,), dtype=wp.mat33)
+    s.G = wp.array(ptr=states[3] + r * wp.uint64(36), shape=(n,), dtype=wp.mat33)
+    return s
+
+
 @wp.struct
 class StepParams:
     """Grid, material and boundary constants of a substep.
@@ -554,6 +577,22 @@ def g2p(
 
 
 @wp.kernel(enable_backward=False)
+def g2p_stored(
+    ptcl: Particles,
+    states: wp.array(dtype=wp.uint64),
+    row: int,
+    step: StepParams,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    stats: wp.array(dtype=float),
+):
+    """g2p from stored state `row` into row + 1 (stored_state): a stored frame's last
+    substep."""
+    n = ptcl.order.shape[0]
+    g2p_gather(ptcl.order[wp.tid()], ptcl, stored_state(states, row, n), step, grid_v,
+               stored_state(states, row + 1, n), stats)
+
+
+@wp.kernel(enable_backward=False)
 def g2p_p2g(
     ptcl: Particles,
     state: ParticleVars,
@@ -581,19 +620,43 @@ def g2p_p2g(
 def frame_stats(
     v: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
+    stride: int,
     stats: wp.array(dtype=float),
 ):
     """Max speed (m/s) and kinetic energy (J) at the end of a frame, for CFL and rest checks,
-    per lane (see STAT_LANES; guard.fold_stat_lanes folds them)."""
-    p = wp.tid()
-    vp = v[p]
-    s2 = wp.dot(vp, vp)
-    lane = N_STATS + 2 * (p % STAT_LANES)
-    if wp.isfinite(s2):
-        wp.atomic_max(stats, lane, wp.sqrt(s2))
-        wp.atomic_add(stats, lane + 1, 0.5 * mass[p] * s2)
-    else:
-        wp.atomic_add(stats, STAT_NONFINITE, 1.0)
+    per lane (see STAT_LANES; guard.fold_stat_lanes folds them). Thread t folds particles
+    t, t + stride, ... before its two atomics (launch_frame_stats)."""
+    t = wp.tid()
+    vmax = float(0.0)
+    kinetic = float(0.0)
+    bad = float(0.0)
+    p = t
+    while p < v.shape[0]:
+        vp = v[p]
+        s2 = wp.dot(vp, vp)
+        if wp.isfinite(s2):
+            vmax = wp.max(vmax, wp.sqrt(s2))
+            kinetic += 0.5 * mass[p] * s2
+        else:
+            bad += 1.0
+        p += stride
+    lane = N_STATS + 2 * (t % STAT_LANES)
+    wp.atomic_max(stats, lane, vmax)
+    wp.atomic_add(stats, lane + 1, kinetic)
+    if bad > 0.0:
+        wp.atomic_add(stats, STAT_NONFINITE, bad)
+
+
+# frame_stats' threads at most: with one thread a particle, 100k particles sent 200k atomics
+# to the 2 x STAT_LANES lanes; a few thousand threads folding a strided share each send 8k.
+STATS_THREADS = 4096
+
+
+def launch_frame_stats(v: wp.array, mass: wp.array, stats: wp.array, device) -> None:
+    """frame_stats over the particles' velocities v [N] m/s and masses [N] kg, adding into
+    stats (zeroed lanes)."""
+    threads = max(1, min(v.shape[0], STATS_THREADS))
+    wp.launch(frame_stats, dim=threads, device=device, inputs=[v, mass, threads, stats])
 
 
 @wp.kernel

@@ -13,6 +13,7 @@ from pd_tool.sim import MPMSolver, SimConfig, SimConfigError
 from pd_tool.sim import _ref
 from pd_tool.sim import kernels as K
 from pd_tool.sim.cfl import cfl_substeps, wave_speed
+from pd_tool.sim.guard import fold_stat_lanes
 
 # float32 kernels against float64 twins: relative to the largest entry.
 F32_REL = 2e-5  # single kernel
@@ -57,6 +58,26 @@ def sample_F(rng, kind: str, n: int = 6) -> np.ndarray:
 def polar_np(F: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(F)
     return U @ Vt
+
+
+@pytest.mark.parametrize("n", [3, K.STATS_THREADS + 1, 3 * K.STATS_THREADS + 17])
+def test_frame_stats_match_dense_reference(device, n):
+    """Max speed, kinetic energy and non-finite count against numpy in float64, for fewer
+    particles than frame_stats' threads and for several strided shares a thread."""
+    rng = np.random.default_rng(n)
+    v = rng.normal(size=(n, 3)).astype(np.float32)
+    v[n // 2] *= 40.0  # the fastest, in the middle of a thread's share
+    v[1, 0] = np.nan
+    mass = rng.uniform(0.1, 2.0, n).astype(np.float32)
+    stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=device)
+    K.launch_frame_stats(wp.array(v, dtype=wp.vec3, device=device), wp.array(mass, dtype=float, device=device),
+                         stats, device)
+    got = fold_stat_lanes(stats.numpy().copy())
+    ok = np.isfinite(v).all(1)
+    s2 = (v[ok].astype(np.float64) ** 2).sum(1)
+    assert got[K.STAT_NONFINITE] == 1.0
+    assert got[K.STAT_VMAX] == pytest.approx(np.sqrt(s2.max()), rel=1e-6)
+    assert got[K.STAT_KINETIC] == pytest.approx(0.5 * (mass[ok] * s2).sum(), rel=1e-5)
 
 
 @pytest.mark.parametrize("kind", ["identity", "near_degenerate", "random"])
