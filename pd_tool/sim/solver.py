@@ -482,11 +482,7 @@ class MPMSolver:
         self._order = wp.array(np.arange(self.n, dtype=np.int32), dtype=int, device=d)
         self._x = wp.zeros(self.n, dtype=wp.vec3, device=d)
         self._t_frame = wp.zeros(1, dtype=float, device=d)
-        self._t_frame_at: float | None = None  # the time _t_frame holds, once set
         self._stats = wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device=d)
-        # the guard's read-back lands in pinned memory, so the copy queues behind the frame
-        self._stats_host = (wp.zeros(K.N_STATS_WITH_LANES, dtype=float, device="cpu", pinned=True)
-                            if d.is_cuda else None)
         self._fixed = fixed_nodes(self.geo, self._base, self.state.u, self.mat.static, d)
         self._force_arrays = ForceArrays.build([], self.n, d)
         self._rows = self._gather and bool(warp_sums)
@@ -559,9 +555,7 @@ class MPMSolver:
         n = self.substeps_per_frame(frame_dt)
         dt = frame_dt / n
         d = self.device
-        if self._t_frame_at != self.time:
-            self._t_frame.fill_(self.time)
-            self._t_frame_at = self.time
+        self._t_frame.fill_(self.time)
         if d.is_cuda and self._use_graphs:
             key = (n, float(frame_dt))
             graph = self._graphs.get(key)
@@ -582,21 +576,9 @@ class MPMSolver:
         else:
             self._run_substeps(n, dt)
         K.launch_frame_stats(self.state.v, self.mat.mass, self._stats, d)
-        t_next = self.time + frame_dt
-        if d.is_cuda:
-            # Everything the next frame needs from the device is queued behind this frame
-            # before the one wait, so that the GPU idles only while the host checks the
-            # stats and launches the next frame.
-            wp.copy(self._stats_host, self._stats)
-            self._stats.zero_()
-            self._t_frame.fill_(t_next)
-            self._t_frame_at = t_next
-            wp.synchronize_stream(wp.get_stream(d))
-            stats = fold_stat_lanes(self._stats_host.numpy().copy())
-        else:
-            stats = fold_stat_lanes(self._stats.numpy().copy())  # a view: copy before zeroing
-            self._stats.zero_()
-        self.time = t_next
+        stats = fold_stat_lanes(self._stats.numpy().copy())  # on CPU a view: copy before zeroing
+        self._stats.zero_()
+        self.time += frame_dt
         self.frame += 1
         self._kinetic = float(stats[K.STAT_KINETIC])
         self._vmax = float(stats[K.STAT_VMAX])
