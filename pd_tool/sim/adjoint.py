@@ -13,8 +13,10 @@ each stage's adjoint is written out:
 - `p2g_adjoint` (per particle): the P2G's adjoint is a gather (each particle reads its 27
   nodes' cotangents, no atomics), with the stress's vector-Jacobian product written out.
 
-The forward values each adjoint reads (particle state and grid per substep) come from a
-recompute of the segment, stored in a pool reused by every segment and frame. With
+The forward values each adjoint reads (particle state and grid per substep) come from the
+frame's slot, where its forward stored them, or from a recompute of the segment into a pool
+reused by every segment and frame. The kernels reach the states through a table of their
+arrays' addresses (kernels.stored_state), so that one captured graph serves every slot. With
 x = base + u, the position's cotangent flows through u; the frame's start has u = 0, so
 the cotangent of the start position is the cotangent of u at substep 0.
 

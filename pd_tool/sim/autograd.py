@@ -119,7 +119,8 @@ class _Substeps:
 
     @property
     def table(self) -> wp.array:
-        """The states' base addresses, as the adjoint kernels read them (kernels.state_table)."""
+        """The states' base addresses, as the differentiable path's kernels reach them
+        (kernels.state_table)."""
         if self._table is None:
             self._table = K.state_table(self.fields)
         return self._table
@@ -619,7 +620,8 @@ class DiffSim:
         return pool
 
     def _slot_table(self) -> wp.array:
-        # where the backward's graphs read a stored frame's states: [4] uint64 (kernels.state_table)
+        # where the graphs of stored frames reach the frame's states, [4] uint64 (kernels.state_table):
+        # each stored frame's forward and backward copy their slot's table into it
         table = getattr(self, "_slot_tab", None)
         if table is None:
             table = self._slot_tab = wp.zeros(4, dtype=wp.uint64, device=self.device)
