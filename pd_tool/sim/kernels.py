@@ -616,6 +616,12 @@ def g2p_p2g(
                 grid_mmv)
 
 
+# frame_stats' particles a thread: its loads are independent (an unrolled loop), and it
+# sends 2 atomics for them to the 2 x STAT_LANES lanes, where one thread a particle sent
+# 200k at 100k particles.
+STATS_PER_THREAD = 8
+
+
 @wp.kernel(enable_backward=False)
 def frame_stats(
     v: wp.array(dtype=wp.vec3),
@@ -625,21 +631,22 @@ def frame_stats(
 ):
     """Max speed (m/s) and kinetic energy (J) at the end of a frame, for CFL and rest checks,
     per lane (see STAT_LANES; guard.fold_stat_lanes folds them). Thread t folds particles
-    t, t + stride, ... before its two atomics (launch_frame_stats)."""
+    t, t + stride, ..., STATS_PER_THREAD of them, before its two atomics
+    (launch_frame_stats)."""
     t = wp.tid()
     vmax = float(0.0)
     kinetic = float(0.0)
     bad = float(0.0)
-    p = t
-    while p < v.shape[0]:
-        vp = v[p]
-        s2 = wp.dot(vp, vp)
-        if wp.isfinite(s2):
-            vmax = wp.max(vmax, wp.sqrt(s2))
-            kinetic += 0.5 * mass[p] * s2
-        else:
-            bad += 1.0
-        p += stride
+    for j in range(STATS_PER_THREAD):
+        p = t + j * stride
+        if p < v.shape[0]:
+            vp = v[p]
+            s2 = wp.dot(vp, vp)
+            if wp.isfinite(s2):
+                vmax = wp.max(vmax, wp.sqrt(s2))
+                kinetic += 0.5 * mass[p] * s2
+            else:
+                bad += 1.0
     lane = N_STATS + 2 * (t % STAT_LANES)
     wp.atomic_max(stats, lane, vmax)
     wp.atomic_add(stats, lane + 1, kinetic)
@@ -647,15 +654,10 @@ def frame_stats(
         wp.atomic_add(stats, STAT_NONFINITE, bad)
 
 
-# frame_stats' threads at most: with one thread a particle, 100k particles sent 200k atomics
-# to the 2 x STAT_LANES lanes; a few thousand threads folding a strided share each send 8k.
-STATS_THREADS = 4096
-
-
 def launch_frame_stats(v: wp.array, mass: wp.array, stats: wp.array, device) -> None:
     """frame_stats over the particles' velocities v [N] m/s and masses [N] kg, adding into
     stats (zeroed lanes)."""
-    threads = max(1, min(v.shape[0], STATS_THREADS))
+    threads = max(1, -(-v.shape[0] // STATS_PER_THREAD))
     wp.launch(frame_stats, dim=threads, device=device, inputs=[v, mass, threads, stats])
 
 

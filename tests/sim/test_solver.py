@@ -60,10 +60,10 @@ def polar_np(F: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
-@pytest.mark.parametrize("n", [3, K.STATS_THREADS + 1, 3 * K.STATS_THREADS + 17])
+@pytest.mark.parametrize("n", [3, K.STATS_PER_THREAD + 1, 1000 * K.STATS_PER_THREAD + 17])
 def test_frame_stats_match_dense_reference(device, n):
     """Max speed, kinetic energy and non-finite count against numpy in float64, for fewer
-    particles than frame_stats' threads and for several strided shares a thread."""
+    particles than a thread of frame_stats folds, and for shares with a remainder."""
     rng = np.random.default_rng(n)
     v = rng.normal(size=(n, 3)).astype(np.float32)
     v[n // 2] *= 40.0  # the fastest, in the middle of a thread's share
