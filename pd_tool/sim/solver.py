@@ -538,10 +538,10 @@ class MPMSolver:
 
     def _frame_launches(self, n: int, dt: float) -> None:
         # A frame's device work between two reads of the guard's stats, in one graph on
-        # CUDA: the stats' reset, the substeps and the end-of-frame reduction. Launched one
-        # by one around the graph, the reset and the reduction left the GPU idle while the
-        # host launched them (a frame's fixed cost was 9% of a 64-substep frame at 100k /
-        # 64^3 on an H200).
+        # CUDA: the stats' reset, the substeps and the end-of-frame reduction, so that the
+        # host launches one thing a frame. With the reset and the reduction launched around
+        # the graph and the stats read through numpy(), a 64-substep frame at 100k / 64^3
+        # took 10-27 us longer on an H200 (docs/gpu-runs/sim_speed_frame_graph_h200.json).
         self._stats.zero_()
         self._run_substeps(n, dt)
         K.launch_frame_stats(self.state.v, self.mat.mass, self._stats, self.device)
