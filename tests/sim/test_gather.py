@@ -156,3 +156,48 @@ def test_a_grid_wider_than_the_node_index_allows_is_refused() -> None:
     with pytest.raises(SimConfigError, match="coarser grid"):
         GridGeometry.from_config(SimConfig(grid_res=2048, domain=(1.0, 1.0, 0.01)))
     assert GridGeometry.from_config(SimConfig(grid_res=2040, domain=(1.0, 1.0, 0.01))).nodes[:2] == (2041, 2041)
+
+
+def test_stored_state_kernels_match_the_bound_state_kernels(device: str) -> None:
+    """g2p2g_rows_stored and g2p_stored, which reach their states through a table of
+    addresses (K.stored_state), give bit for bit what g2p2g_rows and g2p give on the same
+    states bound at launch (the grid's sums to rounding on CUDA, where their order varies).
+    The rows are of a frame's substep arrays (_Substeps), from a moving, deformed state."""
+    from pd_tool.sim.autograd import _Substeps
+    from pd_tool.sim.gather import block_shape, block_tag, launch_g2p2g_rows, launch_g2p2g_stored
+
+    x, vol, mass, E, static = block(3000, 0.3)
+    cfg = SimConfig(grid_res=32, substeps=8, damping=2.0, ground_z=0.3)
+    sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, gather_p2g=True, warp_sums=True)
+    v = np.zeros_like(x)
+    v[:, 0] = np.sin(40.0 * x[:, 2])
+    sim.set_velocity(v)
+    sim.add_force(x[:, 2] > 0.52, (0.0, 5.0, 1.0), 0.0, 1.5e-3)
+    for _ in range(2):
+        sim.step_frame(1e-3)
+    ctx, step, n = sim._context(), sim._context().step(1e-4), sim.n
+    grid_v = sim.grid.v
+    results = []
+    for stored in (False, True):
+        pool = _Substeps(n, sim.geo, 2, device)
+        for dst, src in zip(pool.fields[:4], (sim.state.u, sim.state.v, sim.state.C, sim.state.G)):
+            wp.copy(dst[0], src)
+        out = wp.zeros(sim.geo.nodes, dtype=wp.vec4, device=device)
+        blocks = wp.zeros(block_shape(sim.geo.nodes), dtype=int, device=device)
+        if stored:
+            launch_g2p2g_stored(ctx, 1, pool.table, 1, step, 2e-4, grid_v, out, blocks, block_tag(0, 1))
+            wp.launch(K.g2p_stored, dim=n, device=device, inputs=[ctx.particles(), pool.table, 1, step, grid_v,
+                                                                    ctx.stats])
+        else:
+            st = pool.states
+            launch_g2p2g_rows(ctx, 1, 1, st[0].struct, st[1].struct, step, 2e-4, grid_v, out, blocks, block_tag(0, 1))
+            wp.launch(K.g2p, dim=n, device=device, inputs=[ctx.particles(), st[1].struct, step, grid_v,
+                                                           st[2].struct, ctx.stats])
+        results.append([f.numpy()[1:3].copy() for f in pool.fields[:4]] + [out.numpy(), blocks.numpy()])
+    for name, a, b in zip(("u", "v", "C", "G", "grid", "tags"), *results):
+        if name == "grid" and device != "cpu":  # atomics from many SMs: the order of the sums varies
+            assert np.abs(a - b).max() <= 1e-6 * np.abs(a).max(), name
+        else:
+            assert np.array_equal(a, b), name
+    moved = results[0][0][1] - sim.state.u.numpy()
+    assert float(np.abs(moved).max()) > 0.0 and float(np.abs(results[0][4]).max()) > 0.0
