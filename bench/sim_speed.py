@@ -24,6 +24,7 @@ average) given in random order, in a unit box with a res^3 grid
 
     python bench/sim_speed.py --device cpu --sizes 20000:32 --json cpu.json
     python bench/sim_speed.py --device cuda --json h100.json      # 20k/32, 100k/64, 300k/128
+    python bench/sim_speed.py --device cuda --sizes 100000:64 --no-backward --frame-cost
 """
 from __future__ import annotations
 
@@ -76,6 +77,19 @@ def time_forward(n: int, res: int, substeps: int, frames: int, device: str, vari
         sim.step_frame(frame_dt)  # includes the guard's one sync per frame
     sync(device)
     return n * substeps * frames / (time.perf_counter() - t0)
+
+
+def frame_cost(n: int, res: int, substeps: int, frames: int, device: str) -> dict:
+    """The bake's forward (`fast`) at `substeps` and at 4x as many substeps a frame: a
+    frame's time split into a fixed part (the guard's read, the host's turn between frames,
+    the launches once a frame) and a part a substep, from the line through the two."""
+    us = {}
+    for s in (substeps, 4 * substeps):
+        rate = time_forward(n, res, s, max(1, frames * substeps // s), device, "fast")
+        us[s] = n * s / rate * 1e6
+    per = (us[4 * substeps] - us[substeps]) / (3 * substeps)
+    return {"frame_us": {str(k): v for k, v in us.items()}, "substep_us": per,
+            "frame_fixed_us": us[substeps] - substeps * per}
 
 
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None,
@@ -182,6 +196,9 @@ def main(argv=None) -> int:
                     help="also time each optimisation alone (sort_only, fuse_only, graph_only)")
     ap.add_argument("--check", action="store_true",
                     help="also compare the hand-written backward with the taped one (max relative difference)")
+    ap.add_argument("--frame-cost", action="store_true",
+                    help="also time the fast forward at 4x the substeps a frame and split a frame's time into a "
+                         "fixed part and a part a substep")
     ap.add_argument("--quick", action="store_true", help="CPU scale: 20,000 particles on a 32-cell grid, 4 substeps, 1 frame")
     ap.add_argument("--kernel-options", default="", metavar="SPEC",
                     help="warp compile options per kernel before the first launch, e.g. "
@@ -229,6 +246,10 @@ def main(argv=None) -> int:
             row["backward_kernels"] = modes[0]
             row["segment"] = args.segment
             row["bwd_over_fwd"] = row["fast_fwd"] / row["fwd_bwd"] - 1.0
+        if args.frame_cost:
+            row["frame_cost"] = fc = frame_cost(n, res, substeps, frames, args.device)
+            print(f"  a frame of {substeps} substeps: {fc['frame_fixed_us']:.0f} us fixed + "
+                  f"{fc['substep_us']:.1f} us a substep", flush=True)
         if args.check:
             row["adjoint_vs_tape_rel"] = check_adjoint(n, res, min(substeps, 16), args.device, args.segment)
             print(f"  adjoint vs tape: max relative difference {row['adjoint_vs_tape_rel']:.2e}", flush=True)

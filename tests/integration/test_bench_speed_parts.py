@@ -1,6 +1,6 @@
 """The speed benchmarks' own parts at CI scale: usd_write's usd-core floor writes the frames
 it times (every sample reads back) and leaves nothing behind; bake_speed's setup parts
-account for the setup."""
+account for the setup; sim_speed's frame cost splits frames that differ in their substeps."""
 from __future__ import annotations
 
 import importlib.util
@@ -69,3 +69,16 @@ def test_bake_speed_bakes_a_capture(tmp_path: Path, shared_data: Path) -> None:
 
     assert d["scene"] == "udon" and d["gaussians"] == load_splats(shared_data / "udon.ply").count
     assert d["drivers"] > 0 and any(" static" in line for line in d["report"])
+
+
+def test_sim_speed_frame_cost_splits_a_frame(tmp_path: Path) -> None:
+    """--frame-cost times the forward at S and 4S substeps a frame: the longer frame takes
+    longer, and the split gives back both frame times."""
+    out = tmp_path / "s.json"
+    subprocess.run([sys.executable, str(REPO / "bench" / "sim_speed.py"), "--quick",
+                    "--no-backward", "--frame-cost", "--json", str(out)], check=True, cwd=REPO,
+                   capture_output=True, timeout=600)
+    fc = json.loads(out.read_text())["rows"][0]["frame_cost"]
+    t1, t4 = fc["frame_us"]["4"], fc["frame_us"]["16"]
+    assert t4 > t1 > 0 and fc["substep_us"] > 0
+    assert fc["frame_fixed_us"] + 16 * fc["substep_us"] == pytest.approx(t4)
