@@ -19,7 +19,7 @@ run() {
 }
 part=${1:-a}
 if [ "$part" = a ]; then
-  run sim_speed 200 bench/sim_speed.py --device cuda
+  run sim_speed 240 bench/sim_speed.py --device cuda --frame-cost
   run render_speed 120 bench/render_speed.py --device cuda
   run drivers_speed 120 bench/drivers.py --part speed --device cuda
   run bake_speed 150 bench/bake_speed.py --device cuda --gaussians 300000
