@@ -619,12 +619,14 @@ class DiffSim:
             pool = self._adj_pool = _Substeps(self.n, self.geo, count, self.device)
         return pool
 
-    def _slot_table(self) -> wp.array:
-        # where the graphs of stored frames reach the frame's states, [4] uint64 (kernels.state_table):
-        # each stored frame's forward and backward copy their slot's table into it
+    def _slot_table(self, slot: "_KeptFrame") -> wp.array:
+        # where the graphs of stored frames reach the frame's states, [4] uint64
+        # (kernels.state_table), holding `slot`'s addresses from here on: a device copy,
+        # queued behind the graphs that read the previous slot's
         table = getattr(self, "_slot_tab", None)
         if table is None:
             table = self._slot_tab = wp.zeros(4, dtype=wp.uint64, device=self.device)
+        wp.copy(table, slot.table)
         return table
 
     def _adjoint_grid(self) -> tuple[wp.array, wp.array]:
@@ -889,8 +891,7 @@ def forward_frame(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, F: wp.arr
         store = sim._adjoint_pool(substeps)
         table = store.table
         if direct:
-            table = sim._slot_table()
-            wp.copy(table, kept.table)
+            table = sim._slot_table(kept)
     elif kept is not None:
         kept.zero_mass(substeps)  # the recompute adds to zero mass and momentum
     states = None if kept is None else (kept if direct else store).states
@@ -980,8 +981,7 @@ def backward_frame_adjoint(sim: DiffSim, x: wp.array, v: wp.array, C: wp.array, 
             # are read in the slot, through a table that every slot's frame copies its own
             # addresses into (so one graph serves them all)
             kept.load_into(store, substeps, tagged=binned, states=False)
-            table = sim._slot_table()
-            wp.copy(table, kept.table)
+            table = sim._slot_table(kept)
     states, grids = store.states, store.grids
     single = seg >= substeps
     # one segment recomputed: the start state goes straight into the pool's first state
