@@ -65,60 +65,31 @@ VARIANTS = {  # MPMSolver options of each forward variant
 }
 
 
-FRAME_DT = 1e-3
-
-
-def time_forward(n: int, res: int, substeps: int, frames: int, device: str, variant: str,
-                 keep: list | None = None) -> float:
-    """Particle-substeps/s of `frames` frames through MPMSolver.step_frame; `keep`, if given,
-    receives the solver."""
+def time_forward(n: int, res: int, substeps: int, frames: int, device: str, variant: str) -> float:
     x, vol, mass, E, static = make_block(n, res)
     cfg = SimConfig(grid_res=res, substeps=substeps, gravity=(0.0, 0.0, -9.81))
     sim = MPMSolver(x, vol, mass, E, static, cfg, device=device, **VARIANTS[variant])
-    sim.step_frame(FRAME_DT)  # compile, capture the graph
+    frame_dt = 1e-3
+    sim.step_frame(frame_dt)  # compile, capture the graph
     sync(device)
     t0 = time.perf_counter()
     for _ in range(frames):
-        sim.step_frame(FRAME_DT)  # includes the guard's one sync per frame
+        sim.step_frame(frame_dt)  # includes the guard's one sync per frame
     sync(device)
-    rate = n * substeps * frames / (time.perf_counter() - t0)
-    if keep is not None:
-        keep.append(sim)
-    return rate
-
-
-def graph_frame_us(sim, substeps: int, frames: int) -> float | None:
-    """Microseconds a frame of the solver's captured graph takes launched back to back, with
-    no read of the guard's stats between frames (None where no graph was captured)."""
-    graph = getattr(sim, "_graphs", {}).get((substeps, FRAME_DT))
-    if graph is None:
-        return None
-    sync(sim.device)
-    t0 = time.perf_counter()
-    for _ in range(frames):
-        wp.capture_launch(graph)
-    sync(sim.device)
-    return (time.perf_counter() - t0) / frames * 1e6
+    return n * substeps * frames / (time.perf_counter() - t0)
 
 
 def frame_cost(n: int, res: int, substeps: int, frames: int, device: str) -> dict:
     """The bake's forward (`fast`) at `substeps` and at 4x as many substeps a frame: a
     frame's time split into a fixed part (the guard's read, the host's turn between frames,
-    the launches once a frame) and a part a substep, from the line through the two. On
-    CUDA also the frame's graph launched back to back, whose difference from the timed
-    frame is the host's turn."""
-    us, sims = {}, []
+    the launches once a frame) and a part a substep, from the line through the two."""
+    us = {}
     for s in (substeps, 4 * substeps):
-        rate = time_forward(n, res, s, max(1, frames * substeps // s), device, "fast", keep=sims)
+        rate = time_forward(n, res, s, max(1, frames * substeps // s), device, "fast")
         us[s] = n * s / rate * 1e6
     per = (us[4 * substeps] - us[substeps]) / (3 * substeps)
-    out = {"frame_us": {str(k): v for k, v in us.items()}, "substep_us": per,
-           "frame_fixed_us": us[substeps] - substeps * per}
-    graph_us = graph_frame_us(sims[0], substeps, frames)
-    if graph_us is not None:  # the host's turn: the wait, the guard's read and check, the next launch
-        out["graph_back_to_back_us"] = graph_us
-        out["host_turn_us"] = us[substeps] - graph_us
-    return out
+    return {"frame_us": {str(k): v for k, v in us.items()}, "substep_us": per,
+            "frame_fixed_us": us[substeps] - substeps * per}
 
 
 def time_forward_backward(n: int, res: int, substeps: int, frames: int, device: str, segment: int | None,
@@ -278,9 +249,7 @@ def main(argv=None) -> int:
         if args.frame_cost:
             row["frame_cost"] = fc = frame_cost(n, res, substeps, frames, args.device)
             print(f"  a frame of {substeps} substeps: {fc['frame_fixed_us']:.0f} us fixed + "
-                  f"{fc['substep_us']:.1f} us a substep"
-                  + (f"; its host turn {fc['host_turn_us']:.0f} us (the graph back to back "
-                     f"{fc['graph_back_to_back_us']:.0f} us a frame)" if "host_turn_us" in fc else ""), flush=True)
+                  f"{fc['substep_us']:.1f} us a substep", flush=True)
         if args.check:
             row["adjoint_vs_tape_rel"] = check_adjoint(n, res, min(substeps, 16), args.device, args.segment)
             print(f"  adjoint vs tape: max relative difference {row['adjoint_vs_tape_rel']:.2e}", flush=True)

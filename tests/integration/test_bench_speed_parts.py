@@ -82,18 +82,3 @@ def test_sim_speed_frame_cost_splits_a_frame(tmp_path: Path) -> None:
     t1, t4 = fc["frame_us"]["4"], fc["frame_us"]["16"]
     assert t4 > t1 > 0 and fc["substep_us"] > 0
     assert fc["frame_fixed_us"] + 16 * fc["substep_us"] == pytest.approx(t4)
-    assert "host_turn_us" not in fc  # the CPU captures no graph to launch back to back
-
-
-def test_sim_speed_graph_frame_time(device: str) -> None:
-    """The frame's captured graph launched back to back: a positive time on CUDA, where a
-    frame is one graph; nothing on the CPU, which launches its kernels one by one."""
-    mod = _bench("sim_speed")
-    sims: list = []
-    mod.time_forward(2000, 16, 4, 2, device, "fast", keep=sims)
-    us = mod.graph_frame_us(sims[0], 4, 3)
-    if device == "cpu":
-        assert us is None
-    else:
-        assert us is not None and us > 0
-        assert mod.graph_frame_us(sims[0], 5, 3) is None  # no graph of 5 substeps was captured
