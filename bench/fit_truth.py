@@ -51,6 +51,9 @@ or cannot tell the true E from a uniform one.
 level), then the row's fit from that E (`--init-material`): the field's pattern, then the
 residuals' contrast.
 
+`--warm-from-truth` starts the row's fit from the true E put on its drivers: whether the
+fit keeps the answer when it starts there (a diagnostic, like `--losses`).
+
 `--clean` writes the reference videos as rendered, without the camera's blur, exposure
 change and noise.
 
@@ -530,6 +533,16 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
             fit(folder / "field.pdmat", "--no-level")
         row.seconds["field fit"] = time.perf_counter() - t0
         fit(out, "--init-material", str(folder / "field.pdmat"))
+    elif args.warm_from_truth:
+        # the product's fit started from the answer: the drivers come from a fit that fits
+        # nothing (one stage-1 iteration, no E), the true E is put on them, and the row's
+        # fit starts there. If it leaves the truth, its loss prefers another E; if it keeps
+        # it, the fit from the uniform start stops short of an E that its loss prefers
+        fit(folder / "drivers.pdmat", "--velocity-iters", "1", "--material-iters", "0", "--no-level")
+        truth_start = truth_material(MaterialFile.load(folder / "drivers.pdmat"), pos, E_true,
+                                     folder / "truth_start.pdmat")
+        row.seconds["drivers fit"] = time.perf_counter() - t0
+        fit(out, "--init-material", str(truth_start))
     else:
         fit(out)
     row.fit_s = time.perf_counter() - t0
@@ -653,6 +666,9 @@ def main() -> None:
     ap.add_argument("--warm-from-field", action="store_true",
                     help="fit E's field alone first (no per-driver residuals, no stage-1 level), then the row's fit "
                          "warm-started from it (--init-material); the row's fit time counts both")
+    ap.add_argument("--warm-from-truth", action="store_true",
+                    help="start the row's fit from the true E on its drivers (--init-material) instead of the "
+                         "uniform start: does the fit keep the truth, or does its loss lead it away?")
     ap.add_argument("--clean", action="store_true",
                     help="reference videos as rendered: no blur, exposure change or noise (with --losses: does "
                          "the camera's degradation, or the model, let the fit prefer another E to the truth?)")
@@ -666,6 +682,8 @@ def main() -> None:
         args.scenes, args.fields = args.scenes or "plant,udon", args.fields or "smooth"
         args.gaussians, args.quality = 3000, "draft"
         args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
+    if args.warm_from_field and args.warm_from_truth:
+        ap.error("--warm-from-field and --warm-from-truth are two starts; give one")
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
 

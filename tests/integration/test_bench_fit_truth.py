@@ -164,3 +164,23 @@ def test_fit_quality_changes_only_the_fit_s_grid_and_floor(tmp_path: Path) -> No
         {k: v for k, v in base.items() if not k.startswith("fit_") and k != "name"}
     assert fit_simulation(load_preset("quality", ft.fit_quality("default", 0, 4.0, tmp_path)))[0] == \
         base["fit_grid_res"]
+
+
+def test_warm_from_truth_starts_the_fit_at_the_true_E(tmp_path: Path, shared_data) -> None:
+    # with nothing fitted after the start (one stage-1 iteration, no stage 2, no level), the
+    # fit's E is the truth put on its drivers, and moves as the true E does
+    out = tmp_path / "ft.json"
+    run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--gaussians", "400", "--quality", "draft",
+                          "--reference", "32", "--size", "48", "--frames", "3", "--seconds", "0.2",
+                          "--scenes", "udon", "--fields", "smooth", "--bake-qualities", "", "--warm-from-truth",
+                          "--fit-args=--velocity-iters 1 --material-iters 0 --no-level",
+                          "--data", str(shared_data), "--json", str(out)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-3000:]
+    row = json.loads(out.read_text())["rows"][0]
+    # a driver takes the truth's mean over its nearest Gaussians, so E is off by that averaging only
+    assert row["median_abs_ln"] < 0.3 < row["baseline_abs_ln"]["uniform start"], row
+    err = row["errors"]
+    assert err["fitted, as fit"] == pytest.approx(err["true E, as fit"], rel=0.05), err
+    both = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--warm-from-truth", "--warm-from-field",
+                           "--scenes", "udon"], capture_output=True, text=True)
+    assert both.returncode == 2 and "give one" in both.stderr
