@@ -536,8 +536,9 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     elif args.warm_from_truth:
         # the product's fit started from the answer: the drivers come from a fit that fits
         # nothing (one stage-1 iteration, no E), the true E is put on them, and the row's
-        # fit starts there. If it leaves the truth, its loss prefers another E; if it keeps
-        # it, the fit from the uniform start stops short of an E that its loss prefers
+        # fit starts there. If it keeps the truth, the fit from the uniform start stops
+        # short of an E that its loss prefers; if it leaves it, its loss or its step sizes
+        # lead it away (--losses and --control tell the two apart)
         fit(folder / "drivers.pdmat", "--velocity-iters", "1", "--material-iters", "0", "--no-level")
         truth_start = truth_material(MaterialFile.load(folder / "drivers.pdmat"), pos, E_true,
                                      folder / "truth_start.pdmat")
