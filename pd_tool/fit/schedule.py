@@ -93,23 +93,68 @@ def make_optimizer(
     return opt, _scheduler(opt, total_steps, warmup_steps, final_factor)
 
 
+class PooledAdam(torch.optim.Optimizer):
+    """Adam whose step divides each entry's first moment by a blend of its own second moment
+    and the mean second moment over the whole tensor:
+
+        step = lr * m_hat / (v_hat^((1 - pool) / 2) * mean(v_hat)^(pool / 2) + eps)
+
+    with torch Adam's moments and bias corrections (betas 0.9, 0.999). pool 0 is Adam: every
+    entry steps about lr whatever its gradient's size. pool 1 is momentum gradient descent
+    scaled by one number: an entry with a gradient 100x weaker steps 100x less. Decoupled
+    weight decay as AdamW's. State per tensor: "step" (0-d), "exp_avg", "exp_avg_sq"."""
+
+    def __init__(self, params, lr: float, pool: float, *, eps: float = 1e-8, weight_decay: float = 0.0,
+                 betas: tuple[float, float] = DEFAULT_BETAS) -> None:
+        super().__init__(params, dict(lr=lr, pool=pool, eps=eps, weight_decay=weight_decay, betas=betas))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["step"] = torch.zeros((), dtype=torch.float64)
+                    st["exp_avg"], st["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)
+                st["step"] += 1
+                t = float(st["step"])
+                g = p.grad
+                st["exp_avg"].mul_(b1).add_(g, alpha=1 - b1)
+                st["exp_avg_sq"].mul_(b2).addcmul_(g, g, value=1 - b2)
+                m_hat = st["exp_avg"] / (1 - b1**t)
+                v_hat = st["exp_avg_sq"] / (1 - b2**t)
+                pool = group["pool"]
+                den = v_hat.pow(0.5 * (1 - pool)) * v_hat.mean().pow(0.5 * pool) + group["eps"]
+                if group["weight_decay"]:
+                    p.mul_(1 - group["lr"] * group["weight_decay"])
+                p.addcdiv_(m_hat, den, value=-group["lr"])
+
+
 def make_tensor_optimizer(
     param: torch.Tensor, lr: float, total_steps: int, *, warmup_steps: int = 0, final_factor: float = 0.0,
-    eps: float = 1e-8, weight_decay: float = 0.0,
-) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    eps: float = 1e-8, weight_decay: float = 0.0, pool: float = 0.0,
+) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """Adam over one tensor, e.g. the fit's per-driver log-E residuals or its stage-1 level,
     with make_optimizer's schedule. Arguments as make_optimizer's; eps is Adam's (added to
     sqrt of the second moment), in the gradient's units. weight_decay > 0 makes it AdamW:
     each step also multiplies the tensor by 1 - lr_t * weight_decay, a pull toward zero in
-    the tensor's own units that the gradient's scale does not change."""
+    the tensor's own units that the gradient's scale does not change. pool in (0, 1] makes it
+    PooledAdam: the second moment is partly shared over the tensor's entries."""
     if not lr > 0:
         raise ValueError(f"learning rate must be > 0, got {lr}")
     if not eps > 0:  # a zero eps divides 0 by 0 wherever a gradient is zero
         raise ValueError(f"Adam eps must be > 0, got {eps}")
     if not (math.isfinite(weight_decay) and weight_decay >= 0.0):
         raise ValueError(f"weight decay must be >= 0, got {weight_decay}")
+    if not 0.0 <= pool <= 1.0:
+        raise ValueError(f"pool must be in [0, 1], got {pool}")
     warmup_linear_decay(0, total_steps, warmup_steps, final_factor)  # validate early
-    if weight_decay > 0:
+    if pool > 0:
+        opt = PooledAdam([param], lr, pool, eps=eps, weight_decay=weight_decay)
+    elif weight_decay > 0:
         opt = torch.optim.AdamW([param], lr=lr, eps=eps, weight_decay=weight_decay)
     else:
         opt = torch.optim.Adam([param], lr=lr, eps=eps)

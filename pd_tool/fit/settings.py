@@ -110,6 +110,14 @@ class FitSettings:
     # down more firmly, while a part can still differ from its neighbour as a region does.
     # Static drivers keep their own residual (nothing moves them). A diagnostic setting.
     residual_parts: int = 0
+    # How far the residuals' step shares Adam's second moment over all drivers (0: Adam, each
+    # driver normalised by its own; 1: one normaliser for all; PooledAdam). Adam steps every
+    # driver about lr_residual a step wherever its gradient points, so near the answer, where
+    # the gradients are small, E scatters; shared, a driver with a weak gradient steps less,
+    # and E keeps its pattern, but a region whose gradient is weak throughout (thin leaves)
+    # barely leaves the start. A diagnostic setting (docs/benchmarks.md, fit against a
+    # converged truth).
+    residual_pool: float = 0.0
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -194,6 +202,8 @@ class FitSettings:
             raise ValueError(f"residual_diffusion must be >= 0 (grid cells squared), got {out.residual_diffusion}")
         if not (math.isfinite(out.residual_decay) and out.residual_decay >= 0.0):
             raise ValueError(f"residual_decay must be >= 0 (per unit step), got {out.residual_decay}")
+        if not (math.isfinite(out.residual_pool) and 0.0 <= out.residual_pool <= 1.0):
+            raise ValueError(f"residual_pool must be in [0, 1] (0: Adam per driver), got {out.residual_pool}")
         if out.residual_parts < 0:
             raise ValueError(f"residual_parts must be >= 0 (0: one residual per driver), got {out.residual_parts}")
         if not out.residual_eps > 0:

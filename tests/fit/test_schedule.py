@@ -156,3 +156,85 @@ def test_fit_settings_refuse_a_residual_decay_out_of_range_and_stage_two_uses_it
         s = FitSettings(quality="draft", residual_decay=decay).resolved()
         opt, _ = stage_optimizers(Problem(), s, "material")["_r"]
         assert type(opt) is kind and opt.param_groups[0]["weight_decay"] == pytest.approx(decay)
+
+
+def _pooled_adam_ref(x0: list[float], grads: list[list[float]], lr: float, pool: float, wd: float,
+                     eps: float = 1e-16) -> list[float]:
+    """PooledAdam in float64 plain Python: Adam's moments with the second one blended with its
+    mean over the entries."""
+    x, m, v = list(x0), [0.0] * len(x0), [0.0] * len(x0)
+    for t, g in enumerate(grads, start=1):
+        m = [0.9 * a + 0.1 * b for a, b in zip(m, g)]
+        v = [0.999 * a + 0.001 * b * b for a, b in zip(v, g)]
+        mh = [a / (1 - 0.9**t) for a in m]
+        vh = [a / (1 - 0.999**t) for a in v]
+        shared = sum(vh) / len(vh)
+        x = [xi * (1 - lr * wd) - lr * a / (b ** (0.5 * (1 - pool)) * shared ** (0.5 * pool) + eps)
+             for xi, a, b in zip(x, mh, vh)]
+    return x
+
+
+@pytest.mark.parametrize("pool", [0.5, 1.0])
+def test_pooled_adam_matches_its_float64_reference(pool):
+    grads = [[1e-3, 0.5, -2.0], [2e-3, -0.3, -1.0], [-1e-3, 0.4, 0.5], [5e-4, 0.1, -0.2]]
+    x0, lr, wd = [0.2, -0.1, 1.0], 0.05, 0.3
+    t = torch.nn.Parameter(torch.tensor(x0, dtype=torch.float64))
+    opt, _ = make_tensor_optimizer(t, lr, 100, eps=1e-16, weight_decay=wd, pool=pool)
+    for g in grads:
+        t.grad = torch.tensor(g, dtype=torch.float64)
+        opt.step()
+    assert t.detach().tolist() == pytest.approx(_pooled_adam_ref(x0, grads, lr, pool, wd), rel=1e-12, abs=1e-15)
+
+
+def test_pooled_adam_steps_a_weak_gradient_less_than_adam():
+    """Adam steps each entry about lr whatever its gradient; pooled fully, the steps keep the
+    gradients' ratio; half way, its square root."""
+    steps = {}
+    for pool in (0.0, 0.5, 1.0):
+        t = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
+        opt, _ = make_tensor_optimizer(t, 0.1, 10, eps=1e-16, pool=pool)
+        t.grad = torch.tensor([1e-4, 1.0], dtype=torch.float64)
+        opt.step()
+        steps[pool] = (-t.detach()).tolist()
+    assert steps[0.0][0] == pytest.approx(steps[0.0][1], rel=1e-6)
+    assert steps[1.0][0] / steps[1.0][1] == pytest.approx(1e-4, rel=1e-6)
+    assert steps[0.5][0] / steps[0.5][1] == pytest.approx(1e-2, rel=1e-6)
+    with pytest.raises(ValueError, match="pool"):
+        make_tensor_optimizer(t, 0.1, 10, pool=1.5)
+
+
+def test_fit_settings_refuse_a_residual_pool_out_of_range_and_stage_two_uses_it():
+    from pd_tool.fit.schedule import PooledAdam
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.fit.stages import stage_optimizers
+
+    for bad in (-0.1, 1.1, float("nan")):
+        with pytest.raises(ValueError, match="residual_pool"):
+            FitSettings(quality="draft", residual_pool=bad).resolved()
+
+    class Problem:  # the attributes stage_optimizers reads
+        material = torch.nn.Linear(2, 1)
+        velocities = [torch.nn.Linear(2, 1)]
+        log_e_residual = torch.nn.Parameter(torch.zeros(3))
+
+    for pool, kind in ((0.0, torch.optim.Adam), (0.5, PooledAdam)):
+        opt, _ = stage_optimizers(Problem(), FitSettings(quality="draft", residual_pool=pool).resolved(), "material")["_r"]
+        assert type(opt) is kind
+
+
+def test_pooled_adam_resumes_from_its_state_dict():
+    """A fit checkpoint holds the optimiser's state_dict: a fresh PooledAdam loaded from it
+    takes the same next step as the one that wrote it."""
+    grads = [torch.tensor([0.3, -1e-3, 2.0]), torch.tensor([0.1, 2e-3, -1.0]), torch.tensor([-0.2, 1e-3, 0.5])]
+    a = torch.nn.Parameter(torch.zeros(3))
+    opt_a, _ = make_tensor_optimizer(a, 0.05, 10, pool=0.5)
+    for g in grads[:2]:
+        a.grad = g.clone()
+        opt_a.step()
+    b = torch.nn.Parameter(a.detach().clone())
+    opt_b, _ = make_tensor_optimizer(b, 0.05, 10, pool=0.5)
+    opt_b.load_state_dict(copy.deepcopy(opt_a.state_dict()))  # a checkpoint holds copies
+    for p, opt in ((a, opt_a), (b, opt_b)):
+        p.grad = grads[2].clone()
+        opt.step()
+    assert torch.equal(a.detach(), b.detach())
