@@ -89,6 +89,7 @@ class FitProblem:
         self.driver_pairs = nearest[:, 1:]
         self.driver_spacing = dist2[:, 1:].sqrt().mean(dim=1)
         self.residual_parts = self._residual_parts(settings.residual_parts)
+        self.pool_parts = self._residual_parts(settings.residual_pool_parts) if settings.residual_pool else None
         self.velocities = torch.nn.ModuleList(
             [VelocityField(settings.velocity_resolution, settings.velocity_scale) for _ in videos]).to(self.device)
         # frames stored for the backward fill half of what the estimate leaves free, unless set
@@ -142,8 +143,8 @@ class FitProblem:
         diffuse(self.log_e_residual.data, self.driver_pairs, diffusion_fractions(self.driver_spacing, self.prep.dx, cells2))
 
     def _residual_parts(self, k: int) -> torch.Tensor | None:
-        """The part [Q] of each driver (FitSettings.residual_parts; static drivers -1), or
-        None for one residual per driver."""
+        """The k-means part [Q] of each driver by rest position (FitSettings.residual_parts and
+        residual_pool_parts; static drivers -1), or None for k = 0."""
         moving = (~self.static).nonzero().squeeze(1)
         if k <= 0 or len(moving) == 0:
             return None

@@ -102,11 +102,29 @@ class PooledAdam(torch.optim.Optimizer):
     with torch Adam's moments and bias corrections (betas 0.9, 0.999). pool 0 is Adam: every
     entry steps about lr whatever its gradient's size. pool 1 is momentum gradient descent
     scaled by one number: an entry with a gradient 100x weaker steps 100x less. Decoupled
-    weight decay as AdamW's. State per tensor: "step" (0-d), "exp_avg", "exp_avg_sq"."""
+    weight decay as AdamW's. State per tensor: "step" (0-d), "exp_avg", "exp_avg_sq".
+
+    groups: an optional [Q] int64 label per entry of a one-tensor optimiser; the mean is then
+    taken over each label's entries instead of the whole tensor, and an entry labelled -1
+    keeps its own second moment (Adam). The labels are not part of the state_dict: the caller
+    rebuilds them as it did the tensor."""
 
     def __init__(self, params, lr: float, pool: float, *, eps: float = 1e-8, weight_decay: float = 0.0,
-                 betas: tuple[float, float] = DEFAULT_BETAS) -> None:
+                 betas: tuple[float, float] = DEFAULT_BETAS, groups: torch.Tensor | None = None) -> None:
         super().__init__(params, dict(lr=lr, pool=pool, eps=eps, weight_decay=weight_decay, betas=betas))
+        self.groups = groups
+
+    def _pooled(self, v: torch.Tensor) -> torch.Tensor:
+        if self.groups is None:
+            return v.mean()
+        lab = self.groups.to(v.device)
+        own = lab >= 0
+        k = int(lab.max()) + 1 if bool(own.any()) else 0
+        sums = torch.zeros(k, dtype=v.dtype, device=v.device).index_add_(0, lab[own], v[own])
+        counts = torch.bincount(lab[own], minlength=k).to(v.dtype).clamp_min(1)
+        out = v.clone()
+        out[own] = (sums / counts)[lab[own]]
+        return out
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -127,7 +145,7 @@ class PooledAdam(torch.optim.Optimizer):
                 m_hat = st["exp_avg"] / (1 - b1**t)
                 v_hat = st["exp_avg_sq"] / (1 - b2**t)
                 pool = group["pool"]
-                den = v_hat.pow(0.5 * (1 - pool)) * v_hat.mean().pow(0.5 * pool) + group["eps"]
+                den = v_hat.pow(0.5 * (1 - pool)) * self._pooled(v_hat).pow(0.5 * pool) + group["eps"]
                 if group["weight_decay"]:
                     p.mul_(1 - group["lr"] * group["weight_decay"])
                 p.addcdiv_(m_hat, den, value=-group["lr"])
@@ -135,14 +153,15 @@ class PooledAdam(torch.optim.Optimizer):
 
 def make_tensor_optimizer(
     param: torch.Tensor, lr: float, total_steps: int, *, warmup_steps: int = 0, final_factor: float = 0.0,
-    eps: float = 1e-8, weight_decay: float = 0.0, pool: float = 0.0,
+    eps: float = 1e-8, weight_decay: float = 0.0, pool: float = 0.0, pool_groups: torch.Tensor | None = None,
 ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """Adam over one tensor, e.g. the fit's per-driver log-E residuals or its stage-1 level,
     with make_optimizer's schedule. Arguments as make_optimizer's; eps is Adam's (added to
     sqrt of the second moment), in the gradient's units. weight_decay > 0 makes it AdamW:
     each step also multiplies the tensor by 1 - lr_t * weight_decay, a pull toward zero in
     the tensor's own units that the gradient's scale does not change. pool in (0, 1] makes it
-    PooledAdam: the second moment is partly shared over the tensor's entries."""
+    PooledAdam: the second moment is partly shared over the tensor's entries (over each
+    label's entries of pool_groups [numel] when given)."""
     if not lr > 0:
         raise ValueError(f"learning rate must be > 0, got {lr}")
     if not eps > 0:  # a zero eps divides 0 by 0 wherever a gradient is zero
@@ -153,7 +172,9 @@ def make_tensor_optimizer(
         raise ValueError(f"pool must be in [0, 1], got {pool}")
     warmup_linear_decay(0, total_steps, warmup_steps, final_factor)  # validate early
     if pool > 0:
-        opt = PooledAdam([param], lr, pool, eps=eps, weight_decay=weight_decay)
+        if pool_groups is not None and pool_groups.shape != (param.numel(),):
+            raise ValueError(f"pool_groups must hold one label per entry ({param.numel()}), got {tuple(pool_groups.shape)}")
+        opt = PooledAdam([param], lr, pool, eps=eps, weight_decay=weight_decay, groups=pool_groups)
     elif weight_decay > 0:
         opt = torch.optim.AdamW([param], lr=lr, eps=eps, weight_decay=weight_decay)
     else:

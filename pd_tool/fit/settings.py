@@ -118,6 +118,11 @@ class FitSettings:
     # barely leaves the start. A diagnostic setting (docs/benchmarks.md, fit against a
     # converged truth).
     residual_pool: float = 0.0
+    # Pool within this many k-means parts of the moving drivers (by rest position) instead of
+    # over all drivers (0: all). A part's drivers share their own scale, so a region whose
+    # gradients are all weak (a leaf) still steps as Adam would, while within it a driver
+    # with a weaker gradient than its neighbours steps less. Static drivers keep Adam.
+    residual_pool_parts: int = 0
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
     lr_material: float = 5e-2
@@ -204,6 +209,8 @@ class FitSettings:
             raise ValueError(f"residual_decay must be >= 0 (per unit step), got {out.residual_decay}")
         if not (math.isfinite(out.residual_pool) and 0.0 <= out.residual_pool <= 1.0):
             raise ValueError(f"residual_pool must be in [0, 1] (0: Adam per driver), got {out.residual_pool}")
+        if out.residual_pool_parts < 0:
+            raise ValueError(f"residual_pool_parts must be >= 0 (0: pool over all drivers), got {out.residual_pool_parts}")
         if out.residual_parts < 0:
             raise ValueError(f"residual_parts must be >= 0 (0: one residual per driver), got {out.residual_parts}")
         if not out.residual_eps > 0:

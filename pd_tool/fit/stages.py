@@ -255,7 +255,7 @@ def stage_optimizers(pb: FitProblem, s: FitSettings, stage: str) -> Optimizers:
     if s.driver_residual:
         out["_r"] = make_tensor_optimizer(pb.log_e_residual, s.lr_residual, n, warmup_steps=min(s.warmup, n),
                                           eps=s.residual_eps, weight_decay=s.residual_decay,
-                                          pool=s.residual_pool)
+                                          pool=s.residual_pool, pool_groups=pb.pool_parts)
     if s.refine_velocity:  # the velocity fields keep moving, with their own smaller step
         out["_v"] = make_optimizer(list(pb.velocities), s.lr_velocity * s.refine_velocity_factor, n,
                                    warmup_steps=min(s.warmup, n))

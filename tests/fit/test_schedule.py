@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import math
 
 import pytest
 import torch
@@ -151,6 +152,7 @@ def test_fit_settings_refuse_a_residual_decay_out_of_range_and_stage_two_uses_it
         material = torch.nn.Linear(2, 1)
         velocities = [torch.nn.Linear(2, 1)]
         log_e_residual = torch.nn.Parameter(torch.zeros(3))
+        pool_parts = None
 
     for decay, kind in ((0.0, torch.optim.Adam), (0.3, torch.optim.AdamW)):
         s = FitSettings(quality="draft", residual_decay=decay).resolved()
@@ -159,18 +161,19 @@ def test_fit_settings_refuse_a_residual_decay_out_of_range_and_stage_two_uses_it
 
 
 def _pooled_adam_ref(x0: list[float], grads: list[list[float]], lr: float, pool: float, wd: float,
-                     eps: float = 1e-16) -> list[float]:
+                     eps: float = 1e-16, groups: list[int] | None = None) -> list[float]:
     """PooledAdam in float64 plain Python: Adam's moments with the second one blended with its
-    mean over the entries."""
+    mean over the entries (over each group's entries; -1: the entry's own)."""
     x, m, v = list(x0), [0.0] * len(x0), [0.0] * len(x0)
     for t, g in enumerate(grads, start=1):
         m = [0.9 * a + 0.1 * b for a, b in zip(m, g)]
         v = [0.999 * a + 0.001 * b * b for a, b in zip(v, g)]
         mh = [a / (1 - 0.9**t) for a in m]
         vh = [a / (1 - 0.999**t) for a in v]
-        shared = sum(vh) / len(vh)
-        x = [xi * (1 - lr * wd) - lr * a / (b ** (0.5 * (1 - pool)) * shared ** (0.5 * pool) + eps)
-             for xi, a, b in zip(x, mh, vh)]
+        lab = groups if groups is not None else [0] * len(x)
+        shared = [b if k < 0 else sum(c for c, j in zip(vh, lab) if j == k) / lab.count(k) for b, k in zip(vh, lab)]
+        x = [xi * (1 - lr * wd) - lr * a / (b ** (0.5 * (1 - pool)) * sh ** (0.5 * pool) + eps)
+             for xi, a, b, sh in zip(x, mh, vh, shared)]
     return x
 
 
@@ -184,6 +187,34 @@ def test_pooled_adam_matches_its_float64_reference(pool):
         t.grad = torch.tensor(g, dtype=torch.float64)
         opt.step()
     assert t.detach().tolist() == pytest.approx(_pooled_adam_ref(x0, grads, lr, pool, wd), rel=1e-12, abs=1e-15)
+
+
+def test_pooled_adam_within_groups_matches_its_float64_reference():
+    grads = [[1e-3, 0.5, -2.0, 3e-4, 0.2], [2e-3, -0.3, -1.0, -1e-4, 0.1], [-1e-3, 0.4, 0.5, 2e-4, -0.3]]
+    x0, lr, wd, groups = [0.2, -0.1, 1.0, 0.0, 0.3], 0.05, 0.3, [0, 1, 1, 0, -1]
+    t = torch.nn.Parameter(torch.tensor(x0, dtype=torch.float64))
+    opt, _ = make_tensor_optimizer(t, lr, 100, eps=1e-16, weight_decay=wd, pool=0.7,
+                                   pool_groups=torch.tensor(groups))
+    for g in grads:
+        t.grad = torch.tensor(g, dtype=torch.float64)
+        opt.step()
+    assert t.detach().tolist() == pytest.approx(_pooled_adam_ref(x0, grads, lr, 0.7, wd, groups=groups),
+                                                rel=1e-12, abs=1e-15)
+    with pytest.raises(ValueError, match="pool_groups"):
+        make_tensor_optimizer(t, lr, 10, pool=0.5, pool_groups=torch.zeros(4, dtype=torch.long))
+
+
+def test_pooled_adam_in_groups_steps_a_weak_region_as_adam_does():
+    """A group whose gradients are all weak (a thin leaf) steps as far as a strong one; within
+    a group the weaker entry steps less."""
+    t = torch.nn.Parameter(torch.zeros(4, dtype=torch.float64))
+    opt, _ = make_tensor_optimizer(t, 0.1, 10, eps=1e-16, pool=1.0, pool_groups=torch.tensor([0, 0, 1, 1]))
+    t.grad = torch.tensor([1e-4, 1e-4, 1.0, 0.01], dtype=torch.float64)
+    opt.step()
+    step = (-t.detach()).tolist()
+    assert step[0] == pytest.approx(0.1, rel=1e-6) and step[0] == pytest.approx(step[1], rel=1e-9)
+    assert step[2] == pytest.approx(0.1 / math.sqrt((1 + 1e-4) / 2), rel=1e-6)
+    assert step[3] / step[2] == pytest.approx(0.01, rel=1e-6)
 
 
 def test_pooled_adam_steps_a_weak_gradient_less_than_adam():
@@ -211,11 +242,14 @@ def test_fit_settings_refuse_a_residual_pool_out_of_range_and_stage_two_uses_it(
     for bad in (-0.1, 1.1, float("nan")):
         with pytest.raises(ValueError, match="residual_pool"):
             FitSettings(quality="draft", residual_pool=bad).resolved()
+    with pytest.raises(ValueError, match="residual_pool_parts"):
+        FitSettings(quality="draft", residual_pool_parts=-1).resolved()
 
     class Problem:  # the attributes stage_optimizers reads
         material = torch.nn.Linear(2, 1)
         velocities = [torch.nn.Linear(2, 1)]
         log_e_residual = torch.nn.Parameter(torch.zeros(3))
+        pool_parts = None
 
     for pool, kind in ((0.0, torch.optim.Adam), (0.5, PooledAdam)):
         opt, _ = stage_optimizers(Problem(), FitSettings(quality="draft", residual_pool=pool).resolved(), "material")["_r"]
