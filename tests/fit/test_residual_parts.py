@@ -20,9 +20,8 @@ def plant(tmp_path_factory):
     return tiny_plant_inputs(tmp_path_factory.mktemp("parts"))
 
 
-def test_a_fit_keeps_one_residual_per_part(plant, tmp_path, monkeypatch) -> None:
-    import torch
-
+def fitted_problem(plant, tmp_path, monkeypatch, **settings):
+    """The FitProblem of a short draft fit of the tiny plant with these FitSettings."""
     import pd_tool.fit.run as run
     from pd_tool.fit.settings import FitSettings
     from pd_tool.io.synthetic import POT_TOP
@@ -38,11 +37,17 @@ def test_a_fit_keeps_one_residual_per_part(plant, tmp_path, monkeypatch) -> None
         return skipped
 
     monkeypatch.setattr(run, "fit_round", spy)
-    settings = FitSettings(quality="draft", velocity_iters=2, material_iters=3, working_long_side=24,
-                           residual_parts=3, checkpoint_every=100, keep_best_every=0)
+    s = FitSettings(quality="draft", velocity_iters=2, material_iters=3, working_long_side=24, checkpoint_every=100,
+                    keep_best_every=0, **settings)
     run.run_fit(scene, d / "plant.ply", refs, tmp_path / "a.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
-                settings=settings)
-    pb = seen["problem"]
+                settings=s)
+    return seen["problem"]
+
+
+def test_a_fit_keeps_one_residual_per_part(plant, tmp_path, monkeypatch) -> None:
+    import torch
+
+    pb = fitted_problem(plant, tmp_path, monkeypatch, residual_parts=3)
     parts = pb.residual_parts.cpu().numpy()
     r = pb.log_e_residual.detach().cpu().numpy()
     moving = ~pb.static.cpu().numpy()
@@ -68,35 +73,15 @@ def test_a_fit_keeps_one_residual_per_part(plant, tmp_path, monkeypatch) -> None
 def test_a_fit_pools_its_residual_step_within_parts(plant, tmp_path, monkeypatch) -> None:
     """residual_pool_parts: the fit's residual optimiser pools within the k-means parts of the
     moving drivers, static drivers on their own; the residuals themselves stay one a driver."""
-    import pd_tool.fit.run as run
     from pd_tool.fit.schedule import PooledAdam
-    from pd_tool.fit.settings import FitSettings
-    from pd_tool.io.synthetic import POT_TOP
-    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.fit.stages import stage_optimizers
 
-    d, scene, refs = plant
-    seen = {}
-    original = run.fit_round
-
-    def spy(pb, s, rnd, *args):
-        skipped = original(pb, s, rnd, *args)
-        seen["problem"] = pb
-        return skipped
-
-    monkeypatch.setattr(run, "fit_round", spy)
-    settings = FitSettings(quality="draft", velocity_iters=2, material_iters=3, working_long_side=24,
-                           residual_pool=0.5, residual_pool_parts=3, checkpoint_every=100, keep_best_every=0)
-    run.run_fit(scene, d / "plant.ply", refs, tmp_path / "a.pdmat", prepare_options=PrepareOptions(static_below=POT_TOP),
-                settings=settings)
-    pb = seen["problem"]
+    pb = fitted_problem(plant, tmp_path, monkeypatch, residual_pool=0.5, residual_pool_parts=3)
     assert pb.residual_parts is None
     parts = pb.pool_parts.cpu().numpy()
     moving = ~pb.static.cpu().numpy()
     assert (parts[~moving] == -1).all() and sorted(set(parts[moving].tolist())) == [0, 1, 2]
     r = pb.log_e_residual.detach().cpu().numpy()
     assert len(np.unique(r[moving])) > 3  # one residual a driver, not a part
-
-    from pd_tool.fit.stages import stage_optimizers
-
     opt, _ = stage_optimizers(pb, pb.s, "material")["_r"]
     assert isinstance(opt, PooledAdam) and opt.groups is pb.pool_parts
