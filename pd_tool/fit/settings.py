@@ -115,13 +115,13 @@ class FitSettings:
     # driver about lr_residual a step wherever its gradient points, so near the answer, where
     # the gradients are small, E scatters; shared, a driver with a weak gradient steps less,
     # and E keeps its pattern, but a region whose gradient is weak throughout (thin leaves)
-    # barely leaves the start. A diagnostic setting (docs/benchmarks.md, fit against a
-    # converged truth).
+    # barely leaves the start. A diagnostic setting (docs/fitting.md, residual pool).
     residual_pool: float = 0.0
     # Pool within this many k-means parts of the moving drivers (by rest position) instead of
     # over all drivers (0: all). A part's drivers share their own scale, so a region whose
     # gradients are all weak (a leaf) still steps as Adam would, while within it a driver
-    # with a weaker gradient than its neighbours steps less. Static drivers keep Adam.
+    # with a weaker gradient than its neighbours steps less. Static drivers keep Adam. A
+    # diagnostic setting.
     residual_pool_parts: int = 0
     refine_velocity_factor: float = 0.5  # v0's stage-2 step size, as a fraction of lr_velocity
     lr_velocity: float = 2e-2
