@@ -1,4 +1,5 @@
-"""Diffusion of the per-driver log-E residuals over the driver graph (FitSettings.residual_diffusion).
+"""Diffusion of the per-driver log-E residuals over the driver graph (FitSettings.residual_diffusion),
+and means over parts of the drivers (residual_parts, residual_pool_parts).
 
 One explicit step moves each driver's residual a fraction of the way toward the mean of its
 nearest drivers. The fraction is D dx^2 / h^2, with D in grid cells squared, dx the grid
@@ -30,3 +31,18 @@ def diffuse(values: torch.Tensor, pairs: torch.Tensor, fractions: torch.Tensor) 
     if pairs.shape[1] == 0:
         return
     values.add_(fractions * (values[pairs].mean(dim=1) - values))
+
+
+def part_means(values: torch.Tensor, parts: torch.Tensor) -> torch.Tensor:
+    """A copy of values [Q] in which each entry with a part label >= 0 (parts [Q] int64)
+    holds its part's mean; an entry labelled -1 keeps its own value."""
+    out = values.clone()
+    own = parts >= 0
+    if not bool(own.any()):
+        return out
+    lab = parts[own]
+    k = int(lab.max()) + 1
+    sums = torch.zeros(k, dtype=values.dtype, device=values.device).index_add_(0, lab, values[own])
+    counts = torch.bincount(lab, minlength=k).to(values.dtype)
+    out[own] = (sums / counts)[lab]
+    return out

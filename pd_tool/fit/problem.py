@@ -15,7 +15,7 @@ from pd_tool.bake.animate import GaussianAnimator
 from pd_tool.core.errors import VideoError
 from pd_tool.core.scene import GaussianScene
 from pd_tool.drivers import kmeans, knn
-from pd_tool.fit.diffusion import diffuse, diffusion_fractions
+from pd_tool.fit.diffusion import diffuse, diffusion_fractions, part_means
 from pd_tool.fit.fields import MaterialField, VelocityField
 from pd_tool.fit.losses import frame_loss
 from pd_tool.fit.settings import FitSettings
@@ -159,12 +159,7 @@ class FitProblem:
         parts = self.residual_parts
         if parts is None:
             return
-        r = self.log_e_residual.data
-        moving = parts >= 0
-        k = int(parts.max()) + 1
-        sums = torch.zeros(k, dtype=r.dtype, device=r.device).index_add_(0, parts[moving], r[moving])
-        counts = torch.bincount(parts[moving], minlength=k).to(r.dtype)
-        r[moving] = (sums / counts)[parts[moving]]
+        self.log_e_residual.data.copy_(part_means(self.log_e_residual.data, parts))
 
     def driver_v0(self, i: int) -> torch.Tensor:
         """Video i's initial velocity per driver [Q, 3], m/s; 0 on static drivers."""

@@ -15,6 +15,8 @@ from typing import Iterable
 import torch
 from torch import nn
 
+from pd_tool.fit.diffusion import part_means
+
 DEFAULT_BETAS = (0.9, 0.999)
 
 
@@ -115,16 +117,7 @@ class PooledAdam(torch.optim.Optimizer):
         self.groups = groups
 
     def _pooled(self, v: torch.Tensor) -> torch.Tensor:
-        if self.groups is None:
-            return v.mean()
-        lab = self.groups.to(v.device)
-        own = lab >= 0
-        k = int(lab.max()) + 1 if bool(own.any()) else 0
-        sums = torch.zeros(k, dtype=v.dtype, device=v.device).index_add_(0, lab[own], v[own])
-        counts = torch.bincount(lab[own], minlength=k).to(v.dtype).clamp_min(1)
-        out = v.clone()
-        out[own] = (sums / counts)[lab[own]]
-        return out
+        return v.mean() if self.groups is None else part_means(v, self.groups.to(v.device))
 
     @torch.no_grad()
     def step(self, closure=None):
