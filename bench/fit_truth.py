@@ -35,6 +35,10 @@ Gaussians that move more than 1% of the object's size in a video, split into the
 level (median ln) and its shape (median |ln| about that level), beside the same median for
 the uniform start and the best uniform E; and for each matched bake, the factor it scaled
 the fitted E by and the same median for the E it moved with (`matched_abs_ln`).
+Each row's `goals` give, for the bare bake and each bake quality, the error each new-force
+target asks for (the uniform bake's over 3 and the best uniform's over 2), whether the fitted
+bake meets it, and with `--check-reference` whether the reference can tell: a target asking
+for less than the reference's own distance from a finer grid cannot be judged against it.
 
 `--set FIELD=VALUE` and `--fit-args` try another fit setting on every scene and field (a
 default must hold on all of them).
@@ -158,6 +162,38 @@ class Row:
     # with v0 refitted by stage 1 alone
     losses: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)  # wall time per step
+    # per bake quality and goal: the error it asks for, whether the fitted bake meets it, and,
+    # with --check-reference, whether the reference can tell (goals())
+    goals: dict = field(default_factory=dict)
+
+
+# the issue's targets at default quality: the fitted bake's new-force error this many times
+# below the uniform start's and the best uniform E's, each baked at the same quality
+GOALS = {"uniform start": 3.0, "best uniform": 2.0}
+
+
+def goals(errors: dict, qualities: list[str], fit_quality: str, check_rms: float | None) -> dict:
+    """For the bare bake ("as fit", against the uniform E baked at the fit's quality) and
+    each bake quality Q, and each goal: {"asks": the uniform bake's error over the goal's
+    factor (RMS / size), "fitted": the fitted bake's error ("fitted, as fit" or the
+    product's "fitted, Q"), "met", and "measurable": whether the asked error lies above
+    `check_rms`, the reference's own distance from a finer one (None when it was not
+    checked). A goal asking for less than that distance cannot be judged against this
+    reference: the truth itself is not known that well."""
+    out: dict = {}
+    for q in ["as fit", *qualities]:
+        suffix = "" if q in ("as fit", fit_quality) else f", {q}"
+        fitted = errors.get(f"fitted, {q}")
+        if fitted is None:
+            continue
+        for base, factor in GOALS.items():
+            if base + suffix not in errors:
+                continue
+            asks = errors[base + suffix] / factor
+            out.setdefault(q, {})[f"{factor:g}x below {base}"] = {
+                "asks": asks, "fitted": fitted, "met": bool(fitted <= asks),
+                "measurable": None if check_rms is None else bool(asks > check_rms)}
+    return out
 
 
 def heights(pos: np.ndarray, up: str) -> np.ndarray:
@@ -621,6 +657,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
             for what in ("fitted", "true E"):
                 ratio = row.errors[label_e + suffix] / row.errors[f"{what}, {qname}"]
                 row.ratios[f"{label_e} / {what}, {qname}"] = ratio
+    row.goals = goals(row.errors, args.bake_qualities, args.quality,
+                      row.reference_check["rms"] if row.reference_check else None)
     return row
 
 
@@ -714,6 +752,11 @@ def main() -> None:
                     print("       the bake's E against the truth: " + "  ".join(
                         f"{k}: E x{row.match_factor[k]:.3g}, |ln| {row.matched_abs_ln[k]:.2f}" for k in row.match_factor),
                         flush=True)
+                for q, per_goal in row.goals.items():
+                    print(f"       goals at {q}: " + "  ".join(
+                        f"{g}: asks {v['asks']:.2%}, {'met' if v['met'] else 'missed'}"
+                        + ("" if v["measurable"] is None else "" if v["measurable"]
+                           else " (within the reference's own error)") for g, v in per_goal.items()), flush=True)
                 if row.losses:
                     print("       whole-clip loss: " + "  ".join(f"{k} {v:.5f}" for k, v in row.losses.items()),
                           flush=True)

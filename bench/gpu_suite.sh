@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The GPU benchmarks on a CUDA machine, speed (parts a, b), accuracy (c-f), the 3 mm plant's fit, CLI and Pareto (g, h), the profiles and capture bakes (i), the thin and 1M-10M bakes (j), batch over GPUs (k), and the fit against a split reference
 # with the drivers a cell it needs (l, m), and on a finer fit model with the whole-clip losses (n) and with E
-# from the field alone or warm-started from it (o), and the fast path under per-kernel compile
-# options (p); JSON and logs
+# from the field alone or warm-started from it (o), the fast path under per-kernel compile
+# options (p), and whether each row's reference is converged (q, r); JSON and logs
 # into $OUT (the device tool's output folder). Run from the project root after the gpu-wheels
 # install:
 #   export PYTHONPATH=/tmp/site:$PWD; DATA=/tmp/data bash bench/gpu_suite.sh [part]
@@ -127,6 +127,22 @@ if [ "$part" = o ]; then
   run fit_truth_fit64_${V:-field}_${FIELD:-smooth} 580 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
     --fields ${FIELD:-smooth} --scenes ${SCENES:-plant,tree} --scene-gaussians donut=50000 \
     --bake-qualities default --fit-grid 64 --fit-floor 8 "${extra[@]}"
+fi
+# is each row's reference converged? FIELD's rows against 192 cells (part l checks the smooth
+# field), and the tree's FIELD against 256 cells and a 256-cell tree against 384, about 1.5 and 6
+# minutes two fields at once on an H200 (docs/benchmarks.md,
+# "Which goals can these references judge?"); SPLIT_MOST: sub-particles along a Gaussian's axes
+if [ "$part" = q ]; then
+  run fit_truth_reference_${FIELD:-region} 500 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
+    --fields ${FIELD:-region} --scenes ${SCENES:-plant,tree,donut} --scene-gaussians donut=50000 \
+    --reference-only --check-reference 192 --split-most ${SPLIT_MOST:-4}
+fi
+if [ "$part" = r ]; then
+  run fit_truth_reference_tree256 300 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
+    --scenes tree --fields ${FIELD:-region} --reference-only --check-reference 256 --split-most ${SPLIT_MOST:-4}
+  run fit_truth_reference_tree384 500 bench/fit_truth.py --device cuda --gaussians 20000 --data $DATA \
+    --scenes tree --fields ${FIELD:-region} --reference-only --reference 256 --check-reference 384 \
+    --split-most ${SPLIT_MOST:-4}
 fi
 # the fast path's forward under warp's per-kernel compile options (bench/kernel_ptx.py
 # --kernel-options): warp's grid-stride loop put back in every simulator module (shipped

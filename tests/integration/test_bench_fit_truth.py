@@ -72,6 +72,25 @@ def test_the_field_alone_fit_turns_the_residuals_off_and_restores_the_settings()
     assert fs.FitSettings is before and fs.FitSettings().driver_residual is True
 
 
+def test_goals_ask_the_uniform_bakes_error_over_their_factor_and_say_when_the_reference_cannot_tell() -> None:
+    errors = {"fitted, as fit": 0.02, "uniform start": 0.05, "best uniform": 0.03,
+              "fitted, default": 0.004, "uniform start, default": 0.015, "best uniform, default": 0.012}
+    out = ft.goals(errors, ["default"], "draft", check_rms=0.0045)
+    start, best = out["default"]["3x below uniform start"], out["default"]["2x below best uniform"]
+    assert start["asks"] == pytest.approx(0.005) and start["met"] and start["measurable"]
+    assert best["asks"] == pytest.approx(0.006) and best["met"] and best["measurable"]
+    bare = out["as fit"]
+    assert bare["3x below uniform start"]["asks"] == pytest.approx(0.05 / 3) and not bare["3x below uniform start"]["met"]
+    # a goal asking for less than the reference's own error is not measurable, met or not
+    tight = ft.goals(errors, ["default"], "draft", check_rms=0.0055)["default"]
+    assert tight["3x below uniform start"]["measurable"] is False and tight["2x below best uniform"]["measurable"]
+    # no check: unknown; a quality that is also the fit's compares with the unsuffixed uniform bakes
+    assert ft.goals(errors, [], "draft", None)["as fit"]["2x below best uniform"]["measurable"] is None
+    same = ft.goals({"fitted, as fit": 0.02, "fitted, draft": 0.01, "uniform start": 0.06, "best uniform": 0.01},
+                    ["draft"], "draft", None)["draft"]
+    assert same["3x below uniform start"]["met"] and not same["2x below best uniform"]["met"]
+
+
 def test_the_true_E_material_holds_the_truths_geometric_mean_over_each_drivers_gaussians(tmp_path: Path) -> None:
     from pd_tool.materials.file import MaterialFile
 
@@ -119,6 +138,10 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert 0 < err["true E, as fit"] < err["still"], err
     assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
     assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
+    # the goals of the bare bake, from the same errors
+    bare = row["goals"]["as fit"]["3x below uniform start"]
+    assert bare["asks"] == pytest.approx(err["uniform start"] / 3) and bare["fitted"] == err["fitted, as fit"]
+    assert bare["met"] == (err["fitted, as fit"] <= err["uniform start"] / 3) and bare["measurable"] is None
     # --losses: the whole-clip loss under each E, v0 refitted. The fit lowered its own
     # loss below the uniform start's, and refitting v0 under the fitted E finds about it again
     loss = row["losses"]
