@@ -167,7 +167,7 @@ class Row:
     goals: dict = field(default_factory=dict)
 
 
-# the targets at default quality: the fitted bake's new-force error this many times
+# the benchmark's targets at default quality: the fitted bake's new-force error this many times
 # below the uniform start's and the best uniform E's, each baked at the same quality
 GOALS = {"uniform start": 3.0, "best uniform": 2.0}
 
@@ -755,8 +755,8 @@ def main() -> None:
                 for q, per_goal in row.goals.items():
                     print(f"       goals at {q}: " + "  ".join(
                         f"{g}: asks {v['asks']:.2%}, {'met' if v['met'] else 'missed'}"
-                        + ("" if v["measurable"] is None else "" if v["measurable"]
-                           else " (within the reference's own error)") for g, v in per_goal.items()), flush=True)
+                        + (" (within the reference's own error)" if v["measurable"] is False else "")
+                        for g, v in per_goal.items()), flush=True)
                 if row.losses:
                     print("       whole-clip loss: " + "  ".join(f"{k} {v:.5f}" for k, v in row.losses.items()),
                           flush=True)
