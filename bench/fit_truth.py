@@ -61,6 +61,11 @@ fit keeps the answer when it starts there (a diagnostic, like `--losses`).
 `--clean` writes the reference videos as rendered, without the camera's blur, exposure
 change and noise.
 
+`--capture NAME=PATH[:UP]` runs the same on a capture of your own (any splat file pdtool
+reads; UP its up axis, or auto for pdtool's guess), and `--views AZ:EL,AZ:EL` films the two
+videos from other cameras: a fit's figures should hold on scenes and views no default was
+tuned on.
+
 `--control` simulates the reference videos with the fit's own grid, CFL safety and driver
 ratio instead: the inverse crime, kept as a labelled control so that its size stays
 visible. Targets at default quality: new-force error at least 3x below the uniform start
@@ -69,6 +74,7 @@ and 2x below the best uniform E; median |ln| at most 0.5. Figures: docs/benchmar
 
     python bench/fit_truth.py --quick                    # CPU, CI scale (minutes)
     python bench/fit_truth.py --device cuda --gaussians 20000 --scenes udon --fields smooth --json out.json
+    python bench/fit_truth.py --device cuda --gaussians 20000 --capture hat=hat.ply:+z --views 30:10,150:25
 """
 from __future__ import annotations
 
@@ -141,6 +147,7 @@ class Row:
     scene: str
     field: str
     reference: str  # "converged" or "control (fit's own discretisation)"
+    up: str = ""  # the scene's up axis (a --capture's guessed one with "auto")
     reference_particles: int = 0  # simulated particles of the reference
     reference_per_cell: float = math.nan  # of them per occupied cell of its grid
     reference_check: dict = field(default_factory=dict)  # the truth on --check-reference cells against it
@@ -292,10 +299,10 @@ def per_cell(prep, drivers) -> float:
 
 
 def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, frames: int, device: str,
-                     seed: int, clean: bool = False) -> tuple[list[Path], np.ndarray]:
-    """Write the two reference videos (as rendered with `clean`, else degraded as a camera
-    would); returns their folders and each Gaussian's largest displacement in them [N]
-    (scene units)."""
+                     seed: int, clean: bool = False, views=VIEWS) -> tuple[list[Path], np.ndarray]:
+    """Write the two reference videos, one per PUSHES seen from `views` ((azimuth, elevation)
+    degrees each; as rendered with `clean`, else degraded as a camera would); returns their
+    folders and each Gaussian's largest displacement in them [N] (scene units)."""
     from pd_tool.core.cameras import auto_camera
     from pd_tool.video.folder import write_video_folder
     from pd_tool.fit.reference import push_velocity, simulate_reference
@@ -307,7 +314,7 @@ def reference_videos(folder: Path, scene, up: str, sim, cfl: float, size: int, f
     moved = np.zeros(scene.count, np.float32)
     rng = np.random.default_rng(seed)
     out = []
-    for k, ((az, el), push) in enumerate(zip(VIEWS, PUSHES)):
+    for k, ((az, el), push) in enumerate(zip(views, PUSHES)):
         cam = auto_camera(pos0, size, size * 9 // 16 if size >= 512 else size, up_axis=up, azimuth_deg=az,
                           elevation_deg=el)
         images = simulate_reference(scene, prep, drivers, e, push_velocity(rest, static, direction=push,
@@ -335,6 +342,34 @@ def new_force(scene, up: str) -> tuple[tuple[float, float, float], tuple[float, 
     # m/s^2 along d in simulation axes; pdtool scales a scene to 1 m, so a scene unit is 1 / size m
     accel = tuple((R.T @ d) * NEW_FORCE["accel"] * size)
     return accel, tuple(point.tolist()), NEW_FORCE["radius"] * size, size
+
+
+UPS = ("+x", "-x", "+y", "-y", "+z", "-z", "auto")
+
+
+def capture_spec(text: str) -> tuple[str, str, str]:
+    """--capture: "NAME=PATH[:UP]" -> (NAME, PATH, UP), UP one of UPS ("auto", the default,
+    takes pdtool's guess from the splats). NAME may not be a built-in scene's."""
+    name, eq, rest = text.partition("=")
+    path, colon, up = rest.rpartition(":")
+    if not colon or up not in UPS:  # no axis given (a colon may belong to the path)
+        path, up = rest, "auto"
+    if not eq or not name or not path or name in SCENES or "," in name:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give NAME=PATH[:UP] with a NAME other than {', '.join(SCENES)} and UP one of {', '.join(UPS)}")
+    return name, path, up
+
+
+def views_spec(text: str) -> tuple[tuple[float, float], ...]:
+    """--views: "AZ:EL,AZ:EL" (degrees) -> one (azimuth, elevation) per video, as many as PUSHES."""
+    try:
+        views = tuple((float(az), float(el)) for az, el in (v.split(":") for v in text.split(",")))
+    except ValueError:
+        views = ()
+    if len(views) != len(PUSHES) or not all(-90.0 < el < 90.0 for _, el in views):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give {len(PUSHES)} views as AZ:EL,AZ:EL in degrees, elevations between -90 and 90")
+    return views
 
 
 def scene_counts(text: str) -> dict[str, int]:
@@ -475,15 +510,16 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 2 else math.nan
 
 
-def load_scene(name: str, gaussians: int, data: Path):
-    """The thin plant (make_plant(thin=True), as bench/convergence.py has it) or a capture
-    from `data`, at most `gaussians` of it kept (seed 0: the same ones as convergence.py)."""
+def load_scene(name: str, gaussians: int, data: Path, path: str | None = None):
+    """The thin plant (make_plant(thin=True), as bench/convergence.py has it), a capture
+    from `data`, or the splat file `path` (--capture), at most `gaussians` of it kept (seed
+    0: the same ones as convergence.py)."""
     from pd_tool.io import load_splats
     from pd_tool.io.synthetic import make_plant
 
-    if name == "plant":
+    if name == "plant" and path is None:
         return make_plant(gaussians, seed=0, thin=True)
-    scene = load_splats(data / CAPTURES[name])
+    scene = load_splats(Path(path) if path is not None else data / CAPTURES[name])
     if scene.count <= gaussians:
         return scene
     return scene.subset(np.sort(np.random.default_rng(0).choice(scene.count, gaussians, replace=False)))
@@ -497,8 +533,13 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     from pd_tool.prepare.preparation import up_rotation
     from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
 
-    up = SCENES[name]
-    scene = load_scene(name, args.scene_gaussians.get(name, args.gaussians), data=args.data).to(args.device)
+    path, up = args.captures.get(name, (None, SCENES.get(name)))
+    scene = load_scene(name, args.scene_gaussians.get(name, args.gaussians), args.data, path)
+    if up == "auto":
+        from pd_tool.render.views import auto_up
+
+        up = auto_up(scene)[0]
+    scene = scene.to(args.device)
     pos = scene.positions.detach().cpu().double().numpy()
     h = pos @ up_rotation(up)[2]
     static_below = float(h.min() + 0.1 * np.ptp(h))
@@ -531,7 +572,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     # the truth under the new force, at the converged settings whatever the videos used
     ref = sim if not args.control else simulation(scene, up, static_below, args.reference, 1.0, E_true, args.device,
                                                   args.split, most=args.split_most)
-    row = Row(name, kind, label, reference_particles=len(ref[1].positions), reference_per_cell=per_cell(*ref[:2]))
+    row = Row(name, kind, label, up, reference_particles=len(ref[1].positions), reference_per_cell=per_cell(*ref[:2]))
     x_true = under_new_force(ref)
     judge = Judge.of(ref[0], x_true, size)
     free, moving, peak, off = judge.free, judge.moving, judge.peak, judge.off
@@ -551,7 +592,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         return row
     t0 = time.perf_counter()
     videos, moved = reference_videos(folder, scene, up, sim, cfl, args.size, args.frames, args.device, args.seed,
-                                     args.clean)
+                                     args.clean, args.views)
     row.seconds["videos"] = time.perf_counter() - t0
 
     def fit(material: Path, *extra: str) -> None:
@@ -668,6 +709,13 @@ def main() -> None:
                     help="CPU, CI scale: plant and udon, smooth field, 3000 Gaussians, draft, 96 px, reference 48")
     ap.add_argument("--scenes", default=None, help=f"comma-separated, of {','.join(SCENES)} (default: all)")
     ap.add_argument("--fields", default=None, help=f"comma-separated, of {','.join(FIELDS)} (default: all)")
+    ap.add_argument("--capture", type=capture_spec, action="append", default=[], metavar="NAME=PATH[:UP]",
+                    help="also a capture of your own (any splat file pdtool reads), run as scene NAME; UP is its "
+                         "up axis (+x ... -z, or auto: pdtool's guess, the default). Repeatable. With --capture "
+                         "and no --scenes, only the captures run; it takes --gaussians")
+    ap.add_argument("--views", type=views_spec, default=VIEWS, metavar="AZ:EL,AZ:EL",
+                    help="the two videos' camera azimuth and elevation, degrees (default: "
+                         + ",".join(f"{az:g}:{el:g}" for az, el in VIEWS) + ")")
     ap.add_argument("--gaussians", type=int, default=30000)
     ap.add_argument("--scene-gaussians", type=scene_counts, default={}, metavar="SCENE=N[,SCENE=N]",
                     help="another --gaussians for these scenes, e.g. donut=50000: 20,000 of the donut's 45,624 "
@@ -717,6 +765,15 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--keep", type=Path, help="keep every scene, video, fit and USD in this new folder")
     args = ap.parse_args()
+    args.captures = {}
+    for name, path, up in args.capture:
+        if name in args.captures:
+            ap.error(f"--capture {name} given twice; give each capture its own NAME")
+        if not Path(path).is_file():
+            ap.error(f"--capture {name}={path}: no such file")
+        args.captures[name] = (str(Path(path).resolve()), up)
+    if args.captures and not args.scenes:
+        args.scenes = ",".join(args.captures)
     if args.quick:
         args.scenes, args.fields = args.scenes or "plant,udon", args.fields or "smooth"
         args.gaussians, args.quality = 3000, "draft"
@@ -725,6 +782,13 @@ def main() -> None:
         ap.error("--warm-from-field and --warm-from-truth are two starts; give one")
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
+    for name in args.scenes.split(","):
+        if name not in SCENES and name not in args.captures:
+            ap.error(f"--scenes {name}: not one of {', '.join([*SCENES, *args.captures])} (a capture of your own: "
+                     "--capture NAME=PATH[:UP])")
+    for kind in args.fields.split(","):
+        if kind not in FIELDS:
+            ap.error(f"--fields {kind}: not one of {', '.join(FIELDS)}")
 
     from pd_tool.core.device import init_warp_quietly
 

@@ -151,6 +151,58 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
 
 
+def test_capture_and_views_parse_what_a_user_gives_and_refuse_the_rest() -> None:
+    import argparse
+
+    assert ft.capture_spec("hat=scans/hat.ply:+z") == ("hat", "scans/hat.ply", "+z")
+    assert ft.capture_spec("hat=scans/hat.ply") == ("hat", "scans/hat.ply", "auto")
+    assert ft.capture_spec("hat=C:/scans/hat.ply") == ("hat", "C:/scans/hat.ply", "auto")  # a colon of the path
+    for bad in ("hat", "=x.ply", "hat=", "udon=mine.ply", "a,b=x.ply"):
+        with pytest.raises(argparse.ArgumentTypeError, match="NAME=PATH"):
+            ft.capture_spec(bad)
+    assert ft.views_spec("30:10,150:-25.5") == ((30.0, 10.0), (150.0, -25.5))
+    for bad in ("30:10", "30:10,150:25,200:8", "30,150", "a:b,c:d", "30:90,150:25"):
+        with pytest.raises(argparse.ArgumentTypeError, match="AZ:EL"):
+            ft.views_spec(bad)
+
+
+def test_a_capture_of_ones_own_runs_as_the_built_in_scene_does(tmp_path: Path, shared_data) -> None:
+    """--capture with the up axis guessed: the same truth under the new force as the
+    built-in udon, from the same file; a missing file is one line and exit 2."""
+    rows = {}
+    for name, extra in (("udon", ["--scenes", "udon"]), ("mine", ["--capture", f"mine={shared_data / 'udon.ply'}"])):
+        out = tmp_path / f"{name}.json"
+        run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), *extra, "--gaussians", "1500",
+                              "--reference", "32", "--reference-only", "--fields", "region", "--data",
+                              str(shared_data), "--json", str(out)], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr[-3000:]
+        rows[name] = json.loads(out.read_text())["rows"]
+    assert [r["scene"] for r in rows["mine"]] == ["mine"] and rows["mine"][0]["up"] == rows["udon"][0]["up"] == "-y"
+    assert rows["mine"][0]["errors"]["truth peak"] == pytest.approx(rows["udon"][0]["errors"]["truth peak"], rel=1e-6)
+    assert rows["mine"][0]["reference_particles"] == rows["udon"][0]["reference_particles"]
+    run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--capture", f"x={tmp_path / 'none.ply'}"],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "no such file" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_the_videos_are_filmed_from_the_views_given(tmp_path: Path, shared_data) -> None:
+    from pd_tool.core.cameras import auto_camera, load_cameras
+
+    scene = ft.load_scene("udon", 600, shared_data)
+    E = ft.truth_field(scene, "-y", "region", seed=0)
+    sim = ft.simulation(scene, "-y", -1e9, 16, 1.0, E, "cpu")
+    views = ((30.0, 10.0), (150.0, -20.0))
+    folders, moved = ft.reference_videos(tmp_path, scene, "-y", sim, 0.5, 32, 2, "cpu", 0, clean=True, views=views)
+    assert len(folders) == 2 and moved.shape == (scene.count,)
+    pos = scene.positions.numpy()
+    for folder, (az, el) in zip(folders, views):
+        cam = load_cameras(folder / "camera.json")[0]
+        want = auto_camera(pos, 32, 32, up_axis="-y", azimuth_deg=az, elevation_deg=el)
+        assert np.allclose(cam.center, want.center, atol=1e-5)
+        other = auto_camera(pos, 32, 32, up_axis="-y", azimuth_deg=ft.VIEWS[0][0], elevation_deg=ft.VIEWS[0][1])
+        assert not np.allclose(cam.center, other.center, atol=1e-3)
+
+
 def test_the_reference_splits_its_particles_and_keeps_their_mass_and_E(shared_data) -> None:
     scene = ft.load_scene("udon", 3000, shared_data)
     E = ft.truth_field(scene, "-y", "smooth", seed=0)
