@@ -372,6 +372,20 @@ def views_spec(text: str) -> tuple[tuple[float, float], ...]:
     return views
 
 
+# the run's scale: the GPU rows' defaults, and --quick's CI scale; a flag given wins over both
+SCALE = {"gaussians": 30000, "quality": "default", "reference": 128, "size": 512, "frames": 14, "seconds": 1.5,
+         "bake_qualities": "default,final"}
+QUICK = {"gaussians": 3000, "quality": "draft", "reference": 48, "size": 96, "frames": 10, "seconds": 1.0,
+         "bake_qualities": ""}
+
+
+def fill_scale(args: argparse.Namespace) -> None:
+    """Give each scale option the user left out (None) its default, --quick's with --quick."""
+    for key, value in (QUICK if args.quick else SCALE).items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
 def scene_counts(text: str) -> dict[str, int]:
     """--scene-gaussians: "donut=50000,udon=3000" -> {"donut": 50000, "udon": 3000}."""
     out = {}
@@ -706,7 +720,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
-                    help="CPU, CI scale: plant and udon, smooth field, 3000 Gaussians, draft, 96 px, reference 48")
+                    help="CPU, CI scale: plant and udon, smooth field, 3000 Gaussians, draft, 96 px, reference 48, "
+                         "10 frames (each of these options, given, still wins)")
     ap.add_argument("--scenes", default=None, help=f"comma-separated, of {','.join(SCENES)} (default: all)")
     ap.add_argument("--fields", default=None, help=f"comma-separated, of {','.join(FIELDS)} (default: all)")
     ap.add_argument("--capture", type=capture_spec, action="append", default=[], metavar="NAME=PATH[:UP]",
@@ -716,13 +731,15 @@ def main() -> None:
     ap.add_argument("--views", type=views_spec, default=VIEWS, metavar="AZ:EL,AZ:EL",
                     help="the two videos' camera azimuth and elevation, degrees (default: "
                          + ",".join(f"{az:g}:{el:g}" for az, el in VIEWS) + ")")
-    ap.add_argument("--gaussians", type=int, default=30000)
+    ap.add_argument("--gaussians", type=int, default=None, help="default 30000 (--quick: 3000)")
     ap.add_argument("--scene-gaussians", type=scene_counts, default={}, metavar="SCENE=N[,SCENE=N]",
                     help="another --gaussians for these scenes, e.g. donut=50000: 20,000 of the donut's 45,624 "
                          "Gaussians close its shell to 87%%, under the fill's 90%%, so it is simulated hollow")
-    ap.add_argument("--reference", type=int, default=128, help="the converged simulation's grid cells")
-    ap.add_argument("--quality", default="default", help="the fit's quality")
-    ap.add_argument("--bake-qualities", default="default,final", help="fitted material also baked at these")
+    ap.add_argument("--reference", type=int, default=None,
+                    help="the converged simulation's grid cells (default 128; --quick: 48)")
+    ap.add_argument("--quality", default=None, help="the fit's quality (default: default; --quick: draft)")
+    ap.add_argument("--bake-qualities", default=None,
+                    help="fitted material also baked at these (default: default,final; --quick: none)")
     ap.add_argument("--split", type=int, default=2,
                     help="the reference's sub-particles per cell along each axis (0: one particle per Gaussian, "
                          "about one a cell on a fine grid, which separates under a push)")
@@ -734,9 +751,9 @@ def main() -> None:
                          "(RMS / size, peak ratio): whether the reference has converged (0: no check)")
     ap.add_argument("--reference-only", action="store_true",
                     help="only the truth under the new force (and --check-reference): no videos, fit or bakes")
-    ap.add_argument("--size", type=int, default=512, help="reference frames' long side, px")
-    ap.add_argument("--frames", type=int, default=14)
-    ap.add_argument("--seconds", type=float, default=1.5, help="the new force's animation")
+    ap.add_argument("--size", type=int, default=None, help="reference frames' long side, px (default 512; --quick: 96)")
+    ap.add_argument("--frames", type=int, default=None, help="frames a video (default 14; --quick: 10)")
+    ap.add_argument("--seconds", type=float, default=None, help="the new force's animation (default 1.5; --quick: 1.0)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a FitSettings default of `pdtool fit`, e.g. --set driver_residual=false "
                          "(repeatable; the CLI's own flags still win)")
@@ -776,10 +793,9 @@ def main() -> None:
         args.scenes = ",".join(args.captures)
     if args.quick:
         args.scenes, args.fields = args.scenes or "plant,udon", args.fields or "smooth"
-        args.gaussians, args.quality = 3000, "draft"
-        args.reference, args.size, args.frames, args.seconds, args.bake_qualities = 48, 96, 10, 1.0, ""
     if args.warm_from_field and args.warm_from_truth:
         ap.error("--warm-from-field and --warm-from-truth are two starts; give one")
+    fill_scale(args)
     args.bake_qualities = [q for q in args.bake_qualities.split(",") if q]
     args.scenes, args.fields = args.scenes or ",".join(SCENES), args.fields or ",".join(FIELDS)
     for name in args.scenes.split(","):

@@ -151,6 +151,21 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
 
 
+def test_quick_sets_the_ci_scale_but_a_flag_given_wins() -> None:
+    import argparse
+
+    def scale(quick: bool, **given) -> argparse.Namespace:
+        args = argparse.Namespace(quick=quick, **{k: given.get(k) for k in ft.SCALE})
+        ft.fill_scale(args)
+        return args
+
+    assert vars(scale(True)) == {"quick": True, **ft.QUICK}
+    assert vars(scale(False)) == {"quick": False, **ft.SCALE}
+    given = scale(True, frames=20, reference=64)
+    assert given.frames == 20 and given.reference == 64 and given.size == ft.QUICK["size"]
+    assert scale(False, bake_qualities="").bake_qualities == ""  # an empty list given is kept
+
+
 def test_capture_and_views_parse_what_a_user_gives_and_refuse_the_rest() -> None:
     import argparse
 
