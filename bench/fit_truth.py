@@ -179,6 +179,12 @@ class Row:
 GOALS = {"uniform start": 3.0, "best uniform": 2.0}
 
 
+def uniform_bake(label: str, quality: str, fit_quality: str) -> str:
+    """The error key of a uniform E's bake (`label`: "uniform start" or "best uniform") at
+    `quality`: the bare name at the fit's own quality, else "LABEL, QUALITY"."""
+    return label if quality == fit_quality else f"{label}, {quality}"
+
+
 def goals(errors: dict, qualities: list[str], fit_quality: str, check_rms: float | None) -> dict:
     """For the bare bake ("as fit", against the uniform E baked at the fit's quality) and
     each bake quality Q, and each goal: {"asks": the uniform bake's error over the goal's
@@ -189,14 +195,14 @@ def goals(errors: dict, qualities: list[str], fit_quality: str, check_rms: float
     reference: the truth itself is not known that well."""
     out: dict = {}
     for q in ["as fit", *qualities]:
-        suffix = "" if q in ("as fit", fit_quality) else f", {q}"
         fitted = errors.get(f"fitted, {q}")
         if fitted is None:
             continue
         for base, factor in GOALS.items():
-            if base + suffix not in errors:
+            uniform = uniform_bake(base, fit_quality if q == "as fit" else q, fit_quality)
+            if uniform not in errors:
                 continue
-            asks = errors[base + suffix] / factor
+            asks = errors[uniform] / factor
             out.setdefault(q, {})[f"{factor:g}x below {base}"] = {
                 "asks": asks, "fitted": fitted, "met": bool(fitted <= asks),
                 "measurable": None if check_rms is None else bool(asks > check_rms)}
@@ -684,9 +690,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         # at the fit's quality, and at each bake quality: a fitted bake is judged against
         # a uniform one on the same grid
         for qname in dict.fromkeys([args.quality, *args.bake_qualities]):
-            key = label_e if qname == args.quality else f"{label_e}, {qname}"
-            bakes[key] = (["--preset", str(mat)], ["--quality", qname, "--up", up,
-                                                    "--static-below", f"{static_below:.9g}"])
+            bakes[uniform_bake(label_e, qname, args.quality)] = (
+                ["--preset", str(mat)], ["--quality", qname, "--up", up, "--static-below", f"{static_below:.9g}"])
     for bname, (material, extra) in bakes.items():
         t0 = time.perf_counter()
         x, factor = bake_positions(folder, bname.replace(" ", "_").replace(",", ""), scene_path, material, force,
@@ -707,10 +712,9 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                   "uniform start / fitted, as fit": row.errors["uniform start, as fit"] / fitted}
     for qname in args.bake_qualities:
         # each bake quality against the uniform E baked at that quality
-        suffix = "" if qname == args.quality else f", {qname}"
         for label_e in ("uniform start", "best uniform"):
             for what in ("fitted", "true E"):
-                ratio = row.errors[label_e + suffix] / row.errors[f"{what}, {qname}"]
+                ratio = row.errors[uniform_bake(label_e, qname, args.quality)] / row.errors[f"{what}, {qname}"]
                 row.ratios[f"{label_e} / {what}, {qname}"] = ratio
     row.goals = goals(row.errors, args.bake_qualities, args.quality,
                       row.reference_check["rms"] if row.reference_check else None)
