@@ -403,14 +403,30 @@ def scene_counts(text: str) -> dict[str, int]:
     return out
 
 
+# the --set overrides in force, checked against what each row's fit recorded (unapplied)
+SET: dict = {}
+
+
 def override_fit_defaults(items: list[str]) -> None:
     """`--set FIELD=VALUE`: `pdtool fit` (run in this process) builds its settings from a
     subclass of FitSettings with these defaults."""
     from fit_recovery import setting_overrides
 
     overrides = setting_overrides(items)
+    SET.clear()
+    SET.update(overrides)
     if overrides:
         _fit_defaults(overrides)
+
+
+def unapplied(recorded: dict, overrides: dict) -> list[str]:
+    """The --set fields whose value the fit did not run at: `recorded` is the settings a
+    fit wrote into its material file (meta["settings"]). `pdtool fit` passes some fields
+    from its own flags (--polish, --diffusion, --material-iters, ...), which a changed
+    default cannot reach; one line per field naming the value it ran at."""
+    return [f"--set {k}={v!r} did not reach the fit, which ran at {recorded.get(k)!r}: `pdtool fit` passes "
+            f"{k} from its own flag; give that flag in --fit-args instead (pdtool fit --help)"
+            for k, v in overrides.items() if recorded.get(k) != v]
 
 
 def _fit_defaults(overrides: dict):
@@ -644,6 +660,10 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     else:
         fit(out)
     row.fit_s = time.perf_counter() - t0
+    lost = unapplied(MaterialFile.load(out).meta.get("settings", {}), SET)
+    if lost:  # a row fitted at other settings than asked would be reported as if it had not been
+        print("\n".join(lost), file=sys.stderr)
+        raise SystemExit(2)
     E_fit = MaterialFile.load(out).E_at(pos)
     sel = moved > MOVING * size
     row.moving_share = float(sel.mean())
@@ -760,7 +780,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=None, help="the new force's animation (default 1.5; --quick: 1.0)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a FitSettings default of `pdtool fit`, e.g. --set driver_residual=false "
-                         "(repeatable; the CLI's own flags still win)")
+                         "(repeatable). A field that `pdtool fit` passes from its own flag (--polish, "
+                         "--diffusion, ...) is not reached: the first fit stops the run, naming it; give "
+                         "the flag in --fit-args")
     ap.add_argument("--fit-args", default="", help="extra `pdtool fit` flags, e.g. '--diffusion 0.2'")
     ap.add_argument("--fit-grid", type=int, default=0,
                     help="fit on this many cells instead of --quality's fit_grid_res (0: the quality's)")
