@@ -45,7 +45,9 @@ default must hold on all of them).
 
 `--losses` also asks whether the fit's own model prefers the truth: the whole-clip video
 loss under the fitted E, the true E and the uniform start, each with v0 refitted under it
-(`pdtool fit --init-material E --material-iters 0 --no-level`).
+(`pdtool fit --init-material E --material-iters 0 --no-level`), and under the answer itself:
+the true E with the true pushes on the fit's own drivers (`true E, true push`). A fit ending
+above that stopped short of the answer; one ending below it found a pair its loss prefers.
 
 `--fit-grid N` and `--fit-floor K` fit on N cells with at least K drivers a moving cell (a
 quality file derived from `--quality`): the fit's discretisation, against which the loss can
@@ -80,6 +82,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import re
@@ -166,7 +169,7 @@ class Row:
     ratios: dict = field(default_factory=dict)  # "uniform start / fitted" etc.
     # --losses: the fit's whole-clip video loss under an E, with v0 fitted under that E:
     # "fitted" (the fit's own v0), and the fitted E, the true E and the uniform start, each
-    # with v0 refitted by stage 1 alone
+    # with v0 refitted by stage 1 alone; "true E, true push": the answer (exact_pair_loss)
     losses: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)  # wall time per step
     # per bake quality and goal: the error it asks for, whether the fitted bake meets it, and,
@@ -262,6 +265,35 @@ def group_log_mean(members: np.ndarray, E: np.ndarray, q: int) -> tuple[np.ndarr
 def driver_E(prep, drivers, gaussian_E: np.ndarray) -> np.ndarray:
     """Each driver's E [Q]: the geometric mean over its particles."""
     return np.exp(group_log_mean(drivers.labels.cpu().numpy(), particle_E(prep, gaussian_E), len(drivers.positions))[0])
+
+
+def exact_pair_loss(scene_path: Path, videos: list[Path], settings, prepare: dict, E_true: np.ndarray) -> float | None:
+    """`pdtool fit`'s whole-clip loss (its loss_final) under the answer: the fit's own
+    problem (its resolved FitSettings and the preparation options a fit records) with each
+    driver's E from the Gaussians' true E [N] (Pa) and each video's v0 the push that made it
+    (PUSHES, PUSH_SPEED). Near 0 on clean videos made at the fit's own discretisation
+    (--control --clean). A fit ending above it stopped short of the answer; one ending
+    below it found an (E, v0) pair that its loss prefers to the truth. None where the fit
+    has no per-driver residuals to hold E per driver."""
+    import torch
+
+    from pd_tool.fit.problem import FitProblem, whole_clip_loss
+    from pd_tool.fit.reference import push_velocity
+    from pd_tool.io import load_splats
+    from pd_tool.prepare.preparation import PrepareOptions
+    from pd_tool.video.folder import load_reference_video
+
+    if not settings.driver_residual:
+        return None
+    refs = [load_reference_video(v, working_size=settings.working_long_side, device=settings.device) for v in videos]
+    pb = FitProblem(load_splats(scene_path, device=settings.device), refs, PrepareOptions.from_dict(prepare), settings)
+    with torch.no_grad():
+        log_e = torch.log(torch.as_tensor(driver_E(pb.prep, pb.drivers, E_true), dtype=torch.float32, device=pb.device))
+        pb.set_driver_log_E(log_e.clamp(pb.material.log_e_min, pb.material.log_e_max))
+        rest, static = pb.x_rest.double().cpu().numpy(), pb.static.cpu().numpy()
+        v0s = [torch.as_tensor(push_velocity(rest, static, direction=d, speed=PUSH_SPEED), dtype=torch.float32,
+                               device=pb.device) for d in PUSHES[:len(refs)]]
+    return whole_clip_loss(pb, v0s)
 
 
 def degrade(frames: np.ndarray, rng) -> np.ndarray:
@@ -688,8 +720,17 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     if args.losses:
         # Does the fit's own model prefer the truth? v0 refitted under each E (stage 1 alone,
         # no level), then the whole-clip loss: the truth scoring above the fitted E means the
-        # model's discretisation or v0 field, not the optimiser, pulls E away from it
+        # model's discretisation or v0 field, not the optimiser, pulls E away from it. And the
+        # truth with the true pushes, which no fitted v0 stands in for
         row.losses["fitted"] = float(fitted_file.meta["metrics"]["loss_final"])
+        ran = fitted_file.meta["settings"]
+        names = {f.name for f in dataclasses.fields(FitSettings)}
+        settings = FitSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in ran.items() if k in names})
+        t0 = time.perf_counter()
+        exact = exact_pair_loss(scene_path, videos, settings.resolved(), fitted_file.meta["prepare"], E_true)
+        if exact is not None:
+            row.losses["true E, true push"] = exact
+        row.seconds["loss true E, true push"] = time.perf_counter() - t0
         for key, start_args in (("fitted, v0 refitted", ["--init-material", str(out)]),
                                 ("true E", ["--init-material", str(truth)]), ("uniform start", [])):
             t0 = time.perf_counter()
@@ -790,8 +831,8 @@ def main() -> None:
                     help="the fit's floor of drivers a moving cell instead of --quality's fit_min_drivers_per_cell")
     ap.add_argument("--losses", action="store_true",
                     help="also the fit's whole-clip video loss under the fitted E, the true E and the uniform start, "
-                         "each with v0 refitted under it (three more stage-1 fits a row): does the fit's own "
-                         "model prefer the truth?")
+                         "each with v0 refitted under it (three more stage-1 fits a row), and under the true E "
+                         "with the true pushes: does the fit's own model prefer the truth?")
     ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
     ap.add_argument("--warm-from-field", action="store_true",
                     help="fit E's field alone first (no per-driver residuals, no stage-1 level), then the row's fit "

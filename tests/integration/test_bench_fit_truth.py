@@ -163,10 +163,38 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     # --losses: the whole-clip loss under each E, v0 refitted. The fit lowered its own
     # loss below the uniform start's, and refitting v0 under the fitted E finds about it again
     loss = row["losses"]
-    assert set(loss) == {"fitted", "fitted, v0 refitted", "true E", "uniform start"}, loss
+    assert set(loss) == {"fitted", "fitted, v0 refitted", "true E", "uniform start", "true E, true push"}, loss
     assert all(0 < v < 1 for v in loss.values()), loss
     assert loss["fitted"] < loss["uniform start"] and loss["fitted, v0 refitted"] < loss["uniform start"], loss
     assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
+
+
+def test_the_exact_pair_scores_near_zero_on_clean_videos_of_the_fits_own_discretisation(tmp_path: Path,
+                                                                                         shared_data) -> None:
+    """--losses' "true E, true push": on videos made as the fit simulates (--control
+    --clean) the true E with the true pushes reproduces them, where a wrong E does not."""
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.io import save_splats
+    from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
+    from pd_tool.prepare.preparation import PrepareOptions
+
+    scene = ft.load_scene("plant", 1500, shared_data)
+    pos = scene.positions.detach().double().numpy()
+    static_below = float(pos[:, 2].min() + 0.1 * np.ptp(pos[:, 2]))
+    E = ft.truth_field(scene, "+z", "region", seed=0)
+    q = load_preset("quality", "draft")
+    grid, cfl, ratio = fit_simulation(q)
+    sim = ft.simulation(scene, "+z", static_below, grid, ratio, E, "cpu", 0, fit_min_per_cell(q))
+    videos, _ = ft.reference_videos(tmp_path, scene, "+z", sim, cfl, 64, 5, "cpu", 0, clean=True)
+    settings = FitSettings(quality="draft", device="cpu", working_long_side=64).resolved()
+    prepare = PrepareOptions(up_axis="+z", static_below=static_below).to_dict()
+    scene_path = save_splats(scene, tmp_path / "plant.ply")
+    exact = ft.exact_pair_loss(scene_path, videos, settings, prepare, E)
+    for wrong in (4.0, 0.25):  # the same pushes under a level 1.4 nats off
+        assert exact < 0.1 * ft.exact_pair_loss(scene_path, videos, settings, prepare, E * wrong)
+    assert 0 <= exact < 1e-3
+    no_residuals = FitSettings(quality="draft", device="cpu", driver_residual=False, stage1_level=False).resolved()
+    assert ft.exact_pair_loss(scene_path, videos, no_residuals, prepare, E) is None
 
 
 def test_quick_sets_the_ci_scale_but_a_flag_given_wins() -> None:
