@@ -435,18 +435,12 @@ def scene_counts(text: str) -> dict[str, int]:
     return out
 
 
-# the --set overrides in force, checked against what each row's fit recorded (unapplied)
-SET: dict = {}
-
-
 def override_fit_defaults(items: list[str]) -> None:
     """`--set FIELD=VALUE`: `pdtool fit` (run in this process) builds its settings from a
     subclass of FitSettings with these defaults."""
     from fit_recovery import setting_overrides
 
     overrides = setting_overrides(items)
-    SET.clear()
-    SET.update(overrides)
     if overrides:
         _fit_defaults(overrides)
 
@@ -594,6 +588,7 @@ def load_scene(name: str, gaussians: int, data: Path, path: str | None = None):
 
 
 def run_case(name: str, kind: str, args, tmp: Path) -> Row:
+    from fit_recovery import setting_overrides
     from pd_tool.fit.reference import simulate_positions
     from pd_tool.io import save_splats
     from pd_tool.materials.file import MaterialFile
@@ -692,11 +687,12 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     else:
         fit(out)
     row.fit_s = time.perf_counter() - t0
-    lost = unapplied(MaterialFile.load(out).meta.get("settings", {}), SET)
+    fitted_file = MaterialFile.load(out)
+    lost = unapplied(fitted_file.meta.get("settings", {}), setting_overrides(args.set))
     if lost:  # a row fitted at other settings than asked would be reported as if it had not been
         print("\n".join(lost), file=sys.stderr)
         raise SystemExit(2)
-    E_fit = MaterialFile.load(out).E_at(pos)
+    E_fit = fitted_file.E_at(pos)
     sel = moved > MOVING * size
     row.moving_share = float(sel.mean())
     if sel.sum() > 2:
@@ -712,7 +708,6 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
                                for k, e in (("uniform start", E_uniform), ("best uniform", E_best))}
     # the true E on the fit's drivers, baked as the fitted E is (as fit, and at each bake
     # quality as it is): what an exact recovery of E would score on that discretisation
-    fitted_file = MaterialFile.load(out)
     truth = truth_material(fitted_file, pos, E_true, folder / "truth.pdmat")
     # the uniform start on the fit's drivers: what the fit gained on its own discretisation
     start = MaterialFile(np.full(len(fitted_file.driver_rest), float(FitSettings().init_E)), fitted_file.driver_v0,

@@ -112,7 +112,6 @@ def test_set_gives_the_fits_settings_other_defaults_and_refuses_unknown_fields(m
     import pd_tool.fit.settings as fs
 
     monkeypatch.setattr(fs, "FitSettings", fs.FitSettings)  # restored after the test
-    monkeypatch.setattr(ft, "SET", {})
     ft.override_fit_defaults(["residual_diffusion=0.5", "stage1_level=false"])
     s = fs.FitSettings(quality="draft")
     assert s.residual_diffusion == 0.5 and s.stage1_level is False and s.quality == "draft"
@@ -130,12 +129,12 @@ def test_a_set_field_that_the_cli_passes_itself_is_named_as_not_applied(monkeypa
     import pd_tool.fit.settings as fs
 
     monkeypatch.setattr(fs, "FitSettings", fs.FitSettings)
-    monkeypatch.setattr(ft, "SET", {})
     ft.override_fit_defaults(["polish_iters=40", "residual_pool=0.5"])
+    overrides = {"polish_iters": 40, "residual_pool": 0.5}  # as `--set` parses them
     as_the_cli_builds = fs.FitSettings(quality="draft", polish_iters=0).resolved()  # --polish's default
-    lost = ft.unapplied(asdict(as_the_cli_builds), ft.SET)
+    lost = ft.unapplied(asdict(as_the_cli_builds), overrides)
     assert len(lost) == 1 and "--set polish_iters=40" in lost[0] and "ran at 0" in lost[0], lost
-    assert ft.unapplied(asdict(fs.FitSettings(quality="draft").resolved()), ft.SET) == []
+    assert ft.unapplied(asdict(fs.FitSettings(quality="draft").resolved()), overrides) == []
 
 
 def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, shared_data) -> None:
