@@ -30,11 +30,12 @@ For each scene and hidden E field:
      same force: RMS over frames and moving Gaussians, as a fraction of the object's size.
 The error is taken over the Gaussians that the new force moves more than 1% of the
 object's size in the truth; `still` is what a material that does not move would score.
-Also the E error: median |ln(E_fit / E_true)| and Spearman's rank correlation over the
-Gaussians that move more than 1% of the object's size in a video, split into the fit's
-level (median ln) and its shape (median |ln| about that level), beside the same median for
-the uniform start and the best uniform E; and for each matched bake, the factor it scaled
-the fitted E by and the same median for the E it moved with (`matched_abs_ln`).
+Also the E error: median |ln(E_fit / E_true)| and Spearman's rank correlation (ties at
+their mean rank) over the Gaussians that move more than 1% of the object's size in a
+video, split into the fit's level (median ln) and its shape (median |ln| about that
+level), beside the same median for the uniform start and the best uniform E; and for each
+matched bake, the factor it scaled the fitted E by and the same median for the E it moved
+with (`matched_abs_ln`).
 Each row's `goals` give, for the bare bake and each bake quality, the error each new-force
 target asks for (the uniform bake's over 3 and the best uniform's over 2), whether the fitted
 bake meets it, and with `--check-reference` whether the reference can tell: a target asking
@@ -52,6 +53,11 @@ above that stopped short of the answer; one ending below it found a pair its los
 `--fit-grid N` and `--fit-floor K` fit on N cells with at least K drivers a moving cell (a
 quality file derived from `--quality`): the fit's discretisation, against which the loss can
 or cannot tell the true E from a uniform one.
+
+`--given-push` runs the fit's E search alone: its stage 2 from the uniform start with each
+video's v0 held at the true push (no stage 1), with the same E error and whole-clip loss.
+On `--control --clean` videos the answer scores about 0, so an E left far from the truth
+there is the E search's own failing, not v0's or the model's.
 
 `--warm-from-field` fits E's field alone first (no per-driver residuals, no stage-1
 level), then the row's fit from that E (`--init-material`): the field's pattern, then the
@@ -171,6 +177,9 @@ class Row:
     # "fitted" (the fit's own v0), and the fitted E, the true E and the uniform start, each
     # with v0 refitted by stage 1 alone; "true E, true push": the answer (exact_pair_loss)
     losses: dict = field(default_factory=dict)
+    # --given-push: the fit's stage 2 from the uniform start with v0 held at the true pushes
+    # (given_push_fit): its E statistics as above, and its whole-clip loss at start and end
+    given_push: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)  # wall time per step
     # per bake quality and goal: the error it asks for, whether the fitted bake meets it, and,
     # with --check-reference, whether the reference can tell (goals())
@@ -267,33 +276,81 @@ def driver_E(prep, drivers, gaussian_E: np.ndarray) -> np.ndarray:
     return np.exp(group_log_mean(drivers.labels.cpu().numpy(), particle_E(prep, gaussian_E), len(drivers.positions))[0])
 
 
-def exact_pair_loss(scene_path: Path, videos: list[Path], settings, prepare: dict, E_true: np.ndarray) -> float | None:
-    """`pdtool fit`'s whole-clip loss (its loss_final) under the answer: the fit's own
-    problem (its resolved FitSettings and the preparation options a fit records) with each
-    driver's E from the Gaussians' true E [N] (Pa) and each video's v0 the push that made it
-    (PUSHES, PUSH_SPEED). Near 0 on clean videos made at the fit's own discretisation
-    (--control --clean). A fit ending above it stopped short of the answer; one ending
-    below it found an (E, v0) pair that its loss prefers to the truth. None where the fit
-    has no per-driver residuals to hold E per driver."""
+def answer_problem(scene_path: Path, videos: list[Path], settings, prepare: dict, E_true: np.ndarray,
+                   given_push: bool = False):
+    """The fit's own problem (its resolved FitSettings and the preparation options a fit
+    records) and the answer on its drivers: (problem, each video's true push [Q, 3] m/s
+    (PUSHES, PUSH_SPEED), the true log E per driver [Q] nats, clamped to the field's
+    bounds). With `given_push` the problem's v0 is pinned to those pushes (GivenPush)."""
     import torch
 
-    from pd_tool.fit.problem import FitProblem, whole_clip_loss
+    from pd_tool.fit.problem import FitProblem
     from pd_tool.fit.reference import push_velocity
     from pd_tool.io import load_splats
     from pd_tool.prepare.preparation import PrepareOptions
     from pd_tool.video.folder import load_reference_video
 
-    if not settings.driver_residual:
-        return None
+    class GivenPush(FitProblem):
+        """A fit's problem whose videos' v0 are the true pushes (set as `pushes` after it is
+        built) instead of its velocity fields."""
+
+        def driver_v0(self, i: int) -> torch.Tensor:
+            return self.pushes[i]
+
     refs = [load_reference_video(v, working_size=settings.working_long_side, device=settings.device) for v in videos]
-    pb = FitProblem(load_splats(scene_path, device=settings.device), refs, PrepareOptions.from_dict(prepare), settings)
+    pb = (GivenPush if given_push else FitProblem)(load_splats(scene_path, device=settings.device), refs,
+                                                   PrepareOptions.from_dict(prepare), settings)
     with torch.no_grad():
         log_e = torch.log(torch.as_tensor(driver_E(pb.prep, pb.drivers, E_true), dtype=torch.float32, device=pb.device))
-        pb.set_driver_log_E(log_e.clamp(pb.material.log_e_min, pb.material.log_e_max))
         rest, static = pb.x_rest.double().cpu().numpy(), pb.static.cpu().numpy()
-        v0s = [torch.as_tensor(push_velocity(rest, static, direction=d, speed=PUSH_SPEED), dtype=torch.float32,
-                               device=pb.device) for d in PUSHES[:len(refs)]]
-    return whole_clip_loss(pb, v0s)
+        pushes = [torch.as_tensor(push_velocity(rest, static, direction=d, speed=PUSH_SPEED), dtype=torch.float32,
+                                  device=pb.device) for d in PUSHES[:len(refs)]]
+    pb.pushes = pushes
+    return pb, pushes, log_e.clamp(pb.material.log_e_min, pb.material.log_e_max)
+
+
+def exact_pair_loss(scene_path: Path, videos: list[Path], settings, prepare: dict, E_true: np.ndarray) -> float | None:
+    """`pdtool fit`'s whole-clip loss (its loss_final) under the answer: the fit's own
+    problem with each driver's E from the Gaussians' true E [N] (Pa) and each video's v0
+    the push that made it. Near 0 on clean videos made at the fit's own discretisation
+    (--control --clean). A fit ending above it stopped short of the answer; one ending
+    below it found an (E, v0) pair that its loss prefers to the truth. None where the fit
+    has no per-driver residuals to hold E per driver."""
+    import torch
+
+    from pd_tool.fit.problem import whole_clip_loss
+
+    if not settings.driver_residual:
+        return None
+    pb, pushes, log_e = answer_problem(scene_path, videos, settings, prepare, E_true)
+    with torch.no_grad():
+        pb.set_driver_log_E(log_e)
+    return whole_clip_loss(pb, pushes)
+
+
+def given_push_fit(scene_path: Path, videos: list[Path], settings, prepare: dict, E_true: np.ndarray,
+                   points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The fit's E search alone: its stage 2 (every round, as the fit's settings run it) from
+    the uniform start with each video's v0 held at the true push, so no v0 error can pull E
+    away. Returns (E [M] Pa at `points` [M, 3] scene units, each the nearest driver's, the
+    whole-clip loss stage 2 starts from, the one it ends at). Stage 1 does not run (nothing
+    is left for it: no v0 to fit, and its level would fold into the start)."""
+    import torch
+
+    from pd_tool.drivers import nearest_drivers
+    from pd_tool.fit.problem import whole_clip_loss
+    from pd_tool.fit.stages import fit_round
+
+    s = dataclasses.replace(settings, velocity_iters=0, stage1_level=False, init_material=None)
+    pb, pushes, _ = answer_problem(scene_path, videos, s, prepare, E_true, given_push=True)
+    start = whole_clip_loss(pb, pushes)
+    losses: dict[str, list[float]] = {"velocity": [], "material": []}
+    for rnd in range(s.rounds):
+        fit_round(pb, s, rnd, None, losses, {}, None, lambda *_: None)
+    rest = torch.as_tensor(pb.prep.transform.to_scene(pb.x_rest.double().cpu().numpy()), dtype=torch.float64)
+    nearest = nearest_drivers(torch.as_tensor(points, dtype=torch.float64), rest, k=1)[:, 0]
+    E = pb.driver_E().detach().double().cpu().numpy()[nearest.numpy()]
+    return E, start, whole_clip_loss(pb, pushes)
 
 
 def degrade(frames: np.ndarray, rng) -> np.ndarray:
@@ -567,9 +624,29 @@ def truth_material(fitted, pos: np.ndarray, E_true: np.ndarray, path: Path) -> P
     return MaterialFile(np.exp(log_e), fitted.driver_v0, rest, dict(fitted.meta), fitted.fields).save(path)
 
 
+def ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks [M] from 0, ties sharing their mean rank: every Gaussian of a driver carries its
+    driver's E, so a fitted E is mostly ties, and ranking them in index order would
+    correlate the scene's storage order."""
+    _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    return (np.cumsum(counts) - (counts + 1) / 2.0)[inverse]
+
+
 def spearman(a: np.ndarray, b: np.ndarray) -> float:
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 2 else math.nan
+    """Spearman's rank correlation of a [M] and b [M]; NaN with fewer than three values or
+    when either is constant (no order to compare)."""
+    if len(a) < 3 or np.ptp(a) == 0 or np.ptp(b) == 0:
+        return math.nan
+    return float(np.corrcoef(ranks(a), ranks(b))[0, 1])
+
+
+def e_error(E_fit: np.ndarray, E_true: np.ndarray) -> dict[str, float]:
+    """How far E_fit [M] is from E_true [M] (Pa): median |ln(E_fit / E_true)|, its level
+    (median ln) and shape (median |ln| about that level), and Spearman's rank correlation."""
+    ln = np.log(E_fit / E_true)
+    level = float(np.median(ln))
+    return {"median_abs_ln": float(np.median(np.abs(ln))), "median_ln": level,
+            "shape_abs_ln": float(np.median(np.abs(ln - level))), "spearman": spearman(E_fit, E_true)}
 
 
 def load_scene(name: str, gaussians: int, data: Path, path: str | None = None):
@@ -696,11 +773,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     sel = moved > MOVING * size
     row.moving_share = float(sel.mean())
     if sel.sum() > 2:
-        ln = np.log(E_fit[sel] / E_true[sel])
-        row.median_abs_ln = float(np.median(np.abs(ln)))
-        row.median_ln = float(np.median(ln))
-        row.shape_abs_ln = float(np.median(np.abs(ln - row.median_ln)))
-        row.spearman = spearman(E_fit[sel], E_true[sel])
+        for key, value in e_error(E_fit[sel], E_true[sel]).items():
+            setattr(row, key, value)
     E_uniform = float(FitSettings().init_E)  # `pdtool fit`'s --init-e default
     E_best = float(np.exp(np.mean(np.log(E_true[free]))))
     if sel.sum() > 2:
@@ -712,15 +786,25 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     # the uniform start on the fit's drivers: what the fit gained on its own discretisation
     start = MaterialFile(np.full(len(fitted_file.driver_rest), float(FitSettings().init_E)), fitted_file.driver_v0,
                          fitted_file.driver_rest, dict(fitted_file.meta), fitted_file.fields).save(folder / "start.pdmat")
+    ran = fitted_file.meta["settings"]
+    names = {f.name for f in dataclasses.fields(FitSettings)}
+    # the settings the fit ran at, for the diagnostics that rebuild its problem
+    settings = FitSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in ran.items() if k in names})
+    if args.given_push and sel.sum() > 2:
+        # E's search alone: stage 2 with the true pushes, so no error of stage 1's v0 can
+        # pull E away; what it leaves is the E search's own (or, against a converged
+        # reference, the model's discretisation's)
+        t0 = time.perf_counter()
+        E_given, start_loss, end_loss = given_push_fit(scene_path, videos, settings.resolved(),
+                                                       fitted_file.meta["prepare"], E_true, pos)
+        row.given_push = {**e_error(E_given[sel], E_true[sel]), "loss_start": start_loss, "loss_final": end_loss}
+        row.seconds["given push"] = time.perf_counter() - t0
     if args.losses:
         # Does the fit's own model prefer the truth? v0 refitted under each E (stage 1 alone,
         # no level), then the whole-clip loss: the truth scoring above the fitted E means the
         # model's discretisation or v0 field, not the optimiser, pulls E away from it. And the
         # truth with the true pushes, which no fitted v0 stands in for
         row.losses["fitted"] = float(fitted_file.meta["metrics"]["loss_final"])
-        ran = fitted_file.meta["settings"]
-        names = {f.name for f in dataclasses.fields(FitSettings)}
-        settings = FitSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in ran.items() if k in names})
         t0 = time.perf_counter()
         exact = exact_pair_loss(scene_path, videos, settings.resolved(), fitted_file.meta["prepare"], E_true)
         if exact is not None:
@@ -828,6 +912,10 @@ def main() -> None:
                     help="also the fit's whole-clip video loss under the fitted E, the true E and the uniform start, "
                          "each with v0 refitted under it (three more stage-1 fits a row), and under the true E "
                          "with the true pushes: does the fit's own model prefer the truth?")
+    ap.add_argument("--given-push", action="store_true",
+                    help="also the fit's E search alone: its stage 2 from the uniform start with each video's v0 "
+                         "held at the true push (no stage 1), and the same E error and whole-clip loss: does E "
+                         "find the truth once v0 is right?")
     ap.add_argument("--control", action="store_true", help="reference videos at the fit's own discretisation")
     ap.add_argument("--warm-from-field", action="store_true",
                     help="fit E's field alone first (no per-driver residuals, no stage-1 level), then the row's fit "
@@ -899,6 +987,11 @@ def main() -> None:
                         f"{g}: asks {v['asks']:.2%}, {'met' if v['met'] else 'missed'}"
                         + (" (within the reference's own error)" if v["measurable"] is False else "")
                         for g, v in per_goal.items()), flush=True)
+                if row.given_push:
+                    g = row.given_push
+                    print(f"       given the true pushes: |ln| {g['median_abs_ln']:.2f}, level {g['median_ln']:+.2f}, "
+                          f"shape {g['shape_abs_ln']:.2f}, rho {g['spearman']:.2f}; whole-clip loss "
+                          f"{g['loss_start']:.5f} -> {g['loss_final']:.5f}", flush=True)
                 if row.losses:
                     print("       whole-clip loss: " + "  ".join(f"{k} {v:.5f}" for k, v in row.losses.items()),
                           flush=True)

@@ -140,7 +140,8 @@ def test_a_set_field_that_the_cli_passes_itself_is_named_as_not_applied(monkeypa
 def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, shared_data) -> None:
     out = tmp_path / "ft.json"
     run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--quick", "--scenes", "udon",
-                          "--losses", "--data", str(shared_data), "--json", str(out)], capture_output=True, text=True)
+                          "--losses", "--given-push", "--data", str(shared_data), "--json", str(out)], capture_output=True,
+                         text=True)
     assert run.returncode == 0, run.stderr[-3000:]
     row = json.loads(out.read_text())["rows"][0]
     err = row["errors"]
@@ -166,17 +167,25 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert all(0 < v < 1 for v in loss.values()), loss
     assert loss["fitted"] < loss["uniform start"] and loss["fitted, v0 refitted"] < loss["uniform start"], loss
     assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
+    # --given-push: stage 2 alone with the true pushes, from the uniform start, lowers the
+    # whole-clip loss it starts from and reports its E error as the fit's is reported
+    given = row["given_push"]
+    assert set(given) == {"median_abs_ln", "median_ln", "shape_abs_ln", "spearman", "loss_start", "loss_final"}
+    assert 0 < given["loss_final"] < given["loss_start"] < 1, given
+    assert given["median_abs_ln"] >= abs(given["median_ln"]) - 1e-9
 
 
-def test_the_exact_pair_scores_near_zero_on_clean_videos_of_the_fits_own_discretisation(tmp_path: Path,
-                                                                                         shared_data) -> None:
-    """--losses' "true E, true push": on videos made as the fit simulates (--control
-    --clean) the true E with the true pushes reproduces them, where a wrong E does not."""
+@pytest.fixture(scope="module")
+def clean_control(tmp_path_factory, shared_data):
+    """Clean videos of the plant's region field made as the draft fit simulates (--control
+    --clean): (scene file, videos, resolved draft settings, preparation dict, E per
+    Gaussian [N] Pa, Gaussian positions [N, 3])."""
     from pd_tool.fit.settings import FitSettings
     from pd_tool.io import save_splats
     from pd_tool.materials.presets import fit_min_per_cell, fit_simulation, load_preset
     from pd_tool.prepare.preparation import PrepareOptions
 
+    tmp_path = tmp_path_factory.mktemp("clean_control")
     scene = ft.load_scene("plant", 1500, shared_data)
     pos = scene.positions.detach().double().numpy()
     static_below = float(pos[:, 2].min() + 0.1 * np.ptp(pos[:, 2]))
@@ -187,13 +196,65 @@ def test_the_exact_pair_scores_near_zero_on_clean_videos_of_the_fits_own_discret
     videos, _ = ft.reference_videos(tmp_path, scene, "+z", sim, cfl, 64, 5, "cpu", 0, clean=True)
     settings = FitSettings(quality="draft", device="cpu", working_long_side=64).resolved()
     prepare = PrepareOptions(up_axis="+z", static_below=static_below).to_dict()
-    scene_path = save_splats(scene, tmp_path / "plant.ply")
+    return save_splats(scene, tmp_path / "plant.ply"), videos, settings, prepare, E, pos
+
+
+def test_the_exact_pair_scores_near_zero_on_clean_videos_of_the_fits_own_discretisation(clean_control) -> None:
+    """--losses' "true E, true push": on videos made as the fit simulates (--control
+    --clean) the true E with the true pushes reproduces them, where a wrong E does not."""
+    from pd_tool.fit.settings import FitSettings
+
+    scene_path, videos, settings, prepare, E, _ = clean_control
     exact = ft.exact_pair_loss(scene_path, videos, settings, prepare, E)
     for wrong in (4.0, 0.25):  # the same pushes under a level 1.4 nats off
         assert exact < 0.1 * ft.exact_pair_loss(scene_path, videos, settings, prepare, E * wrong)
     assert 0 <= exact < 1e-3
     no_residuals = FitSettings(quality="draft", device="cpu", driver_residual=False, stage1_level=False).resolved()
     assert ft.exact_pair_loss(scene_path, videos, no_residuals, prepare, E) is None
+
+
+def test_given_the_true_pushes_stage_2_moves_E_from_the_uniform_start_toward_the_truth(clean_control) -> None:
+    """--given-push: the fit's stage 2 with v0 held at the true pushes, from the uniform
+    start. On clean videos of its own discretisation it must lower the whole-clip loss and
+    bring E closer to the truth than the start it left (the region field's leaf is 17x
+    softer than that start, its stem 2x stiffer)."""
+    from dataclasses import replace
+
+    scene_path, videos, settings, prepare, E, pos = clean_control
+    moving = pos[:, 2] > pos[:, 2].min() + 0.2 * np.ptp(pos[:, 2])
+    E_given, start, end = ft.given_push_fit(scene_path, videos, settings, prepare, E, pos)
+    assert E_given.shape == E.shape and np.all(E_given > 0)
+    assert end < 0.5 * start, (start, end)
+    given = ft.e_error(E_given[moving], E[moving])["median_abs_ln"]
+    uniform = ft.e_error(np.full(moving.sum(), settings.init_E), E[moving])["median_abs_ln"]
+    assert given < 0.7 * uniform, (given, uniform)
+    # no stage 2, no search: E stays at the start, and the loss with it
+    E_none, start_none, end_none = ft.given_push_fit(scene_path, videos, replace(settings, material_iters=0),
+                                                     prepare, E, pos)
+    assert np.allclose(E_none, settings.init_E, rtol=1e-5) and end_none == pytest.approx(start_none)
+
+
+def test_spearman_ranks_ties_together_whatever_the_order_they_are_stored_in() -> None:
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(6e4, 2e6, 400)
+    # a fitted E as the bench reads it: every Gaussian of a driver takes its driver's E
+    drivers = np.array([1e5, 3e5, 1e6, 2e6])
+    fitted = drivers[np.digitize(truth, [3e5, 8e5, 1.5e6])]
+    order = rng.permutation(400)
+    rho = ft.spearman(fitted, truth)
+    assert rho == pytest.approx(ft.spearman(fitted[order], truth[order]), abs=1e-12) and rho > 0.9
+    assert ft.ranks(np.array([5.0, 1.0, 5.0, 3.0])).tolist() == [2.5, 0.0, 2.5, 1.0]
+    # a uniform E has no order to compare
+    assert np.isnan(ft.spearman(np.full(400, 1e6), truth)) and np.isnan(ft.spearman(truth[:2], truth[:2]))
+
+
+def test_e_error_splits_a_constant_factor_into_the_level_and_a_pattern_into_the_shape() -> None:
+    E = np.geomspace(6e4, 2e6, 50)
+    twice = ft.e_error(2 * E, E)
+    assert twice["median_abs_ln"] == pytest.approx(np.log(2)) and twice["median_ln"] == pytest.approx(np.log(2))
+    assert twice["shape_abs_ln"] == pytest.approx(0, abs=1e-12) and twice["spearman"] == pytest.approx(1)
+    flat = ft.e_error(np.full(50, 3e5), E)
+    assert flat["shape_abs_ln"] > 0.5 and flat["median_abs_ln"] >= abs(flat["median_ln"])
 
 
 def test_quick_sets_the_ci_scale_but_a_flag_given_wins() -> None:
