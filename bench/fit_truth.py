@@ -786,10 +786,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     # the uniform start on the fit's drivers: what the fit gained on its own discretisation
     start = MaterialFile(np.full(len(fitted_file.driver_rest), float(FitSettings().init_E)), fitted_file.driver_v0,
                          fitted_file.driver_rest, dict(fitted_file.meta), fitted_file.fields).save(folder / "start.pdmat")
-    ran = fitted_file.meta["settings"]
-    names = {f.name for f in dataclasses.fields(FitSettings)}
-    # the settings the fit ran at, for the diagnostics that rebuild its problem
-    settings = FitSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in ran.items() if k in names})
+    settings = FitSettings.from_dict(fitted_file.meta["settings"])  # what the fit ran at, for the diagnostics
     if args.given_push and sel.sum() > 2:
         # E's search alone: stage 2 with the true pushes, so no error of stage 1's v0 can
         # pull E away; what it leaves is the E search's own (or, against a converged

@@ -8,7 +8,6 @@ Every refusal is one CheckpointError line that names the file, what is wrong and
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +52,7 @@ def save_checkpoint(path: Path, pb: FitProblem, stage: str, it: int, optimizers:
 def resume_key(pb: FitProblem, scene_path: str | Path) -> dict:
     """What a checkpoint must share with the fit that resumes it: the scene file, the
     preparation's result, the videos and the settings (the device may change)."""
-    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(pb.s).items() if k != "device"}
+    settings = {k: v for k, v in pb.s.to_dict().items() if k != "device"}
     return {"scene_sha256": scene_fingerprint(scene_path), "drivers": int(len(pb.x_rest)),
             "frames": [int(v.num_frames) for v in pb.videos],
             "image": [list(v.frames.shape[1:3]) for v in pb.videos], "settings": settings}

@@ -7,7 +7,7 @@ from (pd_tool/fit/outputs.py).
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -190,7 +190,7 @@ def run_fit(
         # what a bake needs to simulate as the fit did (MaterialFile.fit_simulation)
         "simulation": {"grid_res": int(p.options.grid_res), "driver_ratio": s.driver_ratio, "driver_seed": s.seed,
                        "min_drivers_per_cell": s.min_drivers_per_cell, "cfl_safety": float(pb.cfl_safety)},
-        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
+        "settings": s.to_dict(),
         "videos": [str(v.folder) for v in videos],
         "metrics": {
             "loss_velocity_first": losses["velocity"][0] if losses["velocity"] else None,

@@ -6,7 +6,8 @@ quantities in nats.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
 
 from pd_tool.materials.presets import DRIVERS_PER_CELL_RANGE, fit_min_per_cell, fit_simulation, load_preset
 
@@ -179,6 +180,18 @@ class FitSettings:
         points = self.measure_points()
         starts = (self.rounds * (1 + len(points)) if points else 1) if self.material_iters else 0
         return starts + (0 if points and not self.calibrate_iters else 1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every field, JSON-ready (tuples as lists): a material file's and a checkpoint's
+        record of what the fit ran at. from_dict reads it back."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "FitSettings":
+        """The settings a to_dict recorded; keys that name no field (a file written by
+        another version of pdtool) are left out, and fields it lacks take their defaults."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names})
 
     def round_settings(self, rnd: int) -> "FitSettings":
         """The settings round `rnd` (0-based) runs with: with field_first, round 0 fits the
