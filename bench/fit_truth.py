@@ -305,7 +305,8 @@ def answer_problem(scene_path: Path, videos: list[Path], settings, prepare: dict
         rest, static = pb.x_rest.double().cpu().numpy(), pb.static.cpu().numpy()
         pushes = [torch.as_tensor(push_velocity(rest, static, direction=d, speed=PUSH_SPEED), dtype=torch.float32,
                                   device=pb.device) for d in PUSHES[:len(refs)]]
-    pb.pushes = pushes
+    if given_push:
+        pb.pushes = pushes
     return pb, pushes, log_e.clamp(pb.material.log_e_min, pb.material.log_e_max)
 
 
@@ -332,14 +333,13 @@ def given_push_fit(scene_path: Path, videos: list[Path], settings, prepare: dict
                    points: np.ndarray) -> tuple[np.ndarray, float, float]:
     """The fit's E search alone: its stage 2 (every round, as the fit's settings run it) from
     the uniform start with each video's v0 held at the true push, so no v0 error can pull E
-    away. Returns (E [M] Pa at `points` [M, 3] scene units, each the nearest driver's, the
-    whole-clip loss stage 2 starts from, the one it ends at). Stage 1 does not run (nothing
-    is left for it: no v0 to fit, and its level would fold into the start)."""
-    import torch
-
-    from pd_tool.drivers import nearest_drivers
+    away. Returns (E [M] Pa at `points` [M, 3] scene units, read as the fitted E is
+    (MaterialFile.E_at: the nearest driver's), the whole-clip loss stage 2 starts from, the
+    one it ends at). Stage 1 does not run (nothing is left for it: no v0 to fit, and its
+    level would fold into the start)."""
     from pd_tool.fit.problem import whole_clip_loss
     from pd_tool.fit.stages import fit_round
+    from pd_tool.materials.file import MaterialFile
 
     s = dataclasses.replace(settings, velocity_iters=0, stage1_level=False, init_material=None)
     pb, pushes, _ = answer_problem(scene_path, videos, s, prepare, E_true, given_push=True)
@@ -347,10 +347,9 @@ def given_push_fit(scene_path: Path, videos: list[Path], settings, prepare: dict
     losses: dict[str, list[float]] = {"velocity": [], "material": []}
     for rnd in range(s.rounds):
         fit_round(pb, s, rnd, None, losses, {}, None, lambda *_: None)
-    rest = torch.as_tensor(pb.prep.transform.to_scene(pb.x_rest.double().cpu().numpy()), dtype=torch.float64)
-    nearest = nearest_drivers(torch.as_tensor(points, dtype=torch.float64), rest, k=1)[:, 0]
-    E = pb.driver_E().detach().double().cpu().numpy()[nearest.numpy()]
-    return E, start, whole_clip_loss(pb, pushes)
+    rest = pb.prep.transform.to_scene(pb.x_rest.double().cpu().numpy())
+    found = MaterialFile(pb.driver_E().detach().double().cpu().numpy(), np.zeros_like(rest), rest, {})
+    return found.E_at(points), start, whole_clip_loss(pb, pushes)
 
 
 def degrade(frames: np.ndarray, rng) -> np.ndarray:
