@@ -204,7 +204,7 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
         series["stage 1 (velocity)"] = (list(range(1, n1 + 1)), L["velocity"])
     if L["material"]:
         series["stage 2 (material)"] = (list(range(n1 + 1, n1 + 1 + len(L["material"]))), L["material"])
-    if L.get("calibrate"):  # the whole-clip loss: on another footing than stage 2's, which sums one-frame steps
+    if L.get("calibrate"):  # the whole-clip loss: on stage 2's footing only when its horizon is every frame
         n2 = n1 + len(L["material"])
         series["stage 3 (calibration)"] = (list(range(n2 + 1, n2 + 1 + len(L["calibrate"]))), L["calibrate"])
     if series:

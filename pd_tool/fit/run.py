@@ -67,7 +67,8 @@ class FitResult:
 def whole_clip_text(losses: dict[str, list[float]]) -> str:
     """"START -> FINAL" of the whole-clip loss (FINAL alone without stage 2), for the lines
     the CLI and the demo print: the stages' own losses are on other footings (stage 1's
-    first frames, stage 2's one-frame steps)."""
+    first frames; stage 2's one-frame steps with a truncated horizon, and the state before
+    each step)."""
     return " -> ".join(f"{losses[k][0]:.4f}" for k in ("start", "final") if losses.get(k))
 
 
@@ -85,8 +86,9 @@ def whole_clip_note(losses: dict[str, list[float]], s: FitSettings | None = None
     """The report's line when stage 2 raised the whole-clip loss, else None: when the last
     round kept an earlier state than its last (losses["kept"], keep_best_every of the fit's
     settings `s`), or, keeping none, ended above its start (losses["start"],
-    losses["final"]). Stage 2 follows one-frame gradients, which can lower every step's loss
-    while the clip as a whole drifts away (the donut of bench/fit_truth.py)."""
+    losses["final"]). One-frame gradients can lower every step's loss while the clip as a
+    whole drifts away (the donut of bench/fit_truth.py), and Adam's fixed-size steps can
+    overshoot on whole-clip ones."""
     weak = ("these videos constrain E weakly; another video, of another push or from another side, gives the fit "
             "more to go on")
     kept = losses.get("kept")

@@ -23,13 +23,20 @@ class FitSettings:
     quality: str = "default"
     velocity_iters: int | None = None
     material_iters: int | None = None
-    stage1_frames: int = 3  # frames after the rest frame that stage 1 matches
-    material_horizon: int | None = 1  # frames a stage-2 loss reaches back through the state (None: all)
-    # The last this many stage-2 iterations back-propagate through every frame. A truncated
-    # gradient stops where it vanishes, not where the loss is least: E that acts through
-    # the whole motion (a stiff stem sets its frequency, hence the phase of later frames)
-    # is under-counted by it. Counted within material_iters. A lower loss does not always
-    # mean a better fit (docs/fitting.md), so 0 by default.
+    # Frames after the rest frame that stage 1 matches (the paper's 3). v0 is fitted under the
+    # starting E, which three frames barely test: on six, the push has begun to turn, so a
+    # v0 that makes up for a wrong E misses there, and stage 2 starts from a truer push.
+    stage1_frames: int = 6
+    # Frames a stage-2 loss reaches back through the state (None: all; the paper's 1). A
+    # truncated gradient stops where it vanishes, not where the loss is least: E that acts
+    # through the whole motion (a stiff stem sets its frequency, hence the phase of later
+    # frames) is under-counted by it. Given the true pushes, whole-clip gradients bring
+    # E within 0.42-0.49 nats of the truth on clean videos of the fit's own discretisation,
+    # one-frame gradients 0.71-1.08. Together with six stage-1 frames they bring the fit
+    # against a converged truth closer on nine rows of ten (docs/benchmarks.md).
+    material_horizon: int | None = None
+    # The last this many stage-2 iterations back-propagate through every frame, whatever
+    # material_horizon says (for a truncated horizon). Counted within material_iters.
     polish_iters: int = 0
     # Least substeps per frame; None: as the CFL condition for the current E chooses each
     # iteration. MPM's numerical damping grows with the substep count, so a floor above the
@@ -37,10 +44,11 @@ class FitSettings:
     # wins where E rises above what the floor allows (a fixed count would blow up there).
     substeps: int | None = None
     refine_velocity: bool = False  # stage 2 also refines v0 (the paper freezes it)
-    # Stage 2 steps on one-frame gradients, which can lower every step's loss while the clip
-    # as a whole drifts away (on the donut of bench/fit_truth.py one of two runs ended above
-    # its start). Every this many stage-2 iterations, and at its end, the whole-clip loss is
-    # measured, and the round keeps the state that scored lowest, its start included. Each
+    # Stage 2's steps need not lower the whole-clip loss: one-frame gradients can lower every
+    # step's loss while the clip as a whole drifts away (on the donut of bench/fit_truth.py
+    # one of two runs ended above its start), and Adam's fixed-size steps can overshoot on
+    # whole-clip ones. Every this many stage-2 iterations, and at its end, the whole-clip loss
+    # is measured, and the round keeps the state that scored lowest, its start included. Each
     # measure costs about one stage-2 iteration's forward pass. 0: keep the last state.
     keep_best_every: int = 10
     # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
