@@ -793,8 +793,8 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "on every seed, and moved worse under a new force than 1; see docs/benchmarks.md.")
 @click.option("--horizon", type=T.BoundedInt(0, 1024), default=0, show_default=True,
               help="Frames each stage-2 loss back-propagates through (0 = every frame; the paper's 1). Every "
-                   "frame brings E closer to a converged truth than 1 on nine rows of ten; see "
-                   "docs/benchmarks.md.")
+                   "frame, with stage 1 on six frames, brings E closer to a converged truth than the paper's "
+                   "settings on nine rows of ten; see docs/benchmarks.md.")
 @click.option("--polish", type=T.ITERATIONS, default=0, show_default=True,
               help="With a --horizon above 0, the last N stage-2 iterations back-propagate through every "
                    "frame; see docs/fitting.md.")
