@@ -800,8 +800,9 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "frame; see docs/fitting.md.")
 @click.option("--keep-best", type=T.BoundedInt(0, 10000), default=10, show_default=True,
               help="Every N stage-2 iterations, and at the stage's end, simulate every frame of the videos "
-                   "again and end in the state that explained them best, stage 2's start included: one-frame "
-                   "steps can each improve while the clip as a whole drifts. 0 keeps the last state.")
+                   "again and end in the state that explained them best, stage 2's start included: a step can "
+                   "overshoot, and one-frame steps can each improve while the clip as a whole drifts. 0 keeps "
+                   "the last state.")
 @click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "
