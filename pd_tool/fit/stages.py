@@ -7,8 +7,9 @@
 2. material: v0 frozen (or refined, `refine_velocity`); optimise the shared E field and the
    per-driver residuals over all frames, back-propagating through every frame (or, with a
    `material_horizon` of K frames, each K frames simulated from the detached state before
-   them, the last `polish_iters` iterations through every frame); every `keep_best_every` iterations the whole clip is
-   simulated again, and the stage ends in the state that explained it best (`Kept`);
+   them, the last `polish_iters` iterations through every frame); every `keep_best_every`
+   iterations the whole clip is simulated again, and the stage ends in the state that
+   explained it best (`Kept`);
 3. calibration (`calibrate_iters`): a few whole-clip numbers, one log-E offset per
    stiffness cluster of the fitted field and one speed gain per video, fitted with the
    exact gradient through every frame.
