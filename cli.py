@@ -799,10 +799,11 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="With a --horizon above 0, the last N stage-2 iterations back-propagate through every "
                    "frame; see docs/fitting.md.")
 @click.option("--keep-best", type=T.BoundedInt(0, 10000), default=10, show_default=True,
-              help="Every N stage-2 iterations, and at the stage's end, simulate every frame of the videos "
-                   "again and end in the state that explained them best, stage 2's start included: a step can "
-                   "overshoot, and one-frame steps can each improve while the clip as a whole drifts. 0 keeps "
-                   "the last state.")
+              help="Every N stage-2 iterations, and at the stage's end, measure the loss over every frame of "
+                   "the videos and end in the state that explained them best, stage 2's start included: a step "
+                   "can overshoot, and one-frame steps can each improve while the clip as a whole drifts. With "
+                   "every frame back-propagated (--horizon 0) only the start and the end cost a pass of their "
+                   "own. 0 keeps the last state.")
 @click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "

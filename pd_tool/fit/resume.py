@@ -156,6 +156,9 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
     points = s.measure_points()
     keeping = stage == "material" and bool(points)
+    # the points this round has measured: a borrowed one is measured by the iteration after it,
+    # which a checkpoint taken at that point has not run yet
+    done = [p for p in points if p < it or p == it and p not in s.borrowed_points()] if keeping else []
     if keeping:
         want |= set(Kept.ENTRIES)
     if set(state) != want:
@@ -184,8 +187,8 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         tensor("kept_residual", state["kept_residual"], pb.log_e_residual.detach())
         tensor("kept_at", state["kept_at"], torch.zeros(2, dtype=torch.float64))
         at = float(state["kept_at"][1])
-        if at not in [0, *(p for p in points if p <= it)]:
-            raise bad(f"kept_at names iteration {at:g}, where this fit measures at 0 and {points} up to {it}")
+        if at not in [0, *done]:
+            raise bad(f"kept_at names iteration {at:g}, where by iteration {it} this fit has measured at {[0, *done]}")
     for suffix, (opt, sched) in optimizers.items():
         _check_optimizer(bad, "optimizer" + suffix, state["optimizer" + suffix], opt, sched, it, tensor)
         _check_scheduler(bad, "scheduler" + suffix, state["scheduler" + suffix], sched, it)
@@ -202,7 +205,7 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     if mi > 0 and (rnd > 0 or stage == "material"):
         lengths["start"] = 1  # the whole-clip loss when the first stage 2 began
     if points:  # keep_best_every: each stage 2's measures (its start, then `points`), and each finished one's keep
-        lengths["whole_clip"] = rnd * (1 + len(points)) + (1 + sum(p <= it for p in points) if keeping else 0)
+        lengths["whole_clip"] = rnd * (1 + len(points)) + (1 + len(done) if keeping else 0)
         lengths["kept"] = rnd
     lengths = {k: n for k, n in lengths.items() if n > 0 or k in ("velocity", "material")}
     losses = state["losses"]
@@ -218,7 +221,7 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
                 raise bad(f"losses.kept names iteration {float(losses['kept'][r]):g} for round {r + 1}, "
                           f"where its measures rank iteration {at} first")
         if keeping:
-            ats = [0, *(p for p in points if p <= it)]
+            ats = [0, *done]
             best, at = Kept.ranked_first(measures[rnd * per:], ats)
             loss, kept_it = (float(v) for v in state["kept_at"])
             if not (kept_it == at and (loss == best or math.isnan(loss) and math.isnan(best))):

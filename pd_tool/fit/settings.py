@@ -50,8 +50,9 @@ class FitSettings:
     # step's loss while the clip as a whole drifts away (on the donut of bench/fit_truth.py
     # one of two runs ended above its start), and Adam's fixed-size steps can overshoot on
     # whole-clip ones. Every this many stage-2 iterations, and at its end, the whole-clip loss
-    # is measured, and the round keeps the state that scored lowest, its start included. Each
-    # measure costs about one stage-2 iteration's forward pass. 0: keep the last state.
+    # is measured, and the round keeps the state that scored lowest, its start included. A
+    # measure costs one stage-2 iteration's forward pass, or nothing where the next iteration
+    # back-propagates through every frame: its own loss is the measure. 0: keep the last state.
     keep_best_every: int = 10
     # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
     # the fastest, as a bake does). MPM loses energy in every transfer, so the count sets the
@@ -182,13 +183,28 @@ class FitSettings:
         n, every = int(self.material_iters or 0), self.keep_best_every
         return [k for k in range(1, n + 1) if k % every == 0 or k == n] if every > 0 else []
 
+    def horizon_at(self, it: int) -> int | None:
+        """Frames stage-2 iteration `it` (0-based) back-propagates through (None: all): the
+        last polish_iters reach every frame; of resolved settings."""
+        return None if it >= int(self.material_iters or 0) - self.polish_iters else self.material_horizon
+
+    def borrowed_points(self) -> list[int]:
+        """The measure points whose whole-clip loss is the next iteration's own: an iteration
+        that back-propagates through every frame simulates the whole clip from the state
+        before its step, so measuring that state again would repeat its forward pass. Every
+        point but the last (no iteration follows it) where that iteration's horizon is None;
+        of resolved settings."""
+        n = int(self.material_iters or 0)
+        return [p for p in self.measure_points() if p < n and self.horizon_at(p) is None]
+
     def whole_clip_measures(self) -> int:
-        """Whole-clip losses a fit measures (each simulates every frame, forward only): stage
+        """Whole-clip losses a fit simulates on their own (every frame, forward only): stage
         2's start (in every round when keeping the best state, else the first), each round's
-        measure points, and the result, which reuses the kept state's measure unless
-        calibration moved E after it; of resolved settings."""
+        measure points but the borrowed ones, and the result, which reuses the kept state's
+        measure unless calibration moved E after it; of resolved settings."""
         points = self.measure_points()
-        starts = (self.rounds * (1 + len(points)) if points else 1) if self.material_iters else 0
+        own = 1 + len(points) - len(self.borrowed_points())
+        starts = (self.rounds * own if points else 1) if self.material_iters else 0
         return starts + (0 if points and not self.calibrate_iters else 1)
 
     def to_dict(self) -> dict[str, Any]:

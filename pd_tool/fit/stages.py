@@ -8,8 +8,9 @@
    per-driver residuals over all frames, back-propagating through every frame (or, with a
    `material_horizon` of K frames, each K frames simulated from the detached state before
    them, the last `polish_iters` iterations through every frame); every `keep_best_every`
-   iterations the whole clip is simulated again, and the stage ends in the state that
-   explained it best (`Kept`);
+   iterations the whole clip's loss is measured (an iteration through every frame measures
+   the state before its step as it goes), and the stage ends in the state that explained
+   it best (`Kept`);
 3. calibration (`calibrate_iters`): a few whole-clip numbers, one log-E offset per
    stiffness cluster of the fitted field and one speed gain per video, fitted with the
    exact gradient through every frame.
@@ -317,7 +318,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         start = ckpt["iteration"]
     skipped = 0
     kept = None
-    points = s.measure_points()
+    points, borrowed = s.measure_points(), s.borrowed_points()
     if ckpt is not None and ckpt["stage"] == "material" and points:
         kept = Kept.from_state(ckpt, pb.device)
     elif start == 0 and s.material_iters > 0 and (rnd == 0 or points):
@@ -331,8 +332,10 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
     for it in range(start, s.material_iters):
         if it == 0 and start == 0:
             save("material", 0, optimizers, losses, rnd, kept)
-        horizon = None if it >= s.material_iters - s.polish_iters else s.material_horizon
-        loss = material_iteration(pb, None if s.refine_velocity else v0s, horizon)
+        loss = material_iteration(pb, None if s.refine_velocity else v0s, s.horizon_at(it))
+        if kept is not None and it in borrowed:  # this loss is the whole-clip loss of the state before the step
+            losses["whole_clip"].append(loss)
+            kept.offer(pb, loss, it)
         if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
             skipped += 1
         if opt_v is not None:
@@ -348,7 +351,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         losses["material"].append(loss)
         if progress:
             progress("material" + tag, it + 1, s.material_iters, loss)
-        if kept is not None and it + 1 in points:
+        if kept is not None and it + 1 in points and it + 1 not in borrowed:
             measured = whole_clip_loss(pb, current_v0s(pb) if s.refine_velocity else v0s)
             losses["whole_clip"].append(measured)
             kept.offer(pb, measured, it + 1)

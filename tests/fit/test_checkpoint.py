@@ -198,7 +198,7 @@ def plant(tmp_path_factory):
     return inputs, genuine
 
 
-def _fit(inputs, out: Path, stop_at=None, resume: bool = False, seed: int = 0):
+def _fit(inputs, out: Path, stop_at=None, resume: bool = False, seed: int = 0, **kw):
     from pd_tool.fit.run import run_fit
     from pd_tool.fit.settings import FitSettings
     from pd_tool.prepare.preparation import PrepareOptions
@@ -211,7 +211,7 @@ def _fit(inputs, out: Path, stop_at=None, resume: bool = False, seed: int = 0):
             raise Interrupt
 
     settings = FitSettings(quality="draft", velocity_iters=2, material_iters=2, working_long_side=24,
-                           checkpoint_every=1, seed=seed, stage1_level=False)
+                           checkpoint_every=1, seed=seed, stage1_level=False, **kw)
     return run_fit(scene, d / "plant.ply", refs, out, prepare_options=PrepareOptions(static_below=POT_TOP),
                    settings=settings, progress=progress, resume=resume)
 
@@ -313,7 +313,7 @@ RESUME_CASES = [
         "step", torch.tensor(1e9))), ": optimizer has a step count outside 1-1"),
     ("kept state", lambda g, m: _craft(g[0], _pop("kept_residual")), ": it lacks kept_residual"),
     ("kept iteration", lambda g, m: _craft(g[0], _set("kept_at", torch.tensor([0.01, 7.0], dtype=torch.float64))),
-     r": kept_at names iteration 7, where this fit measures at 0 and \[2\] up to 1"),
+     r": kept_at names iteration 7, where by iteration 1 this fit has measured at \[0\]"),
     ("kept loss", lambda g, m: _craft(g[0], _set("kept_at", torch.tensor([0.01, 0.0], dtype=torch.float64))),
      r": kept_at names iteration 0 at the whole-clip loss 0\.01, where this round's measures rank iteration 0 "
      r"first, at [0-9.e-]+;"),
@@ -354,6 +354,27 @@ def test_the_genuine_checkpoint_resumes(plant, tmp_path: Path) -> None:
     res = _fit(inputs, out, resume=True)
     assert out.is_file() and not ckpt.exists()
     assert len(res.losses["material"]) == 2
+
+
+def test_a_checkpoint_at_a_borrowed_measure_point_resumes_to_the_same_fit(plant, tmp_path: Path) -> None:
+    """With keep_best_every 1, the state after stage 2's first step is measured by the second
+    iteration's own loss (borrowed_points), which a checkpoint taken after that step has not
+    run: resumed there, the fit measures it and ends as the uninterrupted fit does."""
+    inputs, _ = plant
+    whole = _fit(inputs, tmp_path / "whole.pdmat", keep_best_every=1)
+    out = tmp_path / "cut.pdmat"
+    with pytest.raises(Interrupt):
+        _fit(inputs, out, stop_at=("material", 2), keep_best_every=1)
+    ckpt = out.with_name(out.name + ".ckpt")
+    _, state = read_checkpoint(ckpt, max_bytes=BIG)
+    assert state["stage"] == "material" and state["iteration"] == 1
+    assert len(state["losses"]["whole_clip"]) == 1  # the start only: point 1 is the next iteration's to measure
+    res = _fit(inputs, out, resume=True, keep_best_every=1)
+    assert not ckpt.exists()
+    assert len(res.losses["whole_clip"]) == 3 and res.losses["whole_clip"][1] == res.losses["material"][1]
+    np.testing.assert_allclose(res.losses["whole_clip"], whole.losses["whole_clip"], rtol=1e-6)
+    assert res.losses["kept"] == whole.losses["kept"]
+    np.testing.assert_allclose(res.driver_E, whole.driver_E, rtol=1e-6)
 
 
 def _nan_measure(st):

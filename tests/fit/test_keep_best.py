@@ -44,6 +44,36 @@ def test_an_overshooting_stage_2_ends_in_its_best_measured_state(fit_dir: Path, 
     assert any("stage 2 raised the whole-clip loss" in line and "the fit keeps" in line for line in kept.report)
 
 
+def test_a_whole_clip_iteration_measures_the_state_before_its_step(fit_dir: Path, tmp_path: Path,
+                                                                    monkeypatch) -> None:
+    """Where the next stage-2 iteration back-propagates through every frame, its own loss is
+    the measure of the state before its step (borrowed_points): the same measures, and the
+    same kept state, as simulating each point's state again."""
+    from pd_tool.fit.settings import FitSettings
+
+    kw = dict(keep_best_every=1, lr_material=1.0, lr_residual=1.0)
+    borrowed = _fit(fit_dir, tmp_path / "borrowed.pdmat", **kw)
+    monkeypatch.setattr(FitSettings, "borrowed_points", lambda self: [])
+    own = _fit(fit_dir, tmp_path / "own.pdmat", **kw)
+    assert len(borrowed.losses["whole_clip"]) == 4  # the start, then after each of 3 iterations
+    np.testing.assert_allclose(borrowed.losses["whole_clip"], own.losses["whole_clip"], rtol=1e-4)  # float32
+    # the first two points' measures are the next iterations' own losses
+    assert borrowed.losses["whole_clip"][1:3] == borrowed.losses["material"][1:3]
+    assert borrowed.losses["kept"] == own.losses["kept"]
+    np.testing.assert_allclose(borrowed.driver_E, own.driver_E, rtol=1e-5)
+
+
+def test_borrowed_points() -> None:
+    from pd_tool.fit.settings import FitSettings
+
+    # every frame: each point but the last is the next iteration's loss
+    assert FitSettings(material_iters=40, keep_best_every=10).borrowed_points() == [10, 20, 30]
+    # a one-frame horizon borrows only where the whole-clip polish has begun
+    s = FitSettings(material_iters=40, keep_best_every=10, material_horizon=1, polish_iters=15)
+    assert [s.horizon_at(it) for it in (24, 25, 39)] == [1, None, None] and s.borrowed_points() == [30]
+    assert FitSettings(material_iters=40, keep_best_every=10, material_horizon=1).borrowed_points() == []
+
+
 def test_measure_points_and_the_note() -> None:
     from pd_tool.fit.run import whole_clip_note
     from pd_tool.fit.settings import FitSettings
@@ -65,12 +95,15 @@ def test_measure_points_and_the_note() -> None:
         FitSettings(keep_best_every=-1).resolved()
 
 
-@pytest.mark.parametrize("every, rounds, calibrate", [(1, 1, 0), (0, 1, 0), (2, 2, 0), (0, 2, 0), (1, 1, 1)])
+@pytest.mark.parametrize("every, rounds, calibrate, horizon", [(1, 1, 0, None), (0, 1, 0, None), (2, 2, 0, None),
+                                                              (0, 2, 0, None), (1, 1, 1, None), (1, 1, 0, 1)])
 def test_the_work_estimate_counts_the_measures_the_fit_takes(fit_dir: Path, tmp_path: Path, monkeypatch,
-                                                             every: int, rounds: int, calibrate: int) -> None:
+                                                             every: int, rounds: int, calibrate: int,
+                                                             horizon: int | None) -> None:
     """FitSettings.whole_clip_measures, which the work estimate charges, against the
     whole-clip simulations a fit runs: with and without keeping the best state, one and two
-    rounds, and a calibration, after which the result is measured again."""
+    rounds, a calibration, after which the result is measured again, and one-frame
+    gradients, whose iterations measure nothing on the way."""
     import pd_tool.fit.run as run_module
     import pd_tool.fit.stages as stages_module
     from pd_tool.fit.settings import FitSettings
@@ -79,7 +112,7 @@ def test_the_work_estimate_counts_the_measures_the_fit_takes(fit_dir: Path, tmp_
     for module in (run_module, stages_module):
         measure = module.whole_clip_loss
         monkeypatch.setattr(module, "whole_clip_loss", lambda pb, v0s, f=measure: calls.append(1) or f(pb, v0s))
-    kw = dict(keep_best_every=every, rounds=rounds, calibrate_iters=calibrate)
+    kw = dict(keep_best_every=every, rounds=rounds, calibrate_iters=calibrate, material_horizon=horizon)
     _fit(fit_dir, tmp_path / "f.pdmat", **kw)
     settings = FitSettings(quality="draft", velocity_iters=1, material_iters=3, working_long_side=24,
                            stage1_level=False, **kw).resolved()
