@@ -161,6 +161,9 @@ class Row:
     reference_per_cell: float = math.nan  # of them per occupied cell of its grid
     reference_check: dict = field(default_factory=dict)  # the truth on --check-reference cells against it
     fit_s: float = math.nan
+    # the fit's own record (its material file's metrics): the whole-clip loss at stage 2's start
+    # and at the end, the stage-2 iteration whose state it kept, the steps it skipped
+    fit_metrics: dict = field(default_factory=dict)
     median_abs_ln: float = math.nan
     median_ln: float = math.nan  # the fit's level: median ln(E_fit / E_true)
     shape_abs_ln: float = math.nan  # median |ln(E_fit / E_true)| once that level is taken out
@@ -764,6 +767,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         fit(out)
     row.fit_s = time.perf_counter() - t0
     fitted_file = MaterialFile.load(out)
+    row.fit_metrics = {k: fitted_file.meta["metrics"].get(k)
+                       for k in ("loss_start", "loss_final", "kept_iteration", "skipped_material_steps")}
     lost = unapplied(fitted_file.meta.get("settings", {}), setting_overrides(args.set))
     if lost:  # a row fitted at other settings than asked would be reported as if it had not been
         print("\n".join(lost), file=sys.stderr)

@@ -164,6 +164,10 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     # loss below the uniform start's, and refitting v0 under the fitted E finds about it again
     loss = row["losses"]
     assert set(loss) == {"fitted", "fitted, v0 refitted", "true E", "uniform start", "true E, true push"}, loss
+    # the fit's own record: the loss it ended at, and the stage-2 state it kept (draft: 15 iterations)
+    metrics = row["fit_metrics"]
+    assert metrics["loss_final"] == loss["fitted"] and 0 < metrics["loss_start"] < 1, metrics
+    assert metrics["kept_iteration"] in (0, 10, 15) and metrics["skipped_material_steps"] == 0, metrics
     assert all(0 < v < 1 for v in loss.values()), loss
     assert loss["fitted"] < loss["uniform start"] and loss["fitted, v0 refitted"] < loss["uniform start"], loss
     assert loss["fitted, v0 refitted"] == pytest.approx(loss["fitted"], rel=0.1), loss
