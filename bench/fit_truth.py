@@ -805,7 +805,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
         # no level), then the whole-clip loss: the truth scoring above the fitted E means the
         # model's discretisation or v0 field, not the optimiser, pulls E away from it. And the
         # truth with the true pushes, which no fitted v0 stands in for
-        row.losses["fitted"] = float(fitted_file.meta["metrics"]["loss_final"])
+        row.losses["fitted"] = float(row.fit_metrics["loss_final"])
         t0 = time.perf_counter()
         exact = exact_pair_loss(scene_path, videos, settings.resolved(), fitted_file.meta["prepare"], E_true)
         if exact is not None:
