@@ -768,7 +768,7 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     row.fit_s = time.perf_counter() - t0
     fitted_file = MaterialFile.load(out)
     row.fit_metrics = {k: fitted_file.meta["metrics"].get(k)
-                       for k in ("loss_start", "loss_final", "kept_iteration", "skipped_material_steps")}
+                       for k in ("loss_start", "loss_final", "kept_iteration", "stage2_retried", "skipped_material_steps")}
     lost = unapplied(fitted_file.meta.get("settings", {}), setting_overrides(args.set))
     if lost:  # a row fitted at other settings than asked would be reported as if it had not been
         print("\n".join(lost), file=sys.stderr)

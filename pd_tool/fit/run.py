@@ -203,6 +203,8 @@ def run_fit(
             "loss_final": losses["final"][0],
             # keep_best_every: the stage-2 iteration whose state the last round kept (0: its start)
             "kept_iteration": int(losses["kept"][-1]) if losses.get("kept") else None,
+            # retry_step: stage 2 ran again at a fraction of its step, having kept its start
+            "stage2_retried": "whole_clip_first_try" in losses,
             "skipped_material_steps": skipped,
             "stage1_levels": losses.get("stage1_level"),  # nats per round, with stage1_level
             "calibration": None if calibration is None else {
@@ -219,6 +221,11 @@ def run_fit(
     mf.save(out)
     remove_own_checkpoint(ckpt_path)
     report = list(p.report)
+    if "whole_clip_first_try" in losses:
+        first = losses["whole_clip_first_try"]
+        report.append(f"stage 2 kept its start: nothing it measured scored below {first[0]:.4g} (its best "
+                      f"{min(first[1:], default=first[0]):.4g}), so it ran again from there at {s.retry_step:.2g} of "
+                      f"its step")
     note = whole_clip_note(losses, s)
     if note:
         report.append(note)

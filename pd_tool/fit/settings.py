@@ -54,6 +54,12 @@ class FitSettings:
     # measure costs one stage-2 iteration's forward pass, or nothing where the next iteration
     # back-propagates through every frame: its own loss is the measure. 0: keep the last state.
     keep_best_every: int = 10
+    # When stage 2 keeps its start (no measure beat it: its first steps overshot and it never
+    # came back), it runs again from the start with every step size times this. Once, in a
+    # fit of one round; 0: off. On the 100k plant two seeds of eight kept their start; at a
+    # third of the step they end 32x below the uniform start under a new force (20x kept
+    # where they began), at a tenth 24x (docs/fitting.md).
+    retry_step: float = 1.0 / 3.0
     # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
     # the fastest, as a bake does). MPM loses energy in every transfer, so the count sets the
     # model's damping; with the maximum, a few outlying stiff drivers set it for the whole
@@ -201,11 +207,18 @@ class FitSettings:
         """Whole-clip losses a fit simulates on their own (every frame, forward only): stage
         2's start (in every round when keeping the best state, else the first), each round's
         measure points but the borrowed ones, and the result, which reuses the kept state's
-        measure unless calibration moved E after it; of resolved settings."""
+        measure unless calibration moved E after it; of resolved settings. A stage 2 run again
+        (retry_step) is not foreseen here."""
         points = self.measure_points()
         own = 1 + len(points) - len(self.borrowed_points())
         starts = (self.rounds * own if points else 1) if self.material_iters else 0
         return starts + (0 if points and not self.calibrate_iters else 1)
+
+    def with_step_scale(self, factor: float) -> "FitSettings":
+        """These settings with stage 2's step sizes (the E field's, the residuals' and v0's
+        refinement) times `factor`."""
+        return replace(self, lr_material=self.lr_material * factor, lr_residual=self.lr_residual * factor,
+                       refine_velocity_factor=self.refine_velocity_factor * factor)
 
     def to_dict(self) -> dict[str, Any]:
         """Every field, JSON-ready (tuples as lists): a material file's and a checkpoint's
@@ -238,6 +251,9 @@ class FitSettings:
                              f"after it: it needs rounds >= 2 (got {out.rounds}), driver_residual on and no init_material")
         if out.keep_best_every < 0:
             raise ValueError(f"keep_best_every must be at least 0 (0: off), got {out.keep_best_every}")
+        if not (math.isfinite(out.retry_step) and 0.0 <= out.retry_step < 1.0):
+            raise ValueError(f"retry_step must be in [0, 1) (a fraction of stage 2's step; 0: no retry), "
+                             f"got {out.retry_step}")
         if out.polish_iters < 0:
             raise ValueError(f"polish_iters must be at least 0, got {out.polish_iters}")
         if not 0.0 < out.cfl_quantile <= 1.0:

@@ -10,7 +10,8 @@
    them, the last `polish_iters` iterations through every frame); every `keep_best_every`
    iterations the whole clip's loss is measured (an iteration through every frame measures
    the state before its step as it goes), and the stage ends in the state that explained
-   it best (`Kept`);
+   it best (`Kept`); a stage that kept its start runs once more from it at `retry_step`
+   of its step sizes;
 3. calibration (`calibrate_iters`): a few whole-clip numbers, one log-E offset per
    stiffness cluster of the fitted field and one speed gain per video, fitted with the
    exact gradient through every frame.
@@ -264,6 +265,57 @@ def stage_optimizers(pb: FitProblem, s: FitSettings, stage: str) -> Optimizers:
     return out
 
 
+def retries(s: FitSettings, kept: "Kept | None") -> bool:
+    """Whether stage 2 runs again from its start at retry_step of its step sizes: when it keeps
+    its start (no measure beat it), in a fit of one round (a later round's losses would no
+    longer line up with its checkpoints)."""
+    return s.retry_step > 0 and s.rounds == 1 and kept is not None and kept.iteration == 0 and s.material_iters > 0
+
+
+def material_stage(pb: FitProblem, s: FitSettings, optimizers: Optimizers, v0s: list[torch.Tensor], start: int,
+                   kept: "Kept | None", losses: dict[str, list[float]], label: str, progress: ProgressFn | None,
+                   save: Callable[[int, "Kept | None"], None] | None) -> int:
+    """Stage 2's iterations `start`..material_iters-1 with `optimizers` (stage_optimizers),
+    v0s [Q, 3] m/s frozen unless refine_velocity. Offers each measure point's whole-clip loss
+    to `kept` (borrowing an iteration's own loss where it is one), appends the losses, calls
+    `save(iterations done, kept)` when a checkpoint is due (None: never); returns the steps
+    skipped for a non-finite gradient."""
+    opt, sched = optimizers[""]
+    opt_r, sched_r = optimizers.get("_r", (None, None))
+    opt_v, sched_v = optimizers.get("_v", (None, None))
+    points, borrowed = s.measure_points(), s.borrowed_points()
+    skipped = 0
+    for it in range(start, s.material_iters):
+        if it == 0 and start == 0 and save is not None:
+            save(0, kept)
+        loss = material_iteration(pb, None if s.refine_velocity else v0s, s.horizon_at(it))
+        if kept is not None and it in borrowed:  # this loss is the whole-clip loss of the state before the step
+            losses["whole_clip"].append(loss)
+            kept.offer(pb, loss, it)
+        if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
+            skipped += 1
+        if opt_v is not None:
+            _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
+        if opt_r is None:
+            pb.log_e_residual.grad = None  # nor, a round without residual steps, theirs
+        else:
+            if not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
+                skipped += 1
+            if s.residual_diffusion > 0:
+                pb.diffuse_residuals(s.residual_diffusion)
+            pb.share_residuals()
+        losses["material"].append(loss)
+        if progress:
+            progress(label, it + 1, s.material_iters, loss)
+        if kept is not None and it + 1 in points and it + 1 not in borrowed:
+            measured = whole_clip_loss(pb, current_v0s(pb) if s.refine_velocity else v0s)
+            losses["whole_clip"].append(measured)
+            kept.offer(pb, measured, it + 1)
+        if save is not None and (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
+            save(it + 1, kept)
+    return skipped
+
+
 def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losses: dict[str, list[float]],
               seconds: dict[str, float], progress: ProgressFn | None, save: CheckpointFn) -> int:
     """One round: stage 1 (v0 per video, E frozen at its current value up to the level of
@@ -307,18 +359,14 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
     t0 = time.perf_counter()
     v0s = current_v0s(pb)
     optimizers = stage_optimizers(pb, s, "material")
-    opt, sched = optimizers[""]
-    opt_r, sched_r = optimizers.get("_r", (None, None))
-    opt_v, sched_v = optimizers.get("_v", (None, None))
     start = 0
     if ckpt is not None and ckpt["stage"] == "material":
         for suffix, (o, sc) in optimizers.items():
             o.load_state_dict(ckpt["optimizer" + suffix])
             sc.load_state_dict(ckpt["scheduler" + suffix])
         start = ckpt["iteration"]
-    skipped = 0
     kept = None
-    points, borrowed = s.measure_points(), s.borrowed_points()
+    points = s.measure_points()
     if ckpt is not None and ckpt["stage"] == "material" and points:
         kept = Kept.from_state(ckpt, pb.device)
     elif start == 0 and s.material_iters > 0 and (rnd == 0 or points):
@@ -329,34 +377,18 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         if points:
             kept = Kept.of(pb, first, 0)
             losses.setdefault("whole_clip", []).append(first)
-    for it in range(start, s.material_iters):
-        if it == 0 and start == 0:
-            save("material", 0, optimizers, losses, rnd, kept)
-        loss = material_iteration(pb, None if s.refine_velocity else v0s, s.horizon_at(it))
-        if kept is not None and it in borrowed:  # this loss is the whole-clip loss of the state before the step
-            losses["whole_clip"].append(loss)
-            kept.offer(pb, loss, it)
-        if not _clip_and_step(list(pb.material.parameters()), opt, sched, s.grad_clip):
-            skipped += 1
-        if opt_v is not None:
-            _clip_and_step(list(pb.velocities.parameters()), opt_v, sched_v, s.grad_clip)
-        if opt_r is None:
-            pb.log_e_residual.grad = None  # nor, a round without residual steps, theirs
-        else:
-            if not _clip_and_step([pb.log_e_residual], opt_r, sched_r, math.inf):
-                skipped += 1
-            if s.residual_diffusion > 0:
-                pb.diffuse_residuals(s.residual_diffusion)
-            pb.share_residuals()
-        losses["material"].append(loss)
-        if progress:
-            progress("material" + tag, it + 1, s.material_iters, loss)
-        if kept is not None and it + 1 in points and it + 1 not in borrowed:
-            measured = whole_clip_loss(pb, current_v0s(pb) if s.refine_velocity else v0s)
-            losses["whole_clip"].append(measured)
-            kept.offer(pb, measured, it + 1)
-        if (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
-            save("material", it + 1, optimizers, losses, rnd, kept)
+    skipped = material_stage(pb, s, optimizers, v0s, start, kept, losses, "material" + tag, progress,
+                             lambda it, k: save("material", it, optimizers, losses, rnd, k))
+    if retries(s, kept):
+        # nothing this stage measured beat its start: its steps overshot. Again from the start
+        # at a fraction of the step, keeping the first attempt's losses apart; no checkpoint is
+        # taken in the retry, so a fit killed in it resumes in the first attempt and retries again
+        kept.restore(pb)
+        losses["material_first_try"], losses["material"] = losses["material"], []
+        losses["whole_clip_first_try"], losses["whole_clip"] = losses["whole_clip"], [kept.loss]
+        smaller = s.with_step_scale(s.retry_step)
+        skipped += material_stage(pb, smaller, stage_optimizers(pb, smaller, "material"), v0s, 0, kept, losses,
+                                  "material, retried" + tag, progress, None)
     if kept is not None:
         if kept.iteration != s.material_iters:
             kept.restore(pb)

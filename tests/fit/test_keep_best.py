@@ -13,6 +13,7 @@ from test_outputs import _tiny_fit
 def _fit(fit_dir: Path, out: Path, **kw):
     from pd_tool.fit.settings import FitSettings
 
+    kw.setdefault("retry_step", 0.0)  # keeping alone: no second attempt (tests/fit/test_retry.py)
     settings = FitSettings(quality="draft", velocity_iters=1, material_iters=3, working_long_side=24,
                            stage1_level=False, **kw)
     return _tiny_fit(fit_dir, out, settings)[2]
@@ -115,5 +116,5 @@ def test_the_work_estimate_counts_the_measures_the_fit_takes(fit_dir: Path, tmp_
     kw = dict(keep_best_every=every, rounds=rounds, calibrate_iters=calibrate, material_horizon=horizon)
     _fit(fit_dir, tmp_path / "f.pdmat", **kw)
     settings = FitSettings(quality="draft", velocity_iters=1, material_iters=3, working_long_side=24,
-                           stage1_level=False, **kw).resolved()
+                           stage1_level=False, retry_step=0.0, **kw).resolved()
     assert len(calls) == settings.whole_clip_measures() > 0
