@@ -155,7 +155,10 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
     want = {"stage", "iteration", "round", "material", "velocities", "residual", "level", "losses", "torch_rng"}
     want |= {f"{kind}{suffix}" for suffix in optimizers for kind in ("optimizer", "scheduler")}
     points = s.measure_points()
-    keeping = stage == "material" and bool(points)
+    # a checkpoint taken as stage 2 begins, whose start the first iteration will measure
+    # (FitSettings.borrows_start), holds no measure and no kept state yet
+    unmeasured = stage == "material" and it == 0 and s.borrows_start()
+    keeping = stage == "material" and bool(points) and not unmeasured
     # the points this round has measured: a borrowed one is measured by the iteration after it,
     # which a checkpoint taken at that point has not run yet
     done = [p for p in points if p < it or p == it and p not in s.borrowed_points()] if keeping else []
@@ -202,7 +205,7 @@ def check_checkpoint(path: Path, state: dict, pb: FitProblem, s: FitSettings) ->
         (stage == "material" and s.round_settings(rnd).stage1_level)
     if folds:
         lengths["stage1_level"] = folds
-    if mi > 0 and (rnd > 0 or stage == "material"):
+    if mi > 0 and (rnd > 0 or stage == "material" and not unmeasured):
         lengths["start"] = 1  # the whole-clip loss when the first stage 2 began
     if points:  # keep_best_every: each stage 2's measures (its start, then `points`), and each finished one's keep
         lengths["whole_clip"] = rnd * (1 + len(points)) + (1 + len(done) if keeping else 0)

@@ -203,15 +203,23 @@ class FitSettings:
         n = int(self.material_iters or 0)
         return [p for p in self.measure_points() if p < n and self.horizon_at(p) is None]
 
+    def borrows_start(self) -> bool:
+        """Whether stage 2's first iteration back-propagates through every frame, so that its
+        own loss is the whole-clip loss of the state the stage starts from (the start's
+        measure, taken as it goes rather than simulated on its own); of resolved settings."""
+        return int(self.material_iters or 0) > 0 and self.horizon_at(0) is None
+
     def whole_clip_measures(self) -> int:
         """Whole-clip losses a fit simulates on their own (every frame, forward only): stage
-        2's start (in every round when keeping the best state, else the first), each round's
+        2's start (in every round when keeping the best state, else the first) unless its
+        first iteration measures it (borrows_start), each round's
         measure points but the borrowed ones, and the result, which reuses the kept state's
         measure unless calibration moved E after it; of resolved settings. A stage 2 run again
         (retry_step) is not foreseen here."""
         points = self.measure_points()
-        own = 1 + len(points) - len(self.borrowed_points())
-        starts = (self.rounds * own if points else 1) if self.material_iters else 0
+        start = 0 if self.borrows_start() else 1
+        own = start + len(points) - len(self.borrowed_points())
+        starts = (self.rounds * own if points else start) if self.material_iters else 0
         return starts + (0 if points and not self.calibrate_iters else 1)
 
     def with_step_scale(self, factor: float) -> "FitSettings":

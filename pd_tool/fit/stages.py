@@ -274,12 +274,15 @@ def retries(s: FitSettings, kept: "Kept | None") -> bool:
 
 def material_stage(pb: FitProblem, s: FitSettings, optimizers: Optimizers, v0s: list[torch.Tensor], start: int,
                    kept: "Kept | None", losses: dict[str, list[float]], label: str, progress: ProgressFn | None,
-                   save: Callable[[int, "Kept | None"], None] | None) -> int:
+                   save: Callable[[int, "Kept | None"], None] | None,
+                   on_start: Callable[[float], "Kept | None"] | None = None) -> tuple[int, "Kept | None"]:
     """Stage 2's iterations `start`..material_iters-1 with `optimizers` (stage_optimizers),
     v0s [Q, 3] m/s frozen unless refine_velocity. Offers each measure point's whole-clip loss
     to `kept` (borrowing an iteration's own loss where it is one), appends the losses, calls
-    `save(iterations done, kept)` when a checkpoint is due (None: never); returns the steps
-    skipped for a non-finite gradient."""
+    `save(iterations done, kept)` when a checkpoint is due (None: never). `on_start`: called
+    with iteration 0's loss, the measure of the stage's start (FitSettings.borrows_start),
+    it returns the state to keep from then on. Returns the steps skipped for a non-finite
+    gradient and the kept state."""
     opt, sched = optimizers[""]
     opt_r, sched_r = optimizers.get("_r", (None, None))
     opt_v, sched_v = optimizers.get("_v", (None, None))
@@ -289,6 +292,8 @@ def material_stage(pb: FitProblem, s: FitSettings, optimizers: Optimizers, v0s: 
         if it == 0 and start == 0 and save is not None:
             save(0, kept)
         loss = material_iteration(pb, None if s.refine_velocity else v0s, s.horizon_at(it))
+        if it == 0 and on_start is not None:
+            kept = on_start(loss)
         if kept is not None and it in borrowed:  # this loss is the whole-clip loss of the state before the step
             losses["whole_clip"].append(loss)
             kept.offer(pb, loss, it)
@@ -313,7 +318,7 @@ def material_stage(pb: FitProblem, s: FitSettings, optimizers: Optimizers, v0s: 
             kept.offer(pb, measured, it + 1)
         if save is not None and (it + 1) % s.checkpoint_every == 0 and it + 1 < s.material_iters:
             save(it + 1, kept)
-    return skipped
+    return skipped, kept
 
 
 def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losses: dict[str, list[float]],
@@ -367,18 +372,26 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         start = ckpt["iteration"]
     kept = None
     points = s.measure_points()
-    if ckpt is not None and ckpt["stage"] == "material" and points:
-        kept = Kept.from_state(ckpt, pb.device)
-    elif start == 0 and s.material_iters > 0 and (rnd == 0 or points):
-        first = whole_clip_loss(pb, v0s)
+
+    def start_measured(loss: float) -> Kept | None:
         if rnd == 0:
             # the whole-clip loss stage 2 starts from, against which the fit's final one is read
-            losses["start"] = [first]
-        if points:
-            kept = Kept.of(pb, first, 0)
-            losses.setdefault("whole_clip", []).append(first)
-    skipped = material_stage(pb, s, optimizers, v0s, start, kept, losses, "material" + tag, progress,
-                             lambda it, k: save("material", it, optimizers, losses, rnd, k))
+            losses["start"] = [loss]
+        if not points:
+            return None
+        losses.setdefault("whole_clip", []).append(loss)
+        return Kept.of(pb, loss, 0)
+
+    # the start's measure: iteration 0's own loss where it back-propagates through every frame
+    # (a checkpoint taken as the stage begins has neither), else simulated here
+    measure_start = start == 0 and s.material_iters > 0 and (rnd == 0 or bool(points))
+    if ckpt is not None and ckpt["stage"] == "material" and points and "kept_at" in ckpt:
+        kept = Kept.from_state(ckpt, pb.device)
+    elif measure_start and not s.borrows_start():
+        kept = start_measured(whole_clip_loss(pb, v0s))
+    borrow = start_measured if measure_start and s.borrows_start() else None
+    skipped, kept = material_stage(pb, s, optimizers, v0s, start, kept, losses, "material" + tag, progress,
+                                   lambda it, k: save("material", it, optimizers, losses, rnd, k), borrow)
     if retries(s, kept):
         # nothing this stage measured beat its start: its steps overshot. Again from the start
         # at a fraction of the step, keeping the first attempt's losses apart; no checkpoint is
@@ -388,7 +401,7 @@ def fit_round(pb: FitProblem, s: FitSettings, rnd: int, ckpt: dict | None, losse
         losses["whole_clip_first_try"], losses["whole_clip"] = losses["whole_clip"], [kept.loss]
         smaller = s.with_step_scale(s.retry_step)
         skipped += material_stage(pb, smaller, stage_optimizers(pb, smaller, "material"), v0s, 0, kept, losses,
-                                  "material, retried" + tag, progress, None)
+                                  "material, retried" + tag, progress, None)[0]
     if kept is not None:
         if kept.iteration != s.material_iters:
             kept.restore(pb)

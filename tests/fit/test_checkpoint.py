@@ -377,6 +377,32 @@ def test_a_checkpoint_at_a_borrowed_measure_point_resumes_to_the_same_fit(plant,
     np.testing.assert_allclose(res.driver_E, whole.driver_E, rtol=1e-6)
 
 
+@pytest.mark.parametrize("horizon", [None, 1])
+def test_a_checkpoint_at_stage_2s_start_resumes_to_the_same_fit(plant, tmp_path: Path, horizon) -> None:
+    """Where stage 2's first iteration back-propagates through every frame its own loss is
+    the start's measure (FitSettings.borrows_start): the checkpoint taken as the stage begins
+    holds no measure or kept state yet, and resumed there the fit measures its start and ends
+    as the uninterrupted fit does. With a one-frame horizon the start is simulated on its own
+    first, and the checkpoint carries it."""
+    inputs, _ = plant
+    kw = dict(keep_best_every=1, material_horizon=horizon)
+    whole = _fit(inputs, tmp_path / "whole.pdmat", **kw)
+    out = tmp_path / "cut.pdmat"
+    with pytest.raises(Interrupt):
+        _fit(inputs, out, stop_at=("material", 1), **kw)
+    ckpt = out.with_name(out.name + ".ckpt")
+    _, state = read_checkpoint(ckpt, max_bytes=BIG)
+    assert state["stage"] == "material" and state["iteration"] == 0
+    assert ("kept_at" in state) == ("start" in state["losses"]) == ("whole_clip" in state["losses"]) == (horizon == 1)
+    res = _fit(inputs, out, resume=True, **kw)
+    assert not ckpt.exists()
+    for k in ("start", "whole_clip", "kept", "final"):
+        np.testing.assert_allclose(res.losses[k], whole.losses[k], rtol=1e-6)
+    np.testing.assert_allclose(res.driver_E, whole.driver_E, rtol=1e-6)
+    if horizon is None:
+        assert res.losses["start"] == res.losses["material"][:1]
+
+
 def _nan_measure(st):
     st["losses"]["whole_clip"] = torch.full_like(st["losses"]["whole_clip"], float("nan"))
     st["kept_at"] = torch.tensor([float("nan"), 0.0], dtype=torch.float64)

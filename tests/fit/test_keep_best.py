@@ -55,17 +55,25 @@ def test_a_whole_clip_iteration_measures_the_state_before_its_step(fit_dir: Path
     kw = dict(keep_best_every=1, lr_material=1.0, lr_residual=1.0)
     borrowed = _fit(fit_dir, tmp_path / "borrowed.pdmat", **kw)
     monkeypatch.setattr(FitSettings, "borrowed_points", lambda self: [])
+    monkeypatch.setattr(FitSettings, "borrows_start", lambda self: False)
     own = _fit(fit_dir, tmp_path / "own.pdmat", **kw)
     assert len(borrowed.losses["whole_clip"]) == 4  # the start, then after each of 3 iterations
     np.testing.assert_allclose(borrowed.losses["whole_clip"], own.losses["whole_clip"], rtol=1e-4)  # float32
-    # the first two points' measures are the next iterations' own losses
-    assert borrowed.losses["whole_clip"][1:3] == borrowed.losses["material"][1:3]
+    np.testing.assert_allclose(borrowed.losses["start"], own.losses["start"], rtol=1e-4)
+    # the start's and the first two points' measures are the iterations' own losses
+    assert borrowed.losses["whole_clip"][:3] == borrowed.losses["material"][:3]
+    assert borrowed.losses["start"] == borrowed.losses["material"][:1]
     assert borrowed.losses["kept"] == own.losses["kept"]
     np.testing.assert_allclose(borrowed.driver_E, own.driver_E, rtol=1e-5)
 
 
 def test_borrowed_points() -> None:
     from pd_tool.fit.settings import FitSettings
+
+    # the start is measured by the first iteration where it back-propagates through every frame
+    assert FitSettings(material_iters=40).borrows_start()
+    assert not FitSettings(material_iters=40, material_horizon=1, polish_iters=15).borrows_start()
+    assert not FitSettings(material_iters=0).borrows_start()
 
     # every frame: each point but the last is the next iteration's loss
     assert FitSettings(material_iters=40, keep_best_every=10).borrowed_points() == [10, 20, 30]
