@@ -304,12 +304,11 @@ def main() -> None:
         "frames": args.frames, "fps": args.fps, "views": args.views, "quality": args.quality,
         "overrides": overrides, "substeps": substeps,
         "fit_s": fit_s, "regions": regions, "stage1_levels": res.losses.get("stage1_level"),
-        # the stage-2 iteration whose state the fit kept (0: its start), whether stage 2 ran
-        # again at retry_step of its step for keeping its start, and the whole-clip losses
-        "fit_metrics": {"kept_iteration": int(res.losses["kept"][-1]) if res.losses.get("kept") else None,
-                        "retried": "whole_clip_first_try" in res.losses,
-                        "loss_start": (res.losses.get("start") or [None])[0],
-                        "loss_final": (res.losses.get("final") or [None])[0]},
+        # the fit's own record (its material file's metrics): the stage-2 iteration whose state
+        # it kept (0: its start), whether stage 2 ran again for keeping its start, the
+        # whole-clip losses at stage 2's start and at the end
+        "fit_metrics": {k: res.metrics.get(k) for k in ("kept_iteration", "stage2_retried", "loss_start",
+                                                        "loss_final")},
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),

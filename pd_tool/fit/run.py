@@ -62,6 +62,7 @@ class FitResult:
     settings: FitSettings | None = None
     cfl_safety: float | None = None
     substeps: tuple[int, int] | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)  # as the material file records them
 
 
 def whole_clip_text(losses: dict[str, list[float]]) -> str:
@@ -221,7 +222,7 @@ def run_fit(
     mf.save(out)
     remove_own_checkpoint(ckpt_path)
     report = list(p.report)
-    if "whole_clip_first_try" in losses:
+    if meta["metrics"]["stage2_retried"]:
         first = losses["whole_clip_first_try"]
         report.append(f"stage 2 kept its start: nothing it measured scored below {first[0]:.4g} (its best "
                       f"{min(first[1:], default=first[0]):.4g}), so it ran again from there at {s.retry_step:.2g} of "
@@ -238,4 +239,4 @@ def run_fit(
                      seconds=seconds, prep=p, drivers=pb.drivers, report=report, skipped_steps=skipped,
                      driver_v0s=[v.double().cpu().numpy() for v in v0s],
                      driver_E_uncalibrated=E_uncalibrated, calibration=calibration, settings=s,
-                     cfl_safety=float(pb.cfl_safety), substeps=pb.substeps_range)
+                     cfl_safety=float(pb.cfl_safety), substeps=pb.substeps_range, metrics=meta["metrics"])

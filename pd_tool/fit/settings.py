@@ -212,10 +212,10 @@ class FitSettings:
     def whole_clip_measures(self) -> int:
         """Whole-clip losses a fit simulates on their own (every frame, forward only): stage
         2's start (in every round when keeping the best state, else the first) unless its
-        first iteration measures it (borrows_start), each round's
-        measure points but the borrowed ones, and the result, which reuses the kept state's
-        measure unless calibration moved E after it; of resolved settings. A stage 2 run again
-        (retry_step) is not foreseen here."""
+        first iteration measures it (borrows_start), each round's measure points but the
+        borrowed ones, and the result, which reuses the kept state's measure unless
+        calibration moved E after it; of resolved settings. A stage 2 run again (retry_step)
+        is not foreseen here."""
         points = self.measure_points()
         start = 0 if self.borrows_start() else 1
         own = start + len(points) - len(self.borrowed_points())
