@@ -803,7 +803,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
                    "the videos and end in the state that explained them best, stage 2's start included: a step "
                    "can overshoot, and one-frame steps can each improve while the clip as a whole drifts. With "
                    "every frame back-propagated (--horizon 0) only the end costs a pass of its own. A stage 2 "
-                   "that keeps its start runs once more from it at a third of its step. 0 keeps the last state.")
+                   "that keeps its start runs once more from it at half its step. 0 keeps the last state.")
 @click.option("--level/--no-level", "level", default=True, show_default=True,  # = FitSettings.stage1_level
               help="Stage 1 also fits one overall stiffness scale along with the initial velocity; the "
                    "field's shape stays frozen (--no-level freezes E entirely, as the paper does). Under a "

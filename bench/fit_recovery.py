@@ -309,6 +309,9 @@ def main() -> None:
         # whole-clip losses at stage 2's start and at the end
         "fit_metrics": {k: res.metrics.get(k) for k in ("kept_iteration", "stage2_retried", "loss_start",
                                                         "loss_final")},
+        # the loss curves by name (stage 1, stage 2, whole-clip measures; a retried stage 2's first
+        # attempt under *_first_try), to see where a fit went
+        "losses": {k: [float(x) for x in v] for k, v in res.losses.items()},
         "v0_rel_error": v0_rel_error, "v0_axis_error": v0_axis_error, "objective": objective,
         "new_force": {"accel_scene_units_s2": sim["accel"], "seconds": args.seconds,
                       "rms_error_fitted": rms(x_fit), "rms_error_uniform_baseline": rms(x_base),

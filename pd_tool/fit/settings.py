@@ -55,11 +55,13 @@ class FitSettings:
     # back-propagates through every frame: its own loss is the measure. 0: keep the last state.
     keep_best_every: int = 10
     # When stage 2 keeps its start (no measure beat it: its first steps overshot and it never
-    # came back), it runs again from the start with every step size times this. Once, in a
-    # fit of one round; 0: off. On the 100k plant two seeds of eight kept their start; at a
-    # third of the step they end 32x below the uniform start under a new force (20x kept
-    # where they began), at a tenth 24x (docs/fitting.md).
-    retry_step: float = 1.0 / 3.0
+    # came back), it runs again from the start with every step size times this: the halving
+    # of a backtracking line search. Once, in a fit of one round; 0: off. The retry is step-
+    # bound (its last iteration is its best), so the largest step that does not overshoot
+    # goes furthest: on the 100k plant's two seeds of eight that kept their start, half the
+    # step ends 58-65x below the uniform start under a new force, a third 32x, a tenth 24x,
+    # keeping the start 20x (docs/fitting.md).
+    retry_step: float = 0.5
     # The fit's CFL substeps come from this quantile of the moving drivers' wave speeds (1:
     # the fastest, as a bake does). MPM loses energy in every transfer, so the count sets the
     # model's damping; with the maximum, a few outlying stiff drivers set it for the whole

@@ -47,6 +47,9 @@ def test_fit_recovery_report(tmp_path: Path) -> None:
     assert abs(sum(e * e for e in rep["v0_axis_error"]) ** 0.5 - rep["v0_rel_error"]) < 1e-6 + 1e-6 * rep["v0_rel_error"]
     f = rep["objective"]
     assert f["E_truth/v0_truth"] < f["E_truth/v0_fitted"]  # a v0 far off costs loss at the true E
+    # the loss curves: one entry an iteration, and the whole-clip loss the fit ended on
+    assert len(rep["losses"]["velocity"]) == 1 and len(rep["losses"]["material"]) == 1
+    assert rep["losses"]["start"][0] == pytest.approx(rep["fit_metrics"]["loss_start"], rel=1e-6)
 
 
 @pytest.mark.slow
