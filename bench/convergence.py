@@ -18,6 +18,7 @@ the finer run's):
   f1     first oscillation frequency (Hz) of the most moving Gaussians' mean displacement
          along the push, from its crossings of rest after the push, recorded at 120 fps;
          nan when it does not swing a full period. For the strip, against theory too.
+  decay  the factor by which that swing shrinks each period (1: undamped; nan as f1).
 
 Targets: default peak within 10 % and rms at most 15 %, draft within 25 %, final within
 5 %; the strip's f1 within 5 % of theory at default. Figures: docs/benchmarks.md,
@@ -204,6 +205,21 @@ def first_frequency(signal: np.ndarray, fps: float, after: float) -> float:
     return float(fps / (2.0 * np.diff(t).mean()))
 
 
+def decay_per_period(signal: np.ndarray, fps: float, after: float) -> float:
+    """How much a swing shrinks in one period: the ratio of the first half-swing's largest
+    |signal| (between its first two crossings of rest after `after` s) to the last whole
+    half-swing's, to the power 2 / (half-swings between them). 1: no damping; 2: half the
+    amplitude lost each period. NaN with fewer than three crossings (two half-swings)."""
+    s = np.asarray(signal, float)[int(np.ceil(after * fps)):]
+    k = np.nonzero(np.sign(s[1:]) != np.sign(s[:-1]))[0]
+    if len(k) < 3:
+        return float("nan")
+    amp = [np.abs(s[a + 1: b + 1]).max() for a, b in zip(k[:-1], k[1:])]
+    if amp[-1] <= 0:
+        return float("inf")
+    return float((amp[0] / amp[-1]) ** (2.0 / (len(amp) - 1)))
+
+
 def strip_beam_peak(E: float, density: float, length: float, width: float, thickness: float, accel: float,
                     duration: float, centre_y: float, radius: float) -> tuple[float, float]:
     """The strip's first swing from Euler-Bernoulli beam theory, five clamped-free modes:
@@ -212,6 +228,7 @@ def strip_beam_peak(E: float, density: float, length: float, width: float, thick
     undamped. Returns (the 99th percentile over the strip's length of |deflection|, max over
     the first swing, as a fraction of `length`; the swing's end, s: the push and half a
     period). Twist from an off-centre push is left out."""
+    integrate = getattr(np, "trapezoid", None) or np.trapz  # numpy 2 renamed it; numpy 1 lacks the new name
     z = np.linspace(0.0, length, 2001)
     half = np.sqrt(np.clip(radius ** 2 - (z - length) ** 2, 0.0, None))
     pushed = np.clip(np.minimum(width / 2, centre_y + half) - np.maximum(-width / 2, centre_y - half), 0, None) / width
@@ -226,7 +243,7 @@ def strip_beam_peak(E: float, density: float, length: float, width: float, thick
         sigma = (np.cosh(bl) + np.cos(bl)) / (np.sinh(bl) + np.sin(bl))
         phi = np.cosh(b * z) - np.cos(b * z) - sigma * (np.sinh(b * z) - np.sin(b * z))
         om = 2 * np.pi * f1 * (bl / 1.8751041) ** 2
-        load = accel * np.trapz(pushed * phi, z) / np.trapz(phi * phi, z)  # modal force per modal mass
+        load = accel * integrate(pushed * phi, z) / integrate(phi * phi, z)  # modal force per modal mass
         q = np.where(t < duration, 1 - np.cos(om * t), np.cos(om * (t - duration)) - np.cos(om * t)) * load / om ** 2
         w += q * phi
     return float(np.percentile(np.abs(w), 99, axis=1).max() / length), float(end)
@@ -250,6 +267,7 @@ def compare(runs: dict[str, tuple[np.ndarray, np.ndarray, Run]], case: Case,
         run.rms = float(np.sqrt((err ** 2).mean()) / size / peak_ref)
         sig = ((x[:, moving][:, top] - x[0, moving][top]) @ push).mean(axis=1)
         run.f1 = first_frequency(sig, FPS, case.duration)
+        run.extra["decay_per_period"] = decay_per_period(sig, FPS, case.duration)
         # where the peak comes from: when, how many Gaussians reach it, and the motion at
         # 30 fps (the reference's fastest 5 % along the push; the 99th percentile)
         d = np.linalg.norm(x[:, moving] - x[0, moving], axis=-1)
@@ -296,6 +314,9 @@ def main() -> None:
                     help="the strip's Gaussians (default --gaussians): a fine reference needs several per cell")
     ap.add_argument("--strip-thickness", type=float, default=STRIP["thickness"],
                     help="m; 0.012 is under half a cell at the default quality's 64 cells")
+    ap.add_argument("--qualities", default=",".join(QUALITIES),
+                    help="the quality presets to run, comma-separated ('' for none: the --sweep grids and the "
+                         "reference alone)")
     ap.add_argument("--sweep", default="", help="extra grids at the default CFL and driver ratio, e.g. 24,32,48; "
                     "GRID:RATIO for another driver ratio, e.g. 24:0.05")
     ap.add_argument("--reference", type=int, default=128, help="the reference's grid cells")
@@ -335,11 +356,14 @@ def main() -> None:
     init_warp_quietly()
     if args.strip_even_weights:
         even_strip_weights()
+    unknown = set(filter(None, args.qualities.split(","))) - set(QUALITIES)
+    if unknown:
+        sys.exit(f"--qualities: unknown {', '.join(sorted(unknown))}; choose from {', '.join(QUALITIES)}")
     settings = {q: load_preset("quality", q) for q in QUALITIES}
     result = {"device": args.device, "gaussians": args.gaussians, "reference": args.reference,
               "reference_cfl": args.reference_cfl, "check_grid": args.check_grid, "runs": []}
     print(f"{'scene':7} {'setting':10} {'grid':>4} {'cfl':>5} {'ratio':>5} {'peak':>7} {'peak/ref':>8} "
-          f"{'rms':>6} {'f1 Hz':>6} {'substeps':>8} {'/cell':>5} {'s':>7}")
+          f"{'rms':>6} {'f1 Hz':>6} {'decay':>6} {'substeps':>8} {'/cell':>5} {'s':>7}")
     for name in args.scenes.split(","):
         case = CASES[name]
         if args.quick:
@@ -351,7 +375,7 @@ def main() -> None:
         count = args.strip_gaussians if name == "strip" and args.strip_gaussians else args.gaussians
         scene = load_scene(name, count, data=args.data).to(args.device)
         runs = {}
-        for q in QUALITIES:
+        for q in filter(None, args.qualities.split(",")):
             s = settings[q]
             runs[q] = simulate(scene, case, int(s["grid_res"]), float(s["cfl_safety"]), float(s["driver_ratio"]),
                                args.device, thin_grid=None if args.no_refine_thin else s.get("thin_grid_res"),
@@ -384,7 +408,7 @@ def main() -> None:
                 run.extra["E"] = case.E
             result["runs"].append(asdict(run))
             print(f"{name:7} {run.setting:10} {run.grid:4d} {run.cfl:5.2f} {run.ratio:5.2f} {run.peak:7.2%} "
-                  f"{run.peak_ratio:8.3f} {run.rms:6.1%} {run.f1:6.2f} {run.substeps:8d} {run.per_cell:5.1f} "
+                  f"{run.peak_ratio:8.3f} {run.rms:6.1%} {run.f1:6.2f} {run.extra['decay_per_period']:6.2f} {run.substeps:8d} {run.per_cell:5.1f} "
                   f"{run.seconds_wall:7.1f}",
                   flush=True)
         if name == "strip":

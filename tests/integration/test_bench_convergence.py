@@ -19,10 +19,19 @@ def test_first_frequency_of_a_damped_sine(f: float, decay: float) -> None:
     assert conv.first_frequency(s, conv.FPS, 0.1) == pytest.approx(f, rel=0.01)
 
 
+@pytest.mark.parametrize("f,decay", [(1.58, 0.0), (2.3, 0.4), (0.9, 1.5)])
+def test_decay_per_period_of_a_damped_sine(f: float, decay: float) -> None:
+    # exp(-decay t) loses exp(decay / f) a period; sampled peaks read it within 2%
+    t = np.arange(0, 2.5, 1 / conv.FPS)
+    s = np.exp(-decay * t) * np.sin(2 * np.pi * f * (t - 0.05))
+    assert conv.decay_per_period(s, conv.FPS, 0.1) == pytest.approx(math.exp(decay / f), rel=0.02)
+
+
 def test_first_frequency_is_nan_without_a_full_swing() -> None:
     t = np.arange(0, 1.0, 1 / conv.FPS)
     assert math.isnan(conv.first_frequency(np.sin(2 * np.pi * 0.6 * t), conv.FPS, 0.1))
     assert math.isnan(conv.first_frequency(np.full(len(t), 0.3), conv.FPS, 0.1))
+    assert math.isnan(conv.decay_per_period(np.sin(2 * np.pi * 0.6 * t), conv.FPS, 0.1))
 
 
 def test_peak_is_the_99th_percentile_at_the_worst_frame() -> None:
