@@ -35,7 +35,9 @@ their mean rank) over the Gaussians that move more than 1% of the object's size 
 video, split into the fit's level (median ln) and its shape (median |ln| about that
 level), beside the same median for the uniform start and the best uniform E; and for each
 matched bake, the factor it scaled the fitted E by and the same median for the E it moved
-with (`matched_abs_ln`).
+with (`matched_abs_ln`). `thin_split` gives the same statistics over those Gaussians that
+lie in parts under a quarter of the fit's cell and over the rest (the thin-part notice's
+reading, pd_tool.prepare.thickness.thin_mask).
 Each row's `goals` give, for the bare bake and each bake quality, the error each new-force
 target asks for (the uniform bake's over 3 and the best uniform's over 2), whether the fitted
 bake meets it, and with `--check-reference` whether the reference can tell: a target asking
@@ -170,6 +172,10 @@ class Row:
     baseline_abs_ln: dict = field(default_factory=dict)  # the same median for the uniform start and best uniform E
     spearman: float = math.nan
     moving_share: float = math.nan
+    # the same E statistics over the moving Gaussians in parts thinner than a quarter of the
+    # fit's cell ("thin") and over the rest ("other"), with the thin ones' share and the
+    # cell (m): whether E's error lives where the fit's grid bends thin parts too stiffly
+    thin_split: dict = field(default_factory=dict)
     errors: dict = field(default_factory=dict)  # bake name -> RMS / object size
     # "fitted, QUALITY" bakes: the factor the bake scaled the fitted E by to move as the fit
     # did, and median |ln(factor E_fit / E_true)| over the moving drivers
@@ -651,6 +657,25 @@ def e_error(E_fit: np.ndarray, E_true: np.ndarray) -> dict[str, float]:
             "shape_abs_ln": float(np.median(np.abs(ln - level))), "spearman": spearman(E_fit, E_true)}
 
 
+def thin_split(scene, prepare: dict, sel: np.ndarray, E_fit: np.ndarray, E_true: np.ndarray) -> dict:
+    """e_error over the selected Gaussians (sel [N] bool) that lie in thin parts on the
+    fit's grid (pd_tool.prepare.thickness.thin_mask, the scene prepared with the fit's
+    `prepare` options) and over the other selected ones, each where more than two; with
+    the thin ones' share of sel and the fit's cell dx_m."""
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.prepare.thickness import thin_mask
+
+    prep = prepare_scene(scene, PrepareOptions.from_dict(prepare))
+    mask = thin_mask(prep.positions_sim, ~prep.static, prep.dx, prep.volumes)
+    thin = np.zeros(len(sel), bool)
+    thin[prep.foreground] = mask[: prep.count]
+    out: dict = {"share": float(thin[sel].mean()), "dx_m": float(prep.dx)}
+    for key, part in (("thin", sel & thin), ("other", sel & ~thin)):
+        if part.sum() > 2:
+            out[key] = e_error(E_fit[part], E_true[part])
+    return out
+
+
 def load_scene(name: str, gaussians: int, data: Path, path: str | None = None):
     """The thin plant (make_plant(thin=True), as bench/convergence.py has it), a capture
     from `data`, or the splat file `path` (--capture), at most `gaussians` of it kept (seed
@@ -779,6 +804,8 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     if sel.sum() > 2:
         for key, value in e_error(E_fit[sel], E_true[sel]).items():
             setattr(row, key, value)
+    if sel.sum() > 2:
+        row.thin_split = thin_split(scene, fitted_file.meta["prepare"], sel, E_fit, E_true)
     E_uniform = float(FitSettings().init_E)  # `pdtool fit`'s --init-e default
     E_best = float(np.exp(np.mean(np.log(E_true[free]))))
     if sel.sum() > 2:
@@ -979,6 +1006,12 @@ def main() -> None:
                 print(f"{name:6} {kind:7} {row.fit_s:5.0f} {row.median_abs_ln:5.2f} {row.spearman:5.2f}  level "
                       f"{row.median_ln:+.2f} shape {row.shape_abs_ln:.2f} (|ln| of {base})  {errs}  |  {ratios}",
                       flush=True)
+                if row.thin_split:
+                    ts = row.thin_split
+                    print(f"       E in parts under a quarter of the fit's {ts['dx_m'] * 100:.2g} cm cell "
+                          f"({ts['share']:.0%} of the moving): " + "; ".join(
+                              f"{k} |ln| {ts[k]['median_abs_ln']:.2f} (level {ts[k]['median_ln']:+.2f})"
+                              for k in ("thin", "other") if k in ts), flush=True)
                 if row.match_factor:
                     print("       the bake's E against the truth: " + "  ".join(
                         f"{k}: E x{row.match_factor[k]:.3g}, |ln| {row.matched_abs_ln[k]:.2f}" for k in row.match_factor),

@@ -246,14 +246,38 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
         # a fixed subset: the covariance of a window is unbiased under uniform thinning
         keep = np.random.default_rng(0).choice(len(x), SAMPLE, replace=False)
         x, moving, vol = x[keep], moving[keep], vol[keep]
-    t = local_thickness(x, dx, vol, device=device)[moving]
+    t, thin = _readings(x, moving, dx, vol, device)
     if np.isfinite(t).sum() < MIN_POINTS:
         return None
+    thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
+    needed = math.ceil(grid_res * dx / (max(thick, 1e-9) / RESOLVED_CELLS))
+    return ThinParts(share=float(thin.mean()), thickness_m=thick, dx_m=dx, grid_needed=int(needed))
+
+
+def _readings(x: np.ndarray, moving: np.ndarray, dx: float, vol: np.ndarray, device: Device) -> tuple[np.ndarray, np.ndarray]:
+    """The moving particles' thickness through one cell's window [M] (NaN: too sparse) and
+    whether each is thin [M]: under RESOLVED_CELLS of a cell through that window and the
+    wide one. x [N, 3] metres, moving [N] bool (M of them), vol [N] weights."""
+    t = local_thickness(x, dx, vol, device=device)[moving]
+    if not moving.any():
+        return t, np.zeros(0, bool)
     size = float(extent(x[moving]).max())
     wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol, device=device)[moving]
     # a particle whose window is too sparse to judge counts as not thin
     with np.errstate(invalid="ignore"):
         thin = (t < RESOLVED_CELLS * dx) & (wide < RESOLVED_CELLS * dx)
-    thick = float(np.median(t[thin])) if thin.any() else float(np.nanmedian(t))
-    needed = math.ceil(grid_res * dx / (max(thick, 1e-9) / RESOLVED_CELLS))
-    return ThinParts(share=float(thin.mean()), thickness_m=thick, dx_m=dx, grid_needed=int(needed))
+    return t, thin
+
+
+def thin_mask(positions: np.ndarray, moving: np.ndarray, dx: float, volumes: np.ndarray | None = None, *,
+              device: Device = "cpu") -> np.ndarray:
+    """[N] bool: the moving particles that lie in thin parts, as ThinParts counts them
+    (under RESOLVED_CELLS of a cell `dx` metres through both windows), every particle
+    judged (thin_parts judges a sample of SAMPLE); False for static particles and where a
+    window is too sparse. positions [N, 3] metres, moving [N] bool, volumes [N] m^3."""
+    x = np.asarray(positions, np.float64)
+    moving = np.asarray(moving, bool)
+    vol = np.ones(len(x)) if volumes is None else np.asarray(volumes, np.float64)
+    out = np.zeros(len(x), bool)
+    out[moving] = _readings(x, moving, dx, vol, device)[1]
+    return out

@@ -156,6 +156,7 @@ def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, s
     assert 0 < err["true E, as fit"] < err["still"], err
     assert row["median_abs_ln"] >= abs(row["median_ln"]) - 1e-9 and row["shape_abs_ln"] >= 0
     assert set(row["baseline_abs_ln"]) == {"uniform start", "best uniform"}
+    assert 0 <= row["thin_split"]["share"] <= 1 and row["thin_split"]["dx_m"] > 0
     # the goals of the bare bake, from the same errors
     bare = row["goals"]["as fit"]["3x below uniform start"]
     assert bare["asks"] == pytest.approx(err["uniform start"] / 3) and bare["fitted"] == err["fitted, as fit"]
@@ -250,6 +251,26 @@ def test_spearman_ranks_ties_together_whatever_the_order_they_are_stored_in() ->
     assert ft.ranks(np.array([5.0, 1.0, 5.0, 3.0])).tolist() == [2.5, 0.0, 2.5, 1.0]
     # a uniform E has no order to compare
     assert np.isnan(ft.spearman(np.full(400, 1e6), truth)) and np.isnan(ft.spearman(truth[:2], truth[:2]))
+
+
+def test_thin_split_reads_each_part_on_its_own() -> None:
+    """E off by 2x on the thin plant's thin parts alone: the thin ones read a level of ln 2,
+    the others 0, and the thin ones are the leaves' and the flower's share."""
+    from pd_tool.io.synthetic import POT_TOP, make_plant
+    from pd_tool.prepare.preparation import PrepareOptions, prepare_scene
+    from pd_tool.prepare.thickness import thin_mask
+
+    scene = make_plant(20000, thin=True)
+    prepare = PrepareOptions(static_below=POT_TOP, grid_res=32).to_dict()
+    prep = prepare_scene(scene, PrepareOptions.from_dict(prepare))
+    thin = np.zeros(scene.count, bool)
+    thin[prep.foreground] = thin_mask(prep.positions_sim, ~prep.static, prep.dx, prep.volumes)[: prep.count]
+    E_true = np.geomspace(6e4, 2e6, scene.count)
+    sel = np.ones(scene.count, bool)
+    out = ft.thin_split(scene, prepare, sel, np.where(thin, 2.0, 1.0) * E_true, E_true)
+    assert 0.2 < out["share"] < 0.95 and out["share"] == pytest.approx(thin.mean())
+    assert out["dx_m"] == pytest.approx(prep.dx)
+    assert out["thin"]["median_ln"] == pytest.approx(np.log(2)) and out["other"]["median_ln"] == pytest.approx(0)
 
 
 def test_e_error_splits_a_constant_factor_into_the_level_and_a_pattern_into_the_shape() -> None:
