@@ -804,7 +804,6 @@ def run_case(name: str, kind: str, args, tmp: Path) -> Row:
     if sel.sum() > 2:
         for key, value in e_error(E_fit[sel], E_true[sel]).items():
             setattr(row, key, value)
-    if sel.sum() > 2:
         row.thin_split = thin_split(scene, fitted_file.meta["prepare"], sel, E_fit, E_true)
     E_uniform = float(FitSettings().init_E)  # `pdtool fit`'s --init-e default
     E_best = float(np.exp(np.mean(np.log(E_true[free]))))
