@@ -38,6 +38,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -145,13 +146,16 @@ def even_strip_weights() -> None:
 
 def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str,
              thin_grid: int | None = None, fill: str = "auto", split: int = 0,
-             min_per_cell: float | None = None) -> tuple[np.ndarray, np.ndarray, Run]:
+             min_per_cell: float | None = None, driver_E: Callable | None = None,
+             fps: float = FPS) -> tuple[np.ndarray, np.ndarray, Run]:
     """Positions of every Gaussian [T, N, 3] (scene units), the moving mask [N] and the
     run's record, for one discretisation, through the product's own steps: with
     `thin_grid`, the grid is raised for thin parts as a bake raises it; with `split` > 0
     every particle is split into sub-particles, `split` a cell along each axis
     (pd_tool.prepare.split.split_particles), instead of clustered into drivers; without,
-    the drivers keep a bake's floor a cell (`min_per_cell`, default the product's)."""
+    the drivers keep a bake's floor a cell (`min_per_cell`, default the product's).
+    driver_E(prep, drivers) -> [Q] Pa: each driver's E (default case.E everywhere); fps:
+    the frames recorded per second."""
     from pd_tool.fit.reference import simulate_positions
     from pd_tool.prepare.split import split_particles
     from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene, refine_for_thin
@@ -169,13 +173,14 @@ def simulate(scene, case: Case, grid: int, cfl: float, ratio: float, device: str
     # the push is in m/s^2 whatever the scene's units
     accel = tuple(np.asarray(case.push, float) * case.accel / prep.transform.scale)
     stats: dict = {}
-    x = simulate_positions(scene, prep, drivers, np.full(len(d_rest), case.E), nu=case.nu, seconds=case.seconds,
-                           fps=FPS, accel=accel, device=device, cfl_safety=cfl, stats=stats, duration=case.duration)
+    E = np.full(len(d_rest), case.E) if driver_E is None else driver_E(prep, drivers)
+    x = simulate_positions(scene, prep, drivers, E, nu=case.nu, seconds=case.seconds,
+                           fps=fps, accel=accel, device=device, cfl_safety=cfl, stats=stats, duration=case.duration)
     moving = np.zeros(scene.count, bool)
     moving[prep.foreground[~prep.static[: prep.count]]] = True
     # substeps per 30 fps frame, the product's frame
     run = Run(case.name, "", grid, cfl, ratio, seconds_wall=time.perf_counter() - t0,
-              substeps=stats["substeps"] * round(FPS / 30),
+              substeps=stats["substeps"] * round(fps / 30),
               drivers=int(len(d_rest)),
               per_cell=len(d_rest) / len(np.unique(np.floor(d_rest / prep.dx).astype(np.int64), axis=0)),
               extra={"particles_per_cell": prep.n_particles / prep.occupied_cells(),
@@ -408,8 +413,8 @@ def main() -> None:
                 run.extra["E"] = case.E
             result["runs"].append(asdict(run))
             print(f"{name:7} {run.setting:10} {run.grid:4d} {run.cfl:5.2f} {run.ratio:5.2f} {run.peak:7.2%} "
-                  f"{run.peak_ratio:8.3f} {run.rms:6.1%} {run.f1:6.2f} {run.extra['decay_per_period']:6.2f} {run.substeps:8d} {run.per_cell:5.1f} "
-                  f"{run.seconds_wall:7.1f}",
+                  f"{run.peak_ratio:8.3f} {run.rms:6.1%} {run.f1:6.2f} {run.extra['decay_per_period']:6.2f} "
+                  f"{run.substeps:8d} {run.per_cell:5.1f} {run.seconds_wall:7.1f}",
                   flush=True)
         if name == "strip":
             ex = result["runs"][-1]["extra"]

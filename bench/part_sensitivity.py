@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,33 +34,29 @@ import convergence as conv  # noqa: E402  (the scene, its poke and peak measure)
 def sensitivity(grid: int, parts: list[str], factor: float, gaussians: int, seconds: float, device: str) -> dict:
     """One grid's row: the cell dx_m (m), the uniform run's peak (fraction of the object's
     size) and per part {"all", "own"} (module docstring)."""
-    from pd_tool.fit.reference import simulate_positions
     from pd_tool.io.synthetic import REGIONS, driver_regions
-    from pd_tool.prepare.preparation import MIN_DRIVERS_PER_CELL, PrepareOptions, prepare_scene
 
-    case = conv.CASES["plant"]
+    case = replace(conv.CASES["plant"], seconds=seconds)
     scene = conv.load_scene("plant", gaussians).to(device)
-    prep = prepare_scene(scene, PrepareOptions(grid_res=grid, up_axis=case.up, static_below=conv.pinned_below(scene, case),
-                                               density_kg_m3=case.density, fill="auto"))
-    drivers = prep.build_drivers(ratio=0.5, seed=0, device=device, min_per_cell=MIN_DRIVERS_PER_CELL)
-    region = driver_regions(scene, prep, drivers)
-    accel = tuple(np.asarray(case.push, float) * case.accel / prep.transform.scale)
-    moving = np.zeros(scene.count, bool)
-    moving[prep.foreground[~prep.static[: prep.count]]] = True
+    dx: list[float] = []
 
-    def run(E: np.ndarray) -> np.ndarray:
-        return simulate_positions(scene, prep, drivers, E, nu=case.nu, seconds=seconds, fps=30.0, accel=accel,
-                                  device=device, cfl_safety=0.5, duration=case.duration)
+    def run(part: str | None) -> tuple[np.ndarray, np.ndarray]:
+        """Positions [T, N, 3] at 30 fps and the moving mask [N], `part`'s E divided by factor."""
+        def driver_E(prep, drivers) -> np.ndarray:
+            dx.append(float(prep.dx))
+            soft = driver_regions(scene, prep, drivers) == (REGIONS.index(part) if part else -1)
+            return np.where(soft, case.E / factor, case.E)
+
+        x, moving, _ = conv.simulate(scene, case, grid, 0.5, 0.5, device, driver_E=driver_E, fps=30.0)
+        return x, moving
 
     t0 = time.perf_counter()
-    uniform = np.full(len(region), case.E)
-    x0 = run(uniform)
+    x0, moving = run(None)
     size = float(np.ptp(x0[0, moving], axis=0).max())
     peak = conv.peak_of(x0, moving, size)
-    row: dict = {"grid": grid, "dx_m": float(prep.dx), "peak": peak, "parts": {}}
+    row: dict = {"grid": grid, "dx_m": dx[0], "peak": peak, "parts": {}}
     for part in parts:
-        E = np.where(region == REGIONS.index(part), case.E / factor, uniform)
-        d = np.linalg.norm(run(E)[:, moving] - x0[:, moving], axis=-1) / size / peak
+        d = np.linalg.norm(run(part)[0][:, moving] - x0[:, moving], axis=-1) / size / peak
         own = scene.labels[moving] == REGIONS.index(part)
         row["parts"][part] = {"all": float(np.sqrt((d ** 2).mean())), "own": float(np.sqrt((d[:, own] ** 2).mean()))}
     row["seconds"] = time.perf_counter() - t0

@@ -257,10 +257,11 @@ def thin_parts(positions: np.ndarray, moving: np.ndarray, dx: float, grid_res: i
 def _readings(x: np.ndarray, moving: np.ndarray, dx: float, vol: np.ndarray, device: Device) -> tuple[np.ndarray, np.ndarray]:
     """The moving particles' thickness through one cell's window [M] (NaN: too sparse) and
     whether each is thin [M]: under RESOLVED_CELLS of a cell through that window and the
-    wide one. x [N, 3] metres, moving [N] bool (M of them), vol [N] weights."""
+    wide one (none where fewer than MIN_POINTS have a thickness). x [N, 3] metres, moving
+    [N] bool (M of them), vol [N] weights."""
     t = local_thickness(x, dx, vol, device=device)[moving]
-    if not moving.any():
-        return t, np.zeros(0, bool)
+    if np.isfinite(t).sum() < MIN_POINTS:  # too few estimates to judge: the wide window is not read
+        return t, np.zeros(len(t), bool)
     size = float(extent(x[moving]).max())
     wide = local_thickness(x, min(WIDE_WINDOW * dx, max(dx, WIDE_SHARE * size)), vol, device=device)[moving]
     # a particle whose window is too sparse to judge counts as not thin
