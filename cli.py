@@ -368,8 +368,10 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
 @main.command()
 @click.argument("scene", type=SCENE_PATH)
 @click.option("--model", type=click.Path(path_type=Path), required=True,
-              help="Local diffusers folder of an image-to-video model (model_index.json inside), e.g. a "
-                   "download of stabilityai/stable-video-diffusion-img2vid. Read from disk only, never downloaded.")
+              help="Local diffusers folder of an image-to-video model (model_index.json inside): Stable Video "
+                   "Diffusion, Wan 2.x image-to-video, CogVideoX image-to-video or LTX-Video, e.g. a download of "
+                   "stabilityai/stable-video-diffusion-img2vid or Wan-AI/Wan2.1-I2V-14B-480P-Diffusers. The "
+                   "pipeline is chosen from model_index.json. Read from disk only, never downloaded.")
 @click.option("-o", "--out", type=T.OutputDir(), required=True,
               help="Output folder: a video folder for pdtool fit, or with --count K the folders video_0/ ... "
                    "video_{K-1}/ and contact_sheet.png.")
@@ -377,20 +379,37 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
               help="cameras.json (INRIA 3DGS), transforms.json (NeRF) or camera.json (pdtool). "
                    "Default: an automatic 3/4 view that frames the object.")
 @click.option("--view", help="Camera id (index) or image name in the camera file. Default: the first.")
-@click.option("--width", type=T.BoundedInt(8, 8192), default=1024, show_default=True,
-              help="Frame width, px; a multiple of the model's (64 for SVD). A camera of another aspect is "
-                   "widened, not stretched.")
-@click.option("--height", type=T.BoundedInt(8, 8192), default=576, show_default=True, help="Frame height, px.")
-@click.option("--frames", type=T.BoundedInt(3, 1024), default=14, show_default=True,
-              help="Frames per video, frame 0 included.")
-@click.option("--motion-bucket", type=T.BoundedInt(0, 255), default=8, show_default=True,
-              help="The model's motion conditioning; low values keep the camera still (the paper used 5-8).")
+@click.option("--width", type=T.BoundedInt(8, 8192), default=None,
+              help="Frame width, px; a multiple of the model's (64 for SVD, 16 for Wan and CogVideoX, 32 for "
+                   "LTX-Video). A camera of another aspect is widened, not stretched.  [default: the model's: "
+                   "SVD 1024, Wan 832, CogVideoX 720 (1.5: 1360), LTX-Video 704]")
+@click.option("--height", type=T.BoundedInt(8, 8192), default=None,
+              help="Frame height, px.  [default: the model's: SVD 576, Wan 480, CogVideoX 480 (1.5: 768), "
+                   "LTX-Video 512]")
+@click.option("--frames", type=T.BoundedInt(3, 1024), default=None,
+              help="Frames per video, frame 0 included; Wan and CogVideoX make 1 + 4k, LTX-Video 1 + 8k.  "
+                   "[default: the model's: SVD 14 (the paper's), Wan 81, CogVideoX 49 (1.5: 81), "
+                   "LTX-Video 161]")
+@click.option("--motion-bucket", type=T.BoundedInt(0, 255), default=None,
+              help="SVD's motion conditioning; low values keep the camera still (the paper used 5-8).  "
+                   "[default: 8]")
+@click.option("--prompt", default=None,
+              help="What the video shows, for Wan, CogVideoX and LTX-Video (SVD takes no text).  [default: the "
+                   "object sways gently after a light push, then settles; static camera]")
+@click.option("--negative-prompt", default=None,
+              help="What the video must not show (Wan, CogVideoX, LTX-Video).  [default: camera movement, "
+                   "zoom, pan, shake, cuts, blur, distortion]")
+@click.option("--guidance", type=T.FiniteFloat(0.0, 50.0), default=None,
+              help="Classifier-free guidance scale (Wan, CogVideoX, LTX-Video).  [default: the model's: 5, 6, 3]")
 @click.option("--seed", type=T.SEED, default=0, show_default=True, help="Seed of the first video; video k uses SEED+k.")
 @click.option("--count", type=T.BoundedInt(1, 64), default=1, show_default=True,
               help="Candidate videos to choose from (video_0/ ... and a contact sheet).")
-@click.option("--steps", type=T.BoundedInt(1, 1000), default=25, show_default=True, help="Denoising steps.")
-@click.option("--fps", type=T.FPS, default=30.0, show_default=True,
-              help="Frame rate written to camera.json (the time between frames that fit assumes).")
+@click.option("--steps", type=T.BoundedInt(1, 1000), default=None,
+              help="Denoising steps.  [default: SVD 25, the others 50]")
+@click.option("--fps", type=T.FPS, default=None,
+              help="Frame rate written to camera.json (the time between frames that fit assumes); LTX-Video is "
+                   "also conditioned on it.  [default: the model's: SVD 30 (the paper's), Wan 16, CogVideoX 8 "
+                   "(1.5: 16), LTX-Video 25]")
 @click.option("--max-camera-motion", type=T.FiniteFloat(0.0, 100.0, unit="%"), default=1.0, show_default=True,
               metavar="PCT",
               help="Bound on the camera motion against the rendered view, % of the frame's long side.")
@@ -408,35 +427,49 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
               help="Background colour r,g,b in 0-1.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @DEVICE_OPTION
-def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str | None, width: int, height: int,
-             frames: int, motion_bucket: int, seed: int, count: int, steps: int, fps: float,
-             max_camera_motion: float, reject_moving_camera: bool, static_below: float | None,
+def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str | None, width: int | None,
+             height: int | None, frames: int | None, motion_bucket: int | None, prompt: str | None,
+             negative_prompt: str | None, guidance: float | None, seed: int, count: int, steps: int | None,
+             fps: float | None, max_camera_motion: float, reject_moving_camera: bool, static_below: float | None,
              static_box: tuple[float, ...] | None, up: str, background: tuple[float, float, float], overwrite: bool,
              device: str) -> None:
-    """Make the reference video with a local image-to-video model (Stable Video Diffusion).
+    """Make the reference video with a local image-to-video model.
 
-    Renders the view as `pdtool render` does, animates it with the model, measures how far
-    the camera moved in each video (fit assumes a still camera), and writes the frames
-    with their camera.json, ready for `pdtool fit`. Needs `pip install "pdtool[video]"`
-    and the model on disk. Also writes generate.json (seeds, settings, camera motion).
+    Renders the view as `pdtool render` does, animates it with the model (Stable Video
+    Diffusion as in the paper, or Wan 2.x, CogVideoX or LTX-Video image-to-video, chosen
+    from the folder's model_index.json, each with its own defaults), measures how far the
+    camera moved in each video (fit assumes a still camera), and writes the frames with
+    their camera.json, ready for `pdtool fit`. Needs `pip install "pdtool[video]"` and the
+    model on disk. Also writes generate.json (seeds, settings, camera motion).
 
     \b
-    Example (the paper's settings, four candidates):
+    Examples:
+      # the paper's settings (SVD), four candidates to choose from
       pdtool generate plant.ply --camera cameras.json --view 0 --model models/svd \\
           --frames 14 --motion-bucket 8 --count 4 -o video/
       pdtool fit plant.ply video/video_2/
+      # Wan 2.1 image-to-video, a 33-frame clip and a prompt of your own
+      pdtool generate plant.ply --model models/wan-i2v-480p --frames 33 \\
+          --prompt "a potted plant swaying in a light breeze, static camera" -o video/
     """
     if seed + count - 1 > T.SEED_MAX:
         raise T.OptionError(f"with --count {count} the last video's seed passes {T.SEED_MAX}; give a smaller --seed",
                             None, None, seed, "--seed")
     with user_errors():
         from pd_tool.video.generate import (GenerateSettings, check_output, check_size, generate_reference_videos,
-                                      generation_camera, inspect_model, require_video_extra)
+                                            generation_camera, inspect_model, require_video_extra)
 
-        # cheap checks first: no rendering or loading before the extra, folder and size are right
+        # cheap checks first: no rendering or loading before the extra, folder, size and settings are right
         require_video_extra()
         info = inspect_model(model)
+        require_video_extra(info.kind)
+        width = width if width is not None else info.default_size[0]
+        height = height if height is not None else info.default_size[1]
         check_size(info, width, height)
+        settings = GenerateSettings(frames=frames, motion_bucket=motion_bucket, seed=seed, count=count, steps=steps,
+                                    fps=fps, max_camera_motion=max_camera_motion,
+                                    reject_moving_camera=reject_moving_camera, prompt=prompt,
+                                    negative_prompt=negative_prompt, guidance=guidance).resolved(info)
         check_output(out, overwrite)
         from pd_tool.core.device import resolve_device
         from pd_tool.io import load_splats
@@ -451,9 +484,6 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
 
             opts = PrepareOptions().updated(**prepare_changes(static_below=static_below, static_box=static_box, up=up))
             static = select_static(splats.positions.detach().cpu().numpy(), opts)
-        settings = GenerateSettings(frames=frames, motion_bucket=motion_bucket, seed=seed, count=count, steps=steps,
-                                    fps=fps, max_camera_motion=max_camera_motion,
-                                    reject_moving_camera=reject_moving_camera)
         result = generate_reference_videos(splats, cam, out, info, settings, device=dev, background=background,
                                            static=static, overwrite=overwrite, say=click.echo)
     for c in result.candidates:
@@ -463,8 +493,9 @@ def generate(scene: Path, model: Path, out: Path, camera: Path | None, view: str
     for w in result.warnings:
         click.echo(f"warning: {w}", err=True)
     written = [c for c in result.candidates if c.folder is not None]
-    click.echo(f"wrote {out}: {len(written)} video(s) of {frames} frames at {cam.width}x{cam.height}, "
-               f"camera '{cam.name}'" + (f"; contact sheet {result.contact_sheet}" if result.contact_sheet else ""))
+    click.echo(f"wrote {out}: {len(written)} video(s) of {result.settings.frames} frames at {cam.width}x{cam.height}, "
+               f"{result.settings.fps:g} fps, {info.kind.label}, camera '{cam.name}'"
+               + (f"; contact sheet {result.contact_sheet}" if result.contact_sheet else ""))
 
 
 def prepare_options_decorator(f):

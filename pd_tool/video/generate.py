@@ -1,11 +1,14 @@
 """The reference video from a local image-to-video model (behind `pdtool generate`).
 
-PhysDreamer's step 2 (docs: method.md): render the view (I_0), animate it with Stable Video
-Diffusion, and fit to that video. This module runs the model from a local diffusers folder
-(never a download: `local_files_only=True` and a path that must exist), measures how far
-the camera moved in each generated video (pd_tool.video.camera_motion), and writes folders that
-`pdtool fit` reads. It needs the optional `video` extra (diffusers, transformers,
-accelerate); without it `require_video_extra` says what to install.
+PhysDreamer's step 2 (docs: method.md): render the view (I_0), animate it with an
+image-to-video model, and fit to that video. The paper used Stable Video Diffusion; the
+diffusers pipelines of Wan 2.x, CogVideoX and LTX-Video image-to-video run too
+(pd_tool.video.models: which one is chosen from model_index.json, with each model's own
+defaults). This module runs the model from a local diffusers folder (never a download:
+`local_files_only=True` and a path that must exist), measures how far the camera moved in
+each generated video (pd_tool.video.camera_motion), and writes folders that `pdtool fit`
+reads. It needs the optional `video` extra (diffusers, transformers, accelerate,
+sentencepiece, ftfy); without it `require_video_extra` says what to install.
 
 Output layout (`out`)::
 
@@ -21,6 +24,7 @@ place: an error or a kill leaves no half-written output.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import math
 import warnings
@@ -40,22 +44,15 @@ from pd_tool.render.preview import save_png
 from pd_tool.render.views import render_image, scene_camera
 from pd_tool.video.camera_motion import CameraMotion, estimate_camera_motion
 from pd_tool.video.folder import write_video_folder
+from pd_tool.video.models import (CONFIG_FILES, DEFAULT_NEGATIVE, DEFAULT_PROMPT, KINDS,
+                                    WEIGHT_COMPONENTS, Kind, Rules, call_arguments, frame_counts_near, rules)
 
 VIDEO_EXTRA = 'pip install "pdtool[video]"'
-PIPELINE_CLASSES = ("StableVideoDiffusionPipeline",)  # model_index.json _class_name values we run
+PIPELINE_CLASSES = tuple(KINDS)  # model_index.json _class_name values we run
 MODEL_HINT = ("--model takes a local diffusers folder with model_index.json, e.g. a download of "
-              "stabilityai/stable-video-diffusion-img2vid")
-# component -> the config file that a diffusers folder holds for it
-COMPONENT_CONFIGS = {
-    "unet": "config.json",
-    "vae": "config.json",
-    "image_encoder": "config.json",
-    "scheduler": "scheduler_config.json",
-    "feature_extractor": "preprocessor_config.json",
-}
+              + ", ".join(k.example for k in KINDS.values()))
 # Only safetensors are loaded: a .bin weight file is a pickle, which can run code when read.
 WEIGHT_SUFFIXES = (".safetensors",)
-SVD_SIZE = (1024, 576)  # width, height, px: the resolution SVD was trained at (the paper's 576 x 1024)
 SHEET_COLUMNS = 6  # frames per contact-sheet row (evenly spaced, first and last included)
 SHEET_THUMB = 160  # px, long side of a contact-sheet thumbnail
 SHEET_LABEL = 14  # px, height of the label strip above each row
@@ -68,39 +65,86 @@ class GenerateError(PdToolError):
 
 @dataclass
 class GenerateSettings:
-    """What to generate.
+    """What to generate. A field left at None takes the model's default (`resolved`).
 
-    frames: video length including frame 0. motion_bucket: SVD's motion conditioning
-    (0-255; the paper used 5-8 so that the camera stays still). seed: seed of video 0
-    (video k uses seed + k). count: candidate videos. steps: denoising steps.
-    fps: frame rate written to camera.json (what `pdtool fit` assumes between frames; the
-    model itself is conditioned on its default). noise_aug: noise added to the input
-    image (SVD's noise_aug_strength). max_camera_motion: bound on the camera motion, percent
-    of the frames' long side. reject_moving_camera: drop videos over the bound instead of
-    warning. decode_chunk: frames the VAE decodes at once (memory).
+    frames: video length including frame 0. seed: seed of video 0 (video k uses seed + k).
+    count: candidate videos. steps: denoising steps. fps: frame rate written to
+    camera.json (what `pdtool fit` assumes between frames; LTX-Video is also conditioned
+    on it). max_camera_motion: bound on the camera motion, percent of the frames' long
+    side. reject_moving_camera: drop videos over the bound instead of warning.
+    SVD only: motion_bucket, its motion conditioning (0-255; the paper used 5-8 so that
+    the camera stays still); noise_aug, noise added to the input image (its
+    noise_aug_strength); decode_chunk, frames the VAE decodes at once (memory).
+    Text-conditioned models only: prompt, negative_prompt, guidance (classifier-free
+    guidance scale).
     """
 
-    frames: int = 14
-    motion_bucket: int = 8
+    frames: int | None = None
+    motion_bucket: int | None = None
     seed: int = 0
     count: int = 1
-    steps: int = 25
-    fps: float = 30.0
-    noise_aug: float = 0.02
+    steps: int | None = None
+    fps: float | None = None
+    noise_aug: float | None = None
     max_camera_motion: float = 1.0
     reject_moving_camera: bool = False
     decode_chunk: int = 8
+    prompt: str | None = None
+    negative_prompt: str | None = None
+    guidance: float | None = None
+
+    def resolved(self, model: "ModelInfo") -> "GenerateSettings":
+        """These settings with the model's defaults filled in. Raises GenerateError for a
+        setting the model does not take (a prompt for SVD, a motion bucket for the others)
+        and for a frame count it cannot make."""
+        kind = model.kind
+        name = kind.label
+        if kind.text and (self.motion_bucket is not None or self.noise_aug is not None):
+            raise GenerateError(f"--motion-bucket and --noise-aug are Stable Video Diffusion's conditioning; "
+                                f"{name} is conditioned on --prompt instead")
+        if not kind.text and (self.prompt is not None or self.negative_prompt is not None
+                              or self.guidance is not None):
+            raise GenerateError(f"{name} takes no text: --prompt, --negative-prompt and --guidance are for "
+                                f"Wan, CogVideoX and LTX-Video; SVD's motion is set with --motion-bucket")
+        frames = self.frames if self.frames is not None else model.rules.frames
+        check_frames(model, frames)
+        out = dataclasses.replace(self, frames=frames, steps=self.steps or kind.steps,
+                                  fps=self.fps or model.rules.fps)
+        if kind.text:
+            return dataclasses.replace(out, prompt=self.prompt if self.prompt is not None else DEFAULT_PROMPT,
+                                       negative_prompt=(self.negative_prompt if self.negative_prompt is not None
+                                                        else DEFAULT_NEGATIVE),
+                                       guidance=self.guidance if self.guidance is not None else kind.guidance)
+        return dataclasses.replace(out, motion_bucket=8 if self.motion_bucket is None else self.motion_bucket,
+                                   noise_aug=0.02 if self.noise_aug is None else self.noise_aug)
 
 
 @dataclass
 class ModelInfo:
-    """A checked model folder: its path, pipeline class, and the multiple (px) that frame
-    width and height must be (VAE downscale x UNet downsampling, at least 8)."""
+    """A checked model folder: its path, pipeline class, the multiple (px) that frame width
+    and height must be (at least 8), the weights' variant, and the model's size and
+    length rules (pd_tool.video.models.Rules; SVD's when not given)."""
 
     path: Path
     class_name: str
     multiple: int
     variant: str | None = None
+    rules: Rules | None = None
+
+    def __post_init__(self) -> None:
+        if self.rules is None:
+            kind = self.kind
+            assert kind.frames is not None and kind.size is not None
+            self.rules = Rules(self.multiple, 1, None, kind.frames, kind.size, kind.fps)
+
+    @property
+    def kind(self) -> Kind:
+        return KINDS[self.class_name]
+
+    @property
+    def default_size(self) -> tuple[int, int]:
+        """(width, height) px the model makes by default."""
+        return self.rules.size
 
 
 @dataclass
@@ -122,21 +166,26 @@ class GenerateResult:
     camera: Camera
     candidates: list[Candidate]
     contact_sheet: Path | None
+    settings: GenerateSettings
     warnings: list[str] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- checks
 
 
-def require_video_extra() -> None:
-    """Raise GenerateError (with the pip command) unless diffusers and transformers import."""
-    try:
-        import diffusers  # noqa: F401
-        import transformers  # noqa: F401
-    except ImportError as e:
-        missing = getattr(e, "name", None) or "diffusers/transformers"
-        raise GenerateError(f"pdtool generate needs the optional video extra ({missing} is not importable): "
-                            f"{VIDEO_EXTRA}") from None
+def require_video_extra(kind: Kind | None = None) -> None:
+    """Raise GenerateError (with the pip command) unless diffusers and transformers import,
+    and for a text-conditioned model also the tokeniser's sentencepiece and the prompt
+    cleaning's ftfy."""
+    needed = ["diffusers", "transformers"] + (["sentencepiece", "ftfy"] if kind is not None and kind.text else [])
+    for module in needed:
+        try:
+            importlib.import_module(module)
+        except ImportError as e:
+            missing = getattr(e, "name", None) or module
+            what = "pdtool generate" if kind is None else f"pdtool generate with {kind.label}"
+            raise GenerateError(f"{what} needs the optional video extra ({missing} is not importable): "
+                                f"{VIDEO_EXTRA}") from None
 
 
 def _read_json(path: Path) -> dict:
@@ -166,17 +215,27 @@ def inspect_model(path: str | Path) -> ModelInfo:
         raise GenerateError(f"{path}: no model_index.json, so this is not a diffusers model folder; {MODEL_HINT}")
     index = _read_json(index_file)
     cls = index.get("_class_name")
-    if cls not in PIPELINE_CLASSES:
+    if cls not in KINDS:
         raise GenerateError(f"{index_file}: the model is a {cls or 'pipeline without _class_name'}, not an "
-                            f"image-to-video {' / '.join(PIPELINE_CLASSES)}; {MODEL_HINT}")
-    variant = None
-    for comp, cfg in COMPONENT_CONFIGS.items():
-        if comp not in index:
+                            f"image-to-video pipeline pdtool runs ({', '.join(PIPELINE_CLASSES)}); {MODEL_HINT}")
+    kind = KINDS[cls]
+
+    def present(comp: str) -> bool:  # model_index.json writes an absent optional part as [null, null]
+        entry = index.get(comp)
+        return isinstance(entry, list) and len(entry) == 2 and entry[1] is not None
+
+    for comp in kind.components:
+        if not present(comp):
             raise GenerateError(f"{index_file}: no '{comp}' component; the folder is not a complete "
                                 f"{cls} (copy the whole model repository)")
+    variant = None
+    for comp in [c for c in index if not c.startswith("_") and present(c)]:
+        cfg = CONFIG_FILES.get(comp, "config.json")
+        if comp not in WEIGHT_COMPONENTS and comp not in CONFIG_FILES:
+            continue  # a setting of the pipeline, not a component folder
         if not (path / comp / cfg).is_file():
             raise GenerateError(f"{path}: no {comp}/{cfg}; the folder is incomplete (copy the whole model repository)")
-        if comp in ("unet", "vae", "image_encoder"):
+        if comp in WEIGHT_COMPONENTS:
             names = [p.name for p in (path / comp).iterdir()]
             weights = [n for n in names if n.endswith(WEIGHT_SUFFIXES)]
             if not weights:
@@ -189,19 +248,23 @@ def inspect_model(path: str | Path) -> ModelInfo:
             plain = [n for n in weights if n.split(".")[1] == "safetensors"]
             if not plain and any(".fp16." in n for n in weights):
                 variant = "fp16"  # the fp16-only download of the SVD repository
-    vae = _read_json(path / "vae" / "config.json")
-    unet = _read_json(path / "unet" / "config.json")
     try:
-        vae_scale = 2 ** (len(vae["block_out_channels"]) - 1)
-        unet_scale = 2 ** (len(unet["down_block_types"]) - 1)
-    except (KeyError, TypeError):
-        raise GenerateError(f"{path}: vae/config.json or unet/config.json lacks block_out_channels / "
-                            f"down_block_types; the folder is not a {cls}") from None
-    return ModelInfo(path, cls, math.lcm(8, vae_scale * unet_scale), variant)
+        found = rules(kind, lambda comp: _read_json(path / comp / "config.json"))
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise GenerateError(f"{path}: a component's config.json lacks the sizes {cls} reads (vae / "
+                            f"{'unet' if cls == 'StableVideoDiffusionPipeline' else 'transformer'}); the folder is "
+                            f"not a {cls}") from None
+    return ModelInfo(path, cls, found.multiple, variant, found)
 
 
 def check_size(info: ModelInfo, width: int, height: int) -> None:
-    """Frame width and height must be multiples of the model's `multiple`."""
+    """Frame width and height must be multiples of the model's `multiple`, or the one size
+    a model with a fixed size takes."""
+    fixed = info.rules.fixed_size
+    if fixed is not None and (width, height) != fixed:
+        raise GenerateError(f"{width}x{height}: this {info.kind.label} model makes {fixed[0]}x{fixed[1]} frames only "
+                            f"(its position table was learned at that size); use --width {fixed[0]} "
+                            f"--height {fixed[1]} or leave them out")
     m = info.multiple
     if width % m or height % m:
         def near(v: int) -> int:
@@ -209,6 +272,15 @@ def check_size(info: ModelInfo, width: int, height: int) -> None:
 
         raise GenerateError(f"{width}x{height}: this model needs width and height in multiples of {m} px; "
                             f"use e.g. --width {near(width)} --height {near(height)}")
+
+
+def check_frames(info: ModelInfo, frames: int) -> None:
+    """A frame count the model makes: 1 + k x its VAE's time compression (any for SVD)."""
+    t = info.rules.temporal
+    if t > 1 and (frames - 1) % t:
+        low, high = frame_counts_near(frames, t)
+        raise GenerateError(f"--frames {frames}: {info.kind.label} makes 1 + a multiple of {t} frames; "
+                            f"use --frames {low} or --frames {high}")
 
 
 def check_output(out: str | Path, overwrite: bool, inputs: dict[str, str | Path | None] | None = None) -> None:
@@ -273,8 +345,9 @@ def static_weight(scene, camera: Camera, static: np.ndarray) -> np.ndarray | Non
 
 
 def load_pipeline(info: ModelInfo, device: str = "cpu"):
-    """Load the pipeline from local files only (never a download); float16 on CUDA."""
-    require_video_extra()
+    """Load the pipeline from local files only (never a download). On CUDA it runs in its
+    authors' dtype (float16 for SVD, bfloat16 for the others), on the CPU in float32."""
+    require_video_extra(info.kind)
     import diffusers
     import transformers
 
@@ -285,7 +358,7 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
     for log in logs:
         log.set_verbosity_error()
         log.disable_progress_bar()
-    dtype = torch.float16 if str(device).startswith("cuda") else torch.float32
+    dtype = getattr(torch, info.kind.cuda_dtype) if str(device).startswith("cuda") else torch.float32
     try:
         cls = getattr(diffusers, info.class_name)
         with warnings.catch_warnings():  # newer diffusers renamed torch_dtype; older ones know only it
@@ -304,22 +377,37 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
     return pipe
 
 
-def animate(pipe, image: np.ndarray, settings: GenerateSettings, seed: int) -> np.ndarray:
+def animate(pipe, image: np.ndarray, settings: GenerateSettings, seed: int, kind: Kind | None = None) -> np.ndarray:
     """Run the image-to-video pipeline on image [H, W, 3] uint8 -> frames [T, H, W, 3] uint8.
 
-    The noise comes from a CPU generator seeded with `seed`: the same seed gives the same
-    video again (video k of a --count run is the --seed SEED+k video), and the same
+    settings: resolved (GenerateSettings.resolved). kind: the pipeline's entry (default
+    SVD). The noise comes from a CPU generator seeded with `seed`: the same seed gives the
+    same video again (video k of a --count run is the --seed SEED+k video), and the same
     starting noise on CPU and CUDA.
     """
     from PIL import Image
 
+    kind = kind or KINDS["StableVideoDiffusionPipeline"]
     h, w = image.shape[:2]
     gen = torch.Generator("cpu").manual_seed(int(seed))
-    out = pipe(Image.fromarray(image), height=h, width=w, num_frames=settings.frames,
-               num_inference_steps=settings.steps, motion_bucket_id=settings.motion_bucket,
-               noise_aug_strength=settings.noise_aug, decode_chunk_size=min(settings.decode_chunk, settings.frames),
-               generator=gen, output_type="np")
-    v = np.asarray(out.frames[0], dtype=np.float32)
+    args = call_arguments(kind, frames=settings.frames, steps=settings.steps, fps=settings.fps,
+                          guidance=settings.guidance, prompt=settings.prompt, negative_prompt=settings.negative_prompt,
+                          motion_bucket=settings.motion_bucket, noise_aug=settings.noise_aug,
+                          decode_chunk=settings.decode_chunk)
+    try:
+        out = pipe(image=Image.fromarray(image), height=h, width=w, generator=gen, **args)
+    except torch.cuda.OutOfMemoryError:
+        raise GenerateError(f"out of GPU memory making {settings.frames} frames of {w}x{h}; use fewer --frames "
+                            f"or a smaller --width/--height") from None
+    except (RuntimeError, ValueError, TypeError) as e:  # the model's own checks and shape errors
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise GenerateError(f"{kind.label} failed on {settings.frames} frames of {w}x{h} ({type(e).__name__}: "
+                            f"{first[:300]}); try the model's own --frames, --width and --height") from None
+    v = np.asarray(out.frames[0], dtype=np.float32)[: settings.frames]
+    if v.shape[0] != settings.frames or v.shape[1:3] != (h, w):
+        raise GenerateError(f"the model made {v.shape[0]} frames of {v.shape[2]}x{v.shape[1]} px where "
+                            f"{settings.frames} of {w}x{h} were asked; pass --frames and --width/--height the "
+                            f"model was trained for")
     return (np.clip(v, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
@@ -391,7 +479,7 @@ def generate_reference_videos(
         camera: the view; its size is the frames' size (a multiple of model.multiple).
         out: output folder.
         model: from `inspect_model`.
-        settings: GenerateSettings.
+        settings: GenerateSettings (fields left at None take the model's defaults).
         device: "cpu" or "cuda" for the model (float16 on CUDA).
         background: RGB 0-1 behind the Gaussians in I_0 (use the fit's --background).
         static: optional [N] bool, the Gaussians that stay still (pot, table); the camera
@@ -407,19 +495,20 @@ def generate_reference_videos(
     out = Path(out)
     check_output(out, overwrite, {"SCENE": getattr(scene, "source", None), "--model": model.path})
     check_size(model, camera.width, camera.height)
+    settings = settings.resolved(model)
     image = render_image(scene, camera, background=background)
     weight = static_weight(scene, camera, static) if static is not None else None
     if static is not None and weight is None:
         say("--static-below/--static-box select no Gaussians in view; the camera motion is measured on the "
             "whole frame")
-    say(f"loading {model.class_name} from {model.path}")
+    say(f"loading {model.kind.label} ({model.class_name}) from {model.path}")
     pipe = load_pipeline(model, device)
     candidates: list[Candidate] = []
     warnings: list[str] = []
     for k in range(settings.count):
         seed = settings.seed + k
         pipe.set_progress_bar_config(desc=f"video {k + 1}/{settings.count} (seed {seed})", leave=False)
-        frames = animate(pipe, image, settings, seed)
+        frames = animate(pipe, image, settings, seed, model.kind)
         motion = estimate_camera_motion(image, frames, weight)
         over = motion.max_percent > settings.max_camera_motion
         candidates.append(Candidate(k, seed, frames, motion, over))
@@ -454,4 +543,4 @@ def generate_reference_videos(
                         "zoom": np.round(c.motion.zooms, 6).tolist()} for c in candidates],
         }
         (tmp / "generate.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
-    return GenerateResult(out, camera, candidates, sheet_path, warnings)
+    return GenerateResult(out, camera, candidates, sheet_path, settings, warnings)

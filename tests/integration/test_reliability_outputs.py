@@ -358,7 +358,7 @@ def test_generate_overwrites_only_folders_it_made(tmp_path: Path, monkeypatch) -
     frames = np.zeros((3, 16, 16, 3), np.uint8)
     monkeypatch.setattr(gen, "load_pipeline", lambda info, device: type("P", (), {
         "set_progress_bar_config": lambda self, **kw: None})())
-    monkeypatch.setattr(gen, "animate", lambda pipe, image, settings, seed: frames)
+    monkeypatch.setattr(gen, "animate", lambda pipe, image, settings, seed, kind=None: frames)
     monkeypatch.setattr("pd_tool.video.camera_motion.estimate_camera_motion",
                         lambda *a, **k: CameraMotion(np.zeros((3, 2)), np.ones(3), np.zeros(3), np.zeros(3), 16))
     settings = gen.GenerateSettings(frames=3)
