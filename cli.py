@@ -814,6 +814,18 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
               help="Camera file to use instead of each video folder's camera.json.")
 @click.option("--view", help="View id or name in --camera.")
 @click.option("--fps", type=T.FPS, help="Video frame rate. Default: camera.json's, else the .mp4's own, else 30.")
+@click.option("--start", type=T.BoundedInt(0, T.FRAMES_MAX), default=0, show_default=True,
+              help="The frame each clip starts at: the object still at rest just before the push (a phone clip "
+                   "that films the flick starts later than frame 0).")
+@click.option("--max-frames", type=T.BoundedInt(3, T.FRAMES_MAX), default=30, show_default=True,
+              help="The most frames the fit uses of each clip, from --start; the fit's time grows with them.")
+@click.option("--max-fps", type=T.FPS, default=30.0, show_default=True,
+              help="Faster clips keep every k-th frame, so that the rate is at most this (a 60 fps clip: every "
+                   "2nd frame).")
+@click.option("--stabilise/--no-stabilise", default=True, show_default=True,
+              help="Measure each clip's camera motion against its first frame and, over 0.5% of the frame, warp "
+                   "the frames back onto that view (a handheld clip); the edges a frame did not see are left "
+                   "out of the fit.")
 @click.option("--quality", default="default", show_default=True,
               help="draft | default | final or a TOML file: grid, CFL safety, driver ratio, iterations.")
 @click.option("--velocity-iters", type=T.ITERATIONS, help="Stage 1 iterations. Default: from --quality.")
@@ -870,7 +882,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @prepare_options_decorator
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
-        fps: float | None, quality: str, velocity_iters: int | None, material_iters: int | None,
+        fps: float | None, start: int, max_frames: int, max_fps: float, stabilise: bool, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, keep_best: int, level: bool, diffusion: float, working_size: int,
         init_e: float, init_material: Path | None, match_exposure: bool, nu: float, density: float,
         background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int, max_minutes: float,
@@ -909,7 +921,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
         job = app.FitJob(scene, videos, out, settings,
                          PrepareOptions(up_axis="auto").updated(**prepare_changes(**prep_kw)),
                          camera=camera, view=parse_view(view), fps=fps, preview=not no_preview, resume=resume,
-                         out_named=out_given)
+                         out_named=out_given, start=start, max_frames=max_frames, max_fps=max_fps,
+                         stabilise=stabilise)
         estimates = []
         with bars() as held:
             def progress(stage: str, it: int, total: int, loss: float) -> None:
@@ -921,7 +934,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                         held[stage].note = f" (whole fit about {estimates[-1].describe()})"
                 held[stage].update_to(it, total, loss=f"{loss:.4f}")
 
-            done = app.fit(job, progress=progress, max_minutes=max_minutes, on_estimate=estimates.append)
+            done = app.fit(job, progress=progress, max_minutes=max_minutes, on_estimate=estimates.append,
+                           say=click.echo)
     result, side, estimate = done.result, done.side, done.estimate
     import numpy as np
 

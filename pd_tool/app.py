@@ -7,6 +7,7 @@ each frontend reports in its own way. Stages below never import this module.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -24,6 +25,7 @@ from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import PrepareOptions
 from pd_tool.prepare.work import WorkEstimate, work_policy
 from pd_tool.render.views import scene_camera
+from pd_tool.video.clip import MAX_FPS, MAX_FRAMES, ClipChoice, prepare_clip
 from pd_tool.video.folder import load_reference_video
 
 FitProgress = Callable[[str, int, int, float], None]  # (stage, iteration, total, loss)
@@ -37,7 +39,9 @@ class FitJob:
     scene: the splat file; videos: reference-video folders or .mp4 files, one per view;
     out: the material file (.pdmat). `out_named`: the user named `out`; an unnamed default
     (SCENE.pdmat) replaces only a pdtool material file. `record_dir`: the folder whose
-    last-fit record a plain `pdtool bake` there reads.
+    last-fit record a plain `pdtool bake` there reads. start, max_frames, max_fps and
+    stabilise: which frames of each clip the fit uses and whether a shaken camera is
+    warped back onto the first one's view (pd_tool.video.clip).
     """
 
     scene: Path
@@ -52,6 +56,10 @@ class FitJob:
     resume: bool = False
     out_named: bool = True
     record_dir: Path = Path(".")
+    start: int = 0
+    max_frames: int | None = MAX_FRAMES
+    max_fps: float | None = MAX_FPS
+    stabilise: bool = True
 
 
 @dataclass
@@ -59,6 +67,7 @@ class FitDone:
     result: FitResult
     side: dict[str, Path]  # kind -> path of the side outputs (report, loss plot, E field, preview)
     estimate: WorkEstimate | None  # the last run-time estimate, None when none was made
+    clips: list[ClipChoice] = field(default_factory=list)  # per video: the frames used, stabilised or not
 
 
 def check_fit_destinations(job: FitJob) -> None:
@@ -76,15 +85,26 @@ def check_fit_destinations(job: FitJob) -> None:
 
 
 def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float | None = None,
-        on_estimate: Callable[[WorkEstimate], None] | None = None) -> FitDone:
+        on_estimate: Callable[[WorkEstimate], None] | None = None,
+        say: Callable[[str], None] | None = None) -> FitDone:
     """Fit the material of `job.scene` to its videos and write the material file, its side
     outputs and the last-fit record. Refused (WorkTooLarge) before any work when the run-time
-    estimate exceeds `max_minutes`."""
+    estimate exceeds `max_minutes`. `say` gets a line per clip that was trimmed, thinned
+    or stabilised."""
     load_preset("quality", job.settings.quality)
     check_fit_destinations(job)
     dev = job.settings.device
-    refs = [load_reference_video(v, camera_path=job.camera, view=job.view, fps=job.fps,
-                                 working_size=job.settings.working_long_side, device=dev) for v in job.videos]
+    refs, clips = [], []
+    for v in job.videos:
+        ref = load_reference_video(v, camera_path=job.camera, view=job.view, fps=job.fps,
+                                   working_size=job.settings.working_long_side, device=dev)
+        ref, choice = prepare_clip(ref, start=job.start, max_frames=job.max_frames, max_fps=job.max_fps,
+                                   still=job.stabilise)
+        line = choice.line(str(v))
+        if line is not None and say is not None:
+            say(line)
+        refs.append(ref)
+        clips.append(choice)
     splats = load_splats(job.scene, device=dev)
     estimates: list[WorkEstimate] = []
 
@@ -97,9 +117,9 @@ def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float 
         result = run_fit(splats, job.scene, refs, job.out, prepare_options=job.prepare, settings=job.settings,
                          progress=progress, resume=job.resume)
     side = write_fit_outputs(job.out.parent, job.out.stem, splats, result, refs, job.settings.resolved(),
-                             preview=job.preview)
+                             preview=job.preview, clips=[dataclasses.asdict(c) for c in clips])
     write_record(job.scene, job.out, job.record_dir)
-    return FitDone(result, side, estimates[-1] if estimates else None)
+    return FitDone(result, side, estimates[-1] if estimates else None, clips)
 
 
 @dataclass

@@ -184,8 +184,10 @@ def fit_simulation_record(result: "FitResult", settings: "FitSettings") -> dict:
 
 
 def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, videos: list, settings,
-                      *, preview: bool = True) -> dict[str, Path]:
-    """Write every side output of a fit into out_dir; returns their paths by kind.
+                      *, preview: bool = True, clips: list[dict] | None = None) -> dict[str, Path]:
+    """Write every side output of a fit into out_dir; returns their paths by kind. `clips`:
+    per video, which frames of the clip the fit used and whether it was stabilised
+    (pd_tool.video.clip.ClipChoice as a dict), recorded in the report.
 
     Each one replaces only a file that pdtool wrote (they are checked together first, so
     a refusal writes none of them) and none of the fit's inputs. Raises OutputError."""
@@ -230,6 +232,7 @@ def write_fit_outputs(out_dir: Path, stem: str, scene: GaussianScene, result, vi
     report = {
         "material": str(result.material_path),
         "videos": [str(v.folder) for v in videos],  # what it was fitted to, in the fit's order
+        "clips": clips if clips is not None else [],
         "losses": L,
         "seconds": result.seconds,
         "drivers": int(len(result.driver_E)),

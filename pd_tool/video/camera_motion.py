@@ -284,3 +284,29 @@ def _estimate(reference, frames, weight, long_side: int) -> CameraMotion:
         disp.append(d * px)
     return CameraMotion(np.array(shifts, np.float64).reshape(-1, 2), np.array(zooms), np.array(rolls),
                         np.array(disp, np.float64), max(h, w))
+
+
+def undo_motion(frames: Tensor, motion: CameraMotion) -> tuple[Tensor, Tensor]:
+    """Warp each frame back onto the reference's geometry: the inverse of its fitted motion.
+
+    frames: [T, H, W, C] float, the frames `motion` was measured on (at any size with the
+    same aspect: shifts scale with the long side). Returns (frames [T, H, W, C] with the
+    motion undone, where each output pixel is the frame sampled where the reference pixel
+    moved to; valid [T, H, W] float32, 1 where that sample lies inside the frame, 0 where
+    the shaken frame did not see it).
+    """
+    t, h, w, _ = frames.shape
+    scale = max(h, w) / motion.long_side
+    r = math.hypot((w - 1) / 2.0, (h - 1) / 2.0)
+    out, valid = [], []
+    ones = torch.ones(1, 1, h, w, dtype=torch.float64)
+    for k in range(t):
+        q = torch.tensor([motion.shifts[k, 0] * scale, motion.shifts[k, 1] * scale,
+                          r * math.log(motion.zooms[k]), r * motion.rolls[k]], dtype=torch.float64)
+        grid, _ = _similarity_grid(q, h, w)
+        img = frames[k].permute(2, 0, 1)[None].double()
+        out.append(F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+                   .permute(1, 2, 0).to(frames.dtype))
+        seen = F.grid_sample(ones, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0]
+        valid.append((seen > 0.999).float())
+    return torch.stack(out), torch.stack(valid)

@@ -1,0 +1,166 @@
+"""A reference clip made ready for the fit: the frames it uses, and a still camera.
+
+The fit simulates every frame of a clip from one fixed camera, frame 0 being the rest
+state at the moment of the push. A phone video is longer, faster and shakier than that:
+
+- **Which frames.** `choose_frames` starts at `start` (the last still frame before the
+  motion), keeps every k-th frame so that the rate is at most `max_fps`, and stops after
+  `max_frames`. The fit's time grows with the frames it simulates, and frames closer
+  than 1/30 s apart add little that the substeps between them do not already resolve.
+- **A still camera.** `stabilise` measures each frame's camera motion against frame 0
+  (pd_tool.video.camera_motion: a robust similarity fit of the whole frame, or of the
+  static part where one is known) and, where it exceeds `STILL_PERCENT` of the long side,
+  warps the frames back onto frame 0's view. The pixels a shaken frame did not see get a
+  mask weight of 0, so the fit compares only what every kept frame shows. A similarity
+  undoes a hand's small turns and shifts; the parallax of a camera that walks is beyond it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pd_tool.core.errors import VideoError
+from pd_tool.video.camera_motion import CameraMotion, estimate_camera_motion, to_gray, undo_motion
+from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
+
+MAX_FRAMES = 30  # frames the fit uses by default: 1 s at 30 fps (the paper's clips: 14 frames)
+MAX_FPS = 30.0  # frames per second above which frames are skipped
+STILL_PERCENT = 0.5  # camera motion (% of the long side) under which a clip counts as still
+# A camera that moves over a textured scene changes most of the frame; an object that moves
+# in front of a still one changes only its own pixels. Where no frame changes more than
+# STILL_SHARE of its (weighted) pixels by CHANGE_LEVEL (grey, 0-1, after a light blur, so
+# that sensor noise does not count), the clip is still and the alignment is not run.
+CHANGE_LEVEL = 0.03
+STILL_SHARE = 0.5
+CHECK_LONG_SIDE = 128  # px, the change check's resolution
+
+
+@dataclass
+class ClipChoice:
+    """What was made of a clip: it had `source_frames` at `source_fps`; the fit uses
+    `frames` of them from `start`, every `step`-th, at `fps`. camera_motion: the largest
+    camera motion measured against frame 0, % of the long side (0 when too little of the
+    frame changed for a moving camera; None: not measured);
+    stabilised: the frames were warped back onto frame 0's view."""
+
+    source_frames: int
+    source_fps: float
+    start: int
+    step: int
+    frames: int
+    fps: float
+    camera_motion: float | None = None
+    stabilised: bool = False
+
+    @property
+    def changed_frames(self) -> bool:
+        return self.start != 0 or self.step != 1 or self.frames != self.source_frames
+
+    def line(self, name: str) -> str | None:
+        """One line for the user saying what was done, or None when the clip is used as it is."""
+        parts = []
+        if self.changed_frames:
+            last = self.start + (self.frames - 1) * self.step
+            every = "" if self.step == 1 else f", every {_ordinal(self.step)}"
+            parts.append(f"{self.source_frames} frames at {self.source_fps:g} fps; the fit uses frames "
+                         f"{self.start}-{last}{every}: {self.frames} frames at {self.fps:g} fps "
+                         f"({(self.frames - 1) / self.fps:.2f} s; --start, --max-frames, --max-fps choose others)")
+        if self.stabilised:
+            parts.append(f"the camera moved up to {self.camera_motion:.1f}% of the frame; frames warped back onto "
+                         f"frame {self.start}'s view, the edges they did not see left out (--no-stabilise keeps "
+                         f"them as they are)")
+        return f"{name}: " + "; ".join(parts) if parts else None
+
+
+def _ordinal(k: int) -> str:
+    return {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+
+
+def choose_frames(count: int, fps: float, *, start: int = 0, max_frames: int | None = MAX_FRAMES,
+                  max_fps: float | None = MAX_FPS) -> tuple[list[int], float]:
+    """The frames the fit uses of a clip of `count` frames at `fps`: from `start`, every
+    k-th frame (k the smallest step that brings the rate to at most `max_fps`; None: every
+    frame), at most `max_frames` of them (None: all). Returns (indices, the rate of the
+    kept frames, frames/s). Raises VideoError when fewer than MIN_FRAMES remain."""
+    if not 0 <= start < count:
+        raise VideoError(f"--start {start}: the clip has frames 0-{count - 1}; give the frame where the object is "
+                         f"still at rest just before the push")
+    step = 1 if max_fps is None or fps <= max_fps else math.ceil(fps / max_fps - 1e-9)
+    idx = list(range(start, count, step))
+    if max_frames is not None:
+        idx = idx[:max_frames]
+    if len(idx) < MIN_FRAMES:
+        raise VideoError(f"from frame {start}{f', every {_ordinal(step)}' if step > 1 else ''}, the clip leaves "
+                         f"{len(idx)} frame(s); the fit needs at least {MIN_FRAMES}: give an earlier --start or a "
+                         f"higher --max-fps")
+    return idx, fps / step
+
+
+def changed_share(frames: torch.Tensor, weight: np.ndarray | None = None) -> float:
+    """The largest share of (weighted) pixels of a frame [T, H, W, 3] (0-1, CPU) that differ
+    from frame 0 by more than CHANGE_LEVEL in grey after a 1-px blur at CHECK_LONG_SIDE."""
+    g = to_gray(frames)[:, None]
+    h, w = g.shape[-2:]
+    f = min(1.0, CHECK_LONG_SIDE / max(h, w))
+    size = (max(8, round(h * f)), max(8, round(w * f)))
+    g = F.avg_pool2d(F.interpolate(g, size=size, mode="area"), 3, stride=1, padding=1, count_include_pad=False)
+    changed = ((g[1:] - g[:1]).abs() > CHANGE_LEVEL).float()[:, 0]
+    if weight is None:
+        wt = torch.ones(size)
+    else:
+        wt = F.interpolate(torch.as_tensor(np.asarray(weight), dtype=torch.float32)[None, None], size=size,
+                           mode="area")[0, 0]
+    if len(changed) == 0 or float(wt.sum()) <= 0:
+        return 0.0
+    return float(((changed * wt).sum((1, 2)) / wt.sum()).max())
+
+
+def stabilise(frames: torch.Tensor, masks: torch.Tensor | None, weight: np.ndarray | None = None,
+              still_percent: float = STILL_PERCENT) -> tuple[torch.Tensor, torch.Tensor | None, CameraMotion | None, bool]:
+    """Measure the camera motion of frames [T, H, W, 3] (0-1) against frame 0 and, where it
+    exceeds `still_percent` of the long side, warp them back onto frame 0's view.
+
+    masks: [T, H, W] object masks or None. weight: [H, W] where the scene is static (1) or
+    to be ignored (0) in the measurement; None: the whole frame, robustly (with masks
+    given, the part outside them). Returns (frames, masks, the measured motion or None
+    when no frame changed enough for a moving camera (`changed_share`), whether the frames
+    were warped); warped masks are the given masks (or 1) times where the shaken frame saw
+    the view.
+    """
+    cpu = frames.detach().to("cpu", torch.float32)
+    if weight is None and masks is not None:
+        weight = (1.0 - masks.detach().to("cpu", torch.float32).amax(0)).clamp(0, 1).numpy()
+    if changed_share(cpu, weight) <= STILL_SHARE:
+        return frames, masks, None, False
+    motion = estimate_camera_motion(cpu[0], cpu, weight)
+    if motion.max_percent <= still_percent:
+        return frames, masks, motion, False
+    warped, valid = undo_motion(cpu, motion)
+    m = valid if masks is None else valid * undo_motion(masks.detach().to("cpu", torch.float32)[..., None],
+                                                         motion)[0][..., 0]
+    return warped.to(frames.device), m.to(frames.device), motion, True
+
+
+def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | None = MAX_FRAMES,
+                 max_fps: float | None = MAX_FPS, still: bool = True,
+                 weight: np.ndarray | None = None) -> tuple[ReferenceVideo, ClipChoice]:
+    """The video as the fit uses it: `choose_frames`, then (with `still`) `stabilise` onto
+    the first kept frame. Returns the new ReferenceVideo (same camera, the kept frames'
+    rate) and what was done."""
+    idx, fps = choose_frames(video.num_frames, video.fps, start=start, max_frames=max_frames, max_fps=max_fps)
+    choice = ClipChoice(video.num_frames, video.fps, start, idx[1] - idx[0], len(idx), fps)
+    frames = video.frames[idx]
+    masks = None if video.masks is None else video.masks[idx]
+    if still:
+        frames, masks, motion, warped = stabilise(frames, masks, weight)
+        choice.camera_motion, choice.stabilised = (0.0 if motion is None else motion.max_percent), warped
+    paths = video.frame_paths if len(video.frame_paths) != video.num_frames else [video.frame_paths[i] for i in idx]
+    mask_paths = None if video.mask_paths is None else [video.mask_paths[i] for i in idx]
+    out = dataclasses.replace(video, frames=frames, masks=masks, fps=float(fps), frame_paths=paths,
+                              mask_paths=mask_paths)
+    return out, choice

@@ -1,0 +1,170 @@
+"""pd_tool.video.clip: the frames the fit uses of a long or fast clip, and a handheld
+camera's shake undone against frames with a known motion."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from cli import main
+from pd_tool.core.errors import VideoError
+from pd_tool.video.clip import MAX_FPS, MAX_FRAMES, choose_frames, prepare_clip, stabilise
+from tests.video.test_generate import move, texture
+
+H, W = 96, 160
+
+
+def scene_frames(count: int, step_px: float = 1.5) -> torch.Tensor:
+    """A textured room with an object in the middle that slides right by `step_px` a frame,
+    seen by a still camera: [T, H, W, 3] in 0-1."""
+    room, obj = texture(H, W, seed=1), texture(H, W, seed=2)
+    frames = []
+    for k in range(count):
+        f = room.clone()
+        x = round(50 + step_px * k)
+        f[25:70, x:x + 45] = obj[25:70, 50:95]
+        frames.append(f)
+    return torch.stack(frames)
+
+
+def shaken(frames: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, list[tuple[float, float, float, float]]]:
+    """The frames seen by a hand-held camera: frame k>0 shifted by up to 4 px, zoomed by up
+    to 1.5% and rolled by up to 0.01 rad (frame 0 untouched). Returns (frames, motions)."""
+    rng = np.random.default_rng(seed)
+    out, motions = [frames[0]], [(0.0, 0.0, 1.0, 0.0)]
+    for f in frames[1:]:
+        dx, dy = rng.uniform(-4, 4, 2)
+        zoom, roll = 1 + rng.uniform(-0.015, 0.015), rng.uniform(-0.01, 0.01)
+        out.append(move(f, dx, dy, zoom=zoom, roll=roll))
+        motions.append((dx, dy, zoom, roll))
+    return torch.stack(out), motions
+
+
+def test_stabilise_undoes_a_handheld_shake_and_masks_what_the_frames_did_not_see() -> None:
+    still = scene_frames(8)
+    shook, motions = shaken(still)
+    frames, masks, motion, warped = stabilise(shook, None)
+    assert warped and masks is not None and masks.shape == (8, H, W)
+    # the measured motion is the applied one (the object's own motion does not pull it)
+    np.testing.assert_allclose(motion.shifts[1:], [m[:2] for m in motions[1:]], atol=0.3)
+    np.testing.assert_allclose(motion.zooms[1:], [m[2] for m in motions[1:]], atol=2e-3)
+    # the stabilised frames match what a still camera saw, where they saw it; shaken, they do not
+    inner = torch.zeros(H, W)
+    inner[8:-8, 8:-8] = 1.0
+    for k in range(1, 8):
+        m = masks[k] * inner
+        err = float(((frames[k] - still[k]).abs().mean(-1) * m).sum() / m.sum())
+        before = float(((shook[k] - still[k]).abs().mean(-1) * inner).sum() / inner.sum())
+        assert err < 0.02 and err < 0.25 * before, (k, err, before)
+    # a camera turned so that the content moved right by dx did not see the dx columns at the
+    # right of frame 0's view
+    k = int(np.argmax([m[0] for m in motions]))
+    dx = motions[k][0]
+    assert dx > 1.5 and float(masks[k][H // 2, W - int(dx) + 1:].max()) == 0.0
+    assert float(masks[k][H // 2, W // 2]) == 1.0
+    assert float(masks[0].min()) == 1.0  # frame 0 is the view itself
+
+
+def test_a_still_clip_is_left_as_it_is() -> None:
+    from pd_tool.video.camera_motion import estimate_camera_motion
+    from pd_tool.video.clip import STILL_PERCENT, STILL_SHARE, changed_share
+
+    still = scene_frames(6, step_px=3.0)
+    frames, masks, motion, warped = stabilise(still, None)
+    # only the object's pixels change, so the alignment is not even run; run, it finds no motion
+    assert not warped and frames is still and masks is None and motion is None
+    assert changed_share(still) < STILL_SHARE and estimate_camera_motion(still[0], still).max_percent < STILL_PERCENT
+    assert changed_share(shaken(still)[0]) > STILL_SHARE
+    # sensor noise of 2/255 does not count as change
+    noisy = (still + torch.randn(still.shape, generator=torch.Generator().manual_seed(0)) * 2 / 255).clamp(0, 1)
+    assert changed_share(noisy) < STILL_SHARE and not stabilise(noisy, None)[3]
+
+
+def test_choose_frames_thins_and_trims_and_refuses_too_few() -> None:
+    assert choose_frames(14, 30.0) == (list(range(14)), 30.0)  # the paper's clip, as it is
+    idx, fps = choose_frames(240, 60.0)
+    assert idx == list(range(0, 60, 2)) and fps == 30.0 and len(idx) == MAX_FRAMES
+    idx, fps = choose_frames(300, 120.0, start=37, max_frames=10)
+    assert idx == list(range(37, 77, 4)) and fps == 30.0
+    idx, fps = choose_frames(100, 50.0, max_frames=None)  # 50 fps: every 2nd, 25 fps
+    assert idx == list(range(0, 100, 2)) and fps == 25.0
+    assert choose_frames(90, 29.97, max_fps=MAX_FPS, max_frames=None) == (list(range(90)), 29.97)
+    assert choose_frames(20, 240.0, max_fps=None, max_frames=None)[0] == list(range(20))
+    with pytest.raises(VideoError, match="--start 14: the clip has frames 0-13"):
+        choose_frames(14, 30.0, start=14)
+    with pytest.raises(VideoError, match="leaves 2 frame"):
+        choose_frames(14, 30.0, start=12)
+
+
+def _clip(folder: Path, frames: torch.Tensor, fps: float) -> Path:
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.video.folder import write_video_folder
+
+    cam = auto_camera(np.array([[-1.0, -1, -1], [1, 1, 1]]), W, H)
+    write_video_folder(folder, (frames.numpy() * 255 + 0.5).astype(np.uint8), cam, fps)
+    return folder
+
+
+def test_prepare_clip_on_a_shaky_60_fps_phone_clip(tmp_path: Path) -> None:
+    from pd_tool.video.folder import load_reference_video
+
+    shook, _ = shaken(scene_frames(50, step_px=0.5), seed=3)
+    ref = load_reference_video(_clip(tmp_path / "clip", shook, 60.0), working_size=None)
+    out, choice = prepare_clip(ref, start=4)
+    assert (choice.start, choice.step, choice.frames, choice.fps) == (4, 2, 23, 30.0)
+    assert out.num_frames == 23 and out.fps == 30.0 and out.frame_dt == pytest.approx(1 / 30)
+    assert out.frame_paths == [ref.frame_paths[i] for i in range(4, 50, 2)]
+    assert choice.stabilised and choice.camera_motion > 0.5 and out.masks is not None
+    line = choice.line("clip")
+    assert "50 frames at 60 fps" in line and "frames 4-48, every 2nd: 23 frames at 30 fps" in line
+    assert "warped back onto frame 4's view" in line and "--no-stabilise" in line
+    # as it is: nothing to say, nothing changed
+    plain, same = prepare_clip(ref, max_frames=None, max_fps=None, still=False)
+    assert same.line("clip") is None and torch.equal(plain.frames, ref.frames)
+
+
+def test_fit_refuses_a_start_past_the_clip_in_one_line(shared_data: Path, tmp_path: Path) -> None:
+    clip = _clip(tmp_path / "clip", scene_frames(5), 30.0)
+    res = CliRunner().invoke(main, ["fit", str(shared_data / "udon.ply"), str(clip), "--start", "9",
+                                    "-o", str(tmp_path / "m.pdmat")])
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--start 9: the clip has frames 0-4" in lines[0]
+    assert not (tmp_path / "m.pdmat").exists()
+
+
+def test_the_cli_defaults_are_the_modules() -> None:
+    params = {p.name: p for p in main.commands["fit"].params}
+    assert params["max_frames"].default == MAX_FRAMES and params["max_fps"].default == MAX_FPS
+    assert params["stabilise"].default is True and params["start"].default == 0
+    assert math.isclose(MAX_FPS, 30.0)
+
+
+def test_a_fit_uses_the_chosen_frames_says_so_and_records_them(tmp_path: Path, one_torch_thread) -> None:
+    """A real (one iteration per stage) fit through the use case: a 7-frame clip read as 60 fps,
+    from frame 1, keeps frames 1, 3, 5 at 30 fps; the line and the report say so."""
+    import json
+
+    from _plant import tiny_plant_video
+    from pd_tool import app
+    from pd_tool.fit.settings import FitSettings
+    from pd_tool.io.synthetic import POT_TOP
+    from pd_tool.prepare.preparation import PrepareOptions
+
+    tiny_plant_video(tmp_path, 300, seed=0, size=24, n_frames=7)
+    lines: list[str] = []
+    settings = FitSettings(quality="draft", velocity_iters=1, material_iters=1, working_long_side=24)
+    job = app.FitJob(tmp_path / "plant.ply", [tmp_path / "video"], tmp_path / "fit.pdmat", settings,
+                     PrepareOptions(static_below=POT_TOP, up_axis="+z"), fps=60.0, start=1, preview=False,
+                     record_dir=tmp_path)
+    done = app.fit(job, say=lines.append)
+    (choice,) = done.clips
+    assert (choice.start, choice.step, choice.frames, choice.fps, choice.stabilised) == (1, 2, 3, 30.0, False)
+    assert len(lines) == 1 and "7 frames at 60 fps; the fit uses frames 1-5, every 2nd: 3 frames at 30 fps" in lines[0]
+    report = json.loads(done.side["report"].read_text())
+    assert report["clips"] == [json.loads(json.dumps(dataclasses.asdict(choice)))]
