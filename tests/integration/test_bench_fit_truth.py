@@ -139,9 +139,11 @@ def test_a_set_field_that_the_cli_passes_itself_is_named_as_not_applied(monkeypa
 
 def test_quick_udon_fit_moves_closer_to_the_truth_than_nothing(tmp_path: Path, shared_data) -> None:
     out = tmp_path / "ft.json"
-    run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--quick", "--scenes", "udon",
-                          "--losses", "--given-push", "--data", str(shared_data), "--json", str(out)], capture_output=True,
-                         text=True)
+    # --quick with six frames (stage 1's) and a 32-cell reference: every part of the run, at
+    # about half of --quick's CPU time; the documented CI-scale figures are --quick's own
+    run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), "--quick", "--scenes", "udon", "--frames", "6",
+                          "--reference", "32", "--losses", "--given-push", "--data", str(shared_data), "--json",
+                          str(out)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-3000:]
     row = json.loads(out.read_text())["rows"][0]
     err = row["errors"]
@@ -319,8 +321,9 @@ def test_a_capture_of_ones_own_runs_as_the_built_in_scene_does(tmp_path: Path, s
     for name, extra in (("udon", ["--scenes", "udon"]), ("mine", ["--capture", f"mine={shared_data / 'udon.ply'}"])):
         out = tmp_path / f"{name}.json"
         run = subprocess.run([sys.executable, str(BENCH / "fit_truth.py"), *extra, "--gaussians", "1500",
-                              "--reference", "32", "--reference-only", "--fields", "region", "--data",
-                              str(shared_data), "--json", str(out)], capture_output=True, text=True)
+                              "--reference", "32", "--reference-only", "--fields", "region", "--size", "64",
+                              "--frames", "4", "--seconds", "0.5", "--data", str(shared_data), "--json", str(out)],
+                             capture_output=True, text=True)
         assert run.returncode == 0, run.stderr[-3000:]
         rows[name] = json.loads(out.read_text())["rows"]
     assert [r["scene"] for r in rows["mine"]] == ["mine"] and rows["mine"][0]["up"] == rows["udon"][0]["up"] == "-y"
