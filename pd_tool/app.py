@@ -94,18 +94,17 @@ def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float 
     load_preset("quality", job.settings.quality)
     check_fit_destinations(job)
     dev = job.settings.device
-    refs, clips = [], []
-    for v in job.videos:
-        ref = load_reference_video(v, camera_path=job.camera, view=job.view, fps=job.fps,
-                                   working_size=job.settings.working_long_side, device=dev)
-        ref, choice = prepare_clip(ref, start=job.start, max_frames=job.max_frames, max_fps=job.max_fps,
-                                   still=job.stabilise)
+    refs = [load_reference_video(v, camera_path=job.camera, view=job.view, fps=job.fps,
+                                 working_size=job.settings.working_long_side, device=dev) for v in job.videos]
+    splats = load_splats(job.scene, device=dev)
+    clips = []
+    for i, v in enumerate(job.videos):
+        refs[i], choice = prepare_clip(refs[i], start=job.start, max_frames=job.max_frames, max_fps=job.max_fps,
+                                       still=job.stabilise, scene=splats)
         line = choice.line(str(v))
         if line is not None and say is not None:
             say(line)
-        refs.append(ref)
         clips.append(choice)
-    splats = load_splats(job.scene, device=dev)
     estimates: list[WorkEstimate] = []
 
     def estimated(est: WorkEstimate) -> None:

@@ -30,22 +30,22 @@ from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
 
 MAX_FRAMES = 30  # frames the fit uses by default: 1 s at 30 fps (the paper's clips: 14 frames)
 MAX_FPS = 30.0  # frames per second above which frames are skipped
-STILL_PERCENT = 0.5  # camera motion (% of the long side) under which a clip counts as still
-# A camera that moves over a textured scene changes most of the frame; an object that moves
-# in front of a still one changes only its own pixels. Where no frame changes more than
-# STILL_SHARE of its (weighted) pixels by CHANGE_LEVEL (grey, 0-1, after a light blur, so
-# that sensor noise does not count), the clip is still and the alignment is not run.
-CHANGE_LEVEL = 0.03
-STILL_SHARE = 0.5
-CHECK_LONG_SIDE = 128  # px, the change check's resolution
+STILL_PERCENT = 0.5  # camera motion (% of the long side) under which a clip counts as still,
+STILL_PX = 1.0  # or (px of the frames as the fit reads them) below which the fit could not see it
+# Only the static scene shows the camera's motion. Where the part of frame 0 that the
+# measurement weighs (outside the object) is nearly uniform (a rendered video's plain
+# background), the camera's motion cannot be seen and the object's own motion would be
+# taken for it: mean grey gradient there under TEXTURE_LEVEL a pixel, the clip is left as it is.
+TEXTURE_LEVEL = 0.004
+OBJECT_MARGIN = 0.05  # share of the long side the object's footprint is widened by (its motion)
 
 
 @dataclass
 class ClipChoice:
     """What was made of a clip: it had `source_frames` at `source_fps`; the fit uses
     `frames` of them from `start`, every `step`-th, at `fps`. camera_motion: the largest
-    camera motion measured against frame 0, % of the long side (0 when too little of the
-    frame changed for a moving camera; None: not measured);
+    camera motion measured against frame 0, % of the long side (None: not measured, or the
+    static scene too plain to show it);
     stabilised: the frames were warped back onto frame 0's view."""
 
     source_frames: int
@@ -101,44 +101,57 @@ def choose_frames(count: int, fps: float, *, start: int = 0, max_frames: int | N
     return idx, fps / step
 
 
-def changed_share(frames: torch.Tensor, weight: np.ndarray | None = None) -> float:
-    """The largest share of (weighted) pixels of a frame [T, H, W, 3] (0-1, CPU) that differ
-    from frame 0 by more than CHANGE_LEVEL in grey after a 1-px blur at CHECK_LONG_SIDE."""
-    g = to_gray(frames)[:, None]
-    h, w = g.shape[-2:]
-    f = min(1.0, CHECK_LONG_SIDE / max(h, w))
-    size = (max(8, round(h * f)), max(8, round(w * f)))
-    g = F.avg_pool2d(F.interpolate(g, size=size, mode="area"), 3, stride=1, padding=1, count_include_pad=False)
-    changed = ((g[1:] - g[:1]).abs() > CHANGE_LEVEL).float()[:, 0]
-    if weight is None:
-        wt = torch.ones(size)
-    else:
-        wt = F.interpolate(torch.as_tensor(np.asarray(weight), dtype=torch.float32)[None, None], size=size,
-                           mode="area")[0, 0]
-    if len(changed) == 0 or float(wt.sum()) <= 0:
-        return 0.0
-    return float(((changed * wt).sum((1, 2)) / wt.sum()).max())
+def texture(frame: torch.Tensor, weight: np.ndarray | None = None) -> float:
+    """Mean grey gradient magnitude (per px, 0-1 units) of frame [H, W, 3], weighted by
+    `weight` [H, W] (None: everywhere): how much a shift of the camera would change it."""
+    g = to_gray(frame.detach().cpu())
+    gx = torch.zeros_like(g)
+    gy = torch.zeros_like(g)
+    gx[:, 1:-1] = 0.5 * (g[:, 2:] - g[:, :-2])
+    gy[1:-1] = 0.5 * (g[2:] - g[:-2])
+    mag = torch.sqrt(gx * gx + gy * gy)
+    wt = torch.ones_like(g) if weight is None else torch.as_tensor(np.asarray(weight), dtype=torch.float32)
+    return float((mag * wt).sum() / wt.sum().clamp_min(1e-9))
+
+
+def footprint(scene, camera) -> np.ndarray:
+    """alpha [H, W] (0-1) of `scene` rendered at rest from `camera`."""
+    from pd_tool.render import render
+
+    with torch.no_grad():
+        out = render(scene.positions, scene.quats, scene.scales, scene.opacities, scene.sh, camera)
+    return out.alpha[..., 0].clamp(0, 1).cpu().numpy()
+
+
+def outside_object(alpha: np.ndarray, margin: float = OBJECT_MARGIN) -> np.ndarray:
+    """The weight [H, W] of the static scene for the measurement: 1 outside the object's
+    footprint (alpha [H, W] of a render of it at rest), widened by `margin` of the long side
+    so that the object's own motion stays inside it."""
+    a = torch.as_tensor(np.asarray(alpha), dtype=torch.float32)[None, None]
+    r = max(1, round(margin * max(a.shape[-2:])))
+    grown = F.max_pool2d((a > 0.05).float(), 2 * r + 1, stride=1, padding=r)[0, 0]
+    return (1.0 - grown).numpy()
 
 
 def stabilise(frames: torch.Tensor, masks: torch.Tensor | None, weight: np.ndarray | None = None,
               still_percent: float = STILL_PERCENT) -> tuple[torch.Tensor, torch.Tensor | None, CameraMotion | None, bool]:
     """Measure the camera motion of frames [T, H, W, 3] (0-1) against frame 0 and, where it
-    exceeds `still_percent` of the long side, warp them back onto frame 0's view.
+    exceeds `still_percent` of the long side and STILL_PX, warp them back onto frame 0's view.
 
     masks: [T, H, W] object masks or None. weight: [H, W] where the scene is static (1) or
     to be ignored (0) in the measurement; None: the whole frame, robustly (with masks
-    given, the part outside them). Returns (frames, masks, the measured motion or None
-    when no frame changed enough for a moving camera (`changed_share`), whether the frames
+    given, the part outside them). Returns (frames, masks, the measured motion (None where
+    the weighed part of frame 0 is too plain to show it, `texture`), whether the frames
     were warped); warped masks are the given masks (or 1) times where the shaken frame saw
     the view.
     """
     cpu = frames.detach().to("cpu", torch.float32)
     if weight is None and masks is not None:
         weight = (1.0 - masks.detach().to("cpu", torch.float32).amax(0)).clamp(0, 1).numpy()
-    if changed_share(cpu, weight) <= STILL_SHARE:
+    if texture(cpu[0], weight) < TEXTURE_LEVEL:
         return frames, masks, None, False
     motion = estimate_camera_motion(cpu[0], cpu, weight)
-    if motion.max_percent <= still_percent:
+    if motion.max_percent <= still_percent or motion.max_px <= STILL_PX:
         return frames, masks, motion, False
     warped, valid = undo_motion(cpu, motion)
     m = valid if masks is None else valid * undo_motion(masks.detach().to("cpu", torch.float32)[..., None],
@@ -148,17 +161,24 @@ def stabilise(frames: torch.Tensor, masks: torch.Tensor | None, weight: np.ndarr
 
 def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | None = MAX_FRAMES,
                  max_fps: float | None = MAX_FPS, still: bool = True,
-                 weight: np.ndarray | None = None) -> tuple[ReferenceVideo, ClipChoice]:
+                 scene=None) -> tuple[ReferenceVideo, ClipChoice]:
     """The video as the fit uses it: `choose_frames`, then (with `still`) `stabilise` onto
-    the first kept frame. Returns the new ReferenceVideo (same camera, the kept frames'
-    rate) and what was done."""
+    the first kept frame, measured outside the object: outside its masks, or outside the
+    footprint of `scene` (the GaussianScene the clip films, rendered at rest from the
+    video's camera; None: the whole frame, robustly). Returns the new ReferenceVideo (same
+    camera, the kept frames' rate) and what was done."""
     idx, fps = choose_frames(video.num_frames, video.fps, start=start, max_frames=max_frames, max_fps=max_fps)
     choice = ClipChoice(video.num_frames, video.fps, start, idx[1] - idx[0], len(idx), fps)
     frames = video.frames[idx]
     masks = None if video.masks is None else video.masks[idx]
     if still:
+        weight = None
+        if scene is not None:
+            weight = outside_object(footprint(scene, video.camera))
+            if masks is not None:
+                weight = weight * (1.0 - masks.detach().cpu().float().amax(0).numpy())
         frames, masks, motion, warped = stabilise(frames, masks, weight)
-        choice.camera_motion, choice.stabilised = (0.0 if motion is None else motion.max_percent), warped
+        choice.camera_motion, choice.stabilised = (None if motion is None else motion.max_percent), warped
     paths = video.frame_paths if len(video.frame_paths) != video.num_frames else [video.frame_paths[i] for i in idx]
     mask_paths = None if video.mask_paths is None else [video.mask_paths[i] for i in idx]
     out = dataclasses.replace(video, frames=frames, masks=masks, fps=float(fps), frame_paths=paths,

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from cli import main
 from pd_tool.core.errors import VideoError
-from pd_tool.video.clip import MAX_FPS, MAX_FRAMES, choose_frames, prepare_clip, stabilise
+from pd_tool.video.clip import MAX_FPS, MAX_FRAMES, STILL_PERCENT, choose_frames, prepare_clip, stabilise
 from tests.video.test_generate import move, texture
 
 H, W = 96, 160
@@ -71,18 +71,37 @@ def test_stabilise_undoes_a_handheld_shake_and_masks_what_the_frames_did_not_see
 
 
 def test_a_still_clip_is_left_as_it_is() -> None:
-    from pd_tool.video.camera_motion import estimate_camera_motion
-    from pd_tool.video.clip import STILL_PERCENT, STILL_SHARE, changed_share
-
     still = scene_frames(6, step_px=3.0)
     frames, masks, motion, warped = stabilise(still, None)
-    # only the object's pixels change, so the alignment is not even run; run, it finds no motion
-    assert not warped and frames is still and masks is None and motion is None
-    assert changed_share(still) < STILL_SHARE and estimate_camera_motion(still[0], still).max_percent < STILL_PERCENT
-    assert changed_share(shaken(still)[0]) > STILL_SHARE
-    # sensor noise of 2/255 does not count as change
+    assert not warped and frames is still and masks is None and motion.max_percent < STILL_PERCENT
+    # sensor noise of 2/255 is no camera motion either
     noisy = (still + torch.randn(still.shape, generator=torch.Generator().manual_seed(0)) * 2 / 255).clamp(0, 1)
-    assert changed_share(noisy) < STILL_SHARE and not stabilise(noisy, None)[3]
+    assert not stabilise(noisy, None)[3]
+
+
+def test_a_plain_background_shows_no_camera_motion_and_the_object_is_left_out(shared_data: Path) -> None:
+    """A render of a real capture turning before a white background: outside the object's
+    widened footprint nothing has texture, so no camera motion is read into the object's."""
+    from pd_tool.core.cameras import auto_camera
+    from pd_tool.io import load_splats
+    from pd_tool.render.views import render_image
+    from pd_tool.video.clip import OBJECT_MARGIN, TEXTURE_LEVEL, footprint, outside_object, texture
+
+    scene = load_splats(shared_data / "udon.ply")
+    pos = scene.positions.numpy()
+    cams = [auto_camera(pos, 96, 72, up_axis="-y", azimuth_deg=45.0 + 3.0 * k) for k in range(4)]
+    frames = torch.stack([torch.from_numpy(render_image(scene, c)).float() / 255 for c in cams])
+    weight = outside_object(footprint(scene, cams[0]))
+    alpha = footprint(scene, cams[0])
+    # the footprint, widened by the margin, is left out; the far background is kept
+    r = round(OBJECT_MARGIN * 96)
+    ys, xs = np.nonzero(alpha > 0.05)
+    assert weight[ys, xs].max() == 0.0 and weight[0, 0] == 1.0
+    near = (ys.min() - r + 1, xs[ys.argmin()])
+    assert near[0] < 0 or weight[near] == 0.0
+    assert texture(frames[0], weight) < TEXTURE_LEVEL < texture(frames[0])  # the object has texture, the rest not
+    out, masks, motion, warped = stabilise(frames, None, weight)
+    assert motion is None and not warped and out is frames and masks is None
 
 
 def test_choose_frames_thins_and_trims_and_refuses_too_few() -> None:
