@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from pd_tool.core.errors import VideoError
-from pd_tool.video.camera_motion import CameraMotion, estimate_camera_motion, to_gray, undo_motion
+from pd_tool.video.camera_motion import ALIGN_LONG_SIDE, CameraMotion, estimate_camera_motion, to_gray, undo_motion
 from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
 
 MAX_FRAMES = 30  # frames the fit uses by default: 1 s at 30 fps (the paper's clips: 14 frames)
@@ -36,7 +36,7 @@ STILL_PX = 1.0  # or (px of the frames as the fit reads them) below which the fi
 # measurement weighs (outside the object) is nearly uniform (a rendered video's plain
 # background), the camera's motion cannot be seen and the object's own motion would be
 # taken for it: mean grey gradient there under TEXTURE_LEVEL a pixel, the clip is left as it is.
-TEXTURE_LEVEL = 0.004
+TEXTURE_LEVEL = 0.003
 OBJECT_MARGIN = 0.05  # share of the long side the object's footprint is widened by (its motion)
 
 
@@ -102,15 +102,25 @@ def choose_frames(count: int, fps: float, *, start: int = 0, max_frames: int | N
 
 
 def texture(frame: torch.Tensor, weight: np.ndarray | None = None) -> float:
-    """Mean grey gradient magnitude (per px, 0-1 units) of frame [H, W, 3], weighted by
-    `weight` [H, W] (None: everywhere): how much a shift of the camera would change it."""
-    g = to_gray(frame.detach().cpu())
+    """Mean grey gradient magnitude (0-1 units a pixel) of frame [H, W, 3] at the alignment's
+    resolution (ALIGN_LONG_SIDE, where the camera motion is measured) after a 3 x 3 box blur
+    (which takes pixel noise of 2/255 to about 0.002), weighted by `weight` [H, W] (None:
+    everywhere): how much a shift of the camera would change the frame."""
+    g = to_gray(frame.detach().cpu())[None, None]
+    h, w = g.shape[-2:]
+    f = min(1.0, ALIGN_LONG_SIDE / max(h, w))
+    size = (max(8, round(h * f)), max(8, round(w * f)))
+    if size != (h, w):
+        g = F.interpolate(g, size=size, mode="area")
+    g = F.avg_pool2d(g, 3, stride=1, padding=1, count_include_pad=False)[0, 0]
     gx = torch.zeros_like(g)
     gy = torch.zeros_like(g)
     gx[:, 1:-1] = 0.5 * (g[:, 2:] - g[:, :-2])
     gy[1:-1] = 0.5 * (g[2:] - g[:-2])
     mag = torch.sqrt(gx * gx + gy * gy)
     wt = torch.ones_like(g) if weight is None else torch.as_tensor(np.asarray(weight), dtype=torch.float32)
+    if wt.shape != g.shape:
+        wt = F.interpolate(wt[None, None], size=g.shape, mode="area")[0, 0]
     return float((mag * wt).sum() / wt.sum().clamp_min(1e-9))
 
 

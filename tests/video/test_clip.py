@@ -100,6 +100,9 @@ def test_a_plain_background_shows_no_camera_motion_and_the_object_is_left_out(sh
     near = (ys.min() - r + 1, xs[ys.argmin()])
     assert near[0] < 0 or weight[near] == 0.0
     assert texture(frames[0], weight) < TEXTURE_LEVEL < texture(frames[0])  # the object has texture, the rest not
+    # nor does pixel noise of 2/255 on the plain background
+    noisy = (frames + torch.randn(frames.shape, generator=torch.Generator().manual_seed(1)) * 2 / 255).clamp(0, 1)
+    assert texture(noisy[0], weight) < TEXTURE_LEVEL
     out, masks, motion, warped = stabilise(frames, None, weight)
     assert motion is None and not warped and out is frames and masks is None
 
