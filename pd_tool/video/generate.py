@@ -100,8 +100,8 @@ class GenerateSettings:
         kind = model.kind
         name = kind.label
         if kind.text and (self.motion_bucket is not None or self.noise_aug is not None):
-            raise GenerateError(f"--motion-bucket and --noise-aug are Stable Video Diffusion's conditioning; "
-                                f"{name} is conditioned on --prompt instead")
+            raise GenerateError(f"--motion-bucket is Stable Video Diffusion's conditioning; {name} is conditioned "
+                                f"on --prompt instead")
         if not kind.text and (self.prompt is not None or self.negative_prompt is not None
                               or self.guidance is not None):
             raise GenerateError(f"{name} takes no text: --prompt, --negative-prompt and --guidance are for "
