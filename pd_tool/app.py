@@ -41,7 +41,7 @@ class FitJob:
     (SCENE.pdmat) replaces only a pdtool material file. `record_dir`: the folder whose
     last-fit record a plain `pdtool bake` there reads. start, max_frames, max_fps and
     stabilise: which frames of each clip the fit uses and whether a shaken camera is
-    warped back onto the first one's view (pd_tool.video.clip).
+    warped back onto frame 0's view (pd_tool.video.clip).
     """
 
     scene: Path

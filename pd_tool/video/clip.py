@@ -72,8 +72,8 @@ class ClipChoice:
                          f"({(self.frames - 1) / self.fps:.2f} s; --start, --max-frames, --max-fps choose others)")
         if self.stabilised:
             parts.append(f"the camera moved up to {self.camera_motion:.1f}% of the frame; frames warped back onto "
-                         f"frame {self.start}'s view, the edges they did not see left out (--no-stabilise keeps "
-                         f"them as they are)")
+                         f"frame 0's view, the one the camera file describes, the edges they did not see left out "
+                         f"(--no-stabilise keeps them as they are)")
         return f"{name}: " + "; ".join(parts) if parts else None
 
 
@@ -173,9 +173,10 @@ def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | Non
                  max_fps: float | None = MAX_FPS, still: bool = True,
                  scene=None) -> tuple[ReferenceVideo, ClipChoice]:
     """The video as the fit uses it: `choose_frames`, then (with `still`) `stabilise` onto
-    the first kept frame, measured outside the object: outside its masks, or outside the
-    footprint of `scene` (the GaussianScene the clip films, rendered at rest from the
-    video's camera; None: the whole frame, robustly). Returns the new ReferenceVideo (same
+    frame 0's view (the one the video's camera describes, whatever `start` is), measured
+    outside the object: outside its masks, or outside the footprint of `scene` (the
+    GaussianScene the clip films, rendered at rest from the video's camera; None: the whole
+    frame, robustly). Returns the new ReferenceVideo (same
     camera, the kept frames' rate) and what was done."""
     idx, fps = choose_frames(video.num_frames, video.fps, start=start, max_frames=max_frames, max_fps=max_fps)
     choice = ClipChoice(video.num_frames, video.fps, start, idx[1] - idx[0], len(idx), fps)
@@ -187,7 +188,13 @@ def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | Non
             weight = outside_object(footprint(scene, video.camera))
             if masks is not None:
                 weight = weight * (1.0 - masks.detach().cpu().float().amax(0).numpy())
+        # onto frame 0's view, the one the clip's camera describes, whichever frame the fit starts at
+        lead = 0 if start == 0 else 1
+        if lead:
+            frames = torch.cat([video.frames[:1], frames])
+            masks = None if masks is None else torch.cat([video.masks[:1], masks])
         frames, masks, motion, warped = stabilise(frames, masks, weight)
+        frames, masks = frames[lead:], None if masks is None else masks[lead:]
         choice.camera_motion, choice.stabilised = (None if motion is None else motion.max_percent), warped
     paths = video.frame_paths if len(video.frame_paths) != video.num_frames else [video.frame_paths[i] for i in idx]
     mask_paths = None if video.mask_paths is None else [video.mask_paths[i] for i in idx]

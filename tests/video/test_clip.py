@@ -144,7 +144,15 @@ def test_prepare_clip_on_a_shaky_60_fps_phone_clip(tmp_path: Path) -> None:
     assert choice.stabilised and choice.camera_motion > 0.5 and out.masks is not None
     line = choice.line("clip")
     assert "50 frames at 60 fps" in line and "frames 4-48, every 2nd: 23 frames at 30 fps" in line
-    assert "warped back onto frame 4's view" in line and "--no-stabilise" in line
+    assert "warped back onto frame 0's view" in line and "--no-stabilise" in line
+    # onto frame 0's view even from --start 4: the kept frames match the clip's first, where seen
+    grey = torch.tensor([0.299, 0.587, 0.114])
+    keep = torch.ones(H, W)
+    keep[:, 45:125] = 0.0  # where the object slides over the 49 frames
+    m = out.masks[0] * keep
+    first = float((((out.frames[0] - ref.frames[0]) @ grey).abs() * m).sum() / m.sum())
+    shaken_first = float(((ref.frames[4] - ref.frames[0]) @ grey).abs().mean())
+    assert first < 0.25 * shaken_first, (first, shaken_first)
     # as it is: nothing to say, nothing changed
     plain, same = prepare_clip(ref, max_frames=None, max_fps=None, still=False)
     assert same.line("clip") is None and torch.equal(plain.frames, ref.frames)
