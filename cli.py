@@ -897,10 +897,16 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
     as a coloured .ply and a picture, and a side-by-side preview, and records the fit
     so that a plain `pdtool bake --force ...` in this folder uses it.
 
+    A clip of any length and rate works: the fit uses at most --max-frames of it from
+    --start, thinned to --max-fps, and warps a handheld camera's shake back onto frame
+    0's view (--no-stabilise to keep the frames); it prints what it did.
+
     \b
-    Example:
+    Examples:
       pdtool fit plant.ply video/ --quality draft
       pdtool bake --force 0,0,1 out.usd
+      # a 60 fps handheld clip whose flick starts at frame 40
+      pdtool fit plant.ply phone.mp4 --camera camera.json --start 40
     """
     out_given = out is not None
     out = out or T.OutputFile([".pdmat"], "a pdtool material file").convert(scene.with_suffix(".pdmat"), None, None)
