@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,6 +28,10 @@ import torch.nn.functional as F
 from pd_tool.core.errors import VideoError
 from pd_tool.video.camera_motion import ALIGN_LONG_SIDE, CameraMotion, estimate_camera_motion, to_gray, undo_motion
 from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
+
+if TYPE_CHECKING:
+    from pd_tool.core.cameras import Camera
+    from pd_tool.core.scene import GaussianScene
 
 MAX_FRAMES = 30  # frames the fit uses by default: 1 s at 30 fps (the paper's clips: 14 frames)
 MAX_FPS = 30.0  # frames per second above which frames are skipped
@@ -124,7 +129,7 @@ def texture(frame: torch.Tensor, weight: np.ndarray | None = None) -> float:
     return float((mag * wt).sum() / wt.sum().clamp_min(1e-9))
 
 
-def footprint(scene, camera) -> np.ndarray:
+def footprint(scene: GaussianScene, camera: Camera) -> np.ndarray:
     """alpha [H, W] (0-1) of `scene` rendered at rest from `camera`."""
     from pd_tool.render import render
 
@@ -171,7 +176,7 @@ def stabilise(frames: torch.Tensor, masks: torch.Tensor | None, weight: np.ndarr
 
 def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | None = MAX_FRAMES,
                  max_fps: float | None = MAX_FPS, still: bool = True,
-                 scene=None) -> tuple[ReferenceVideo, ClipChoice]:
+                 scene: GaussianScene | None = None) -> tuple[ReferenceVideo, ClipChoice]:
     """The video as the fit uses it: `choose_frames`, then (with `still`) `stabilise` onto
     frame 0's view (the one the video's camera describes, whatever `start` is), measured
     outside the object: outside its masks, or outside the footprint of `scene` (the
