@@ -5,8 +5,7 @@ state at the moment of the push. A phone video is longer, faster and shakier tha
 
 - **Which frames.** `choose_frames` starts at `start` (the last still frame before the
   motion), keeps every k-th frame so that the rate is at most `max_fps`, and stops after
-  `max_frames`. The fit's time grows with the frames it simulates, and frames closer
-  than 1/30 s apart add little that the substeps between them do not already resolve.
+  `max_frames`. The fit's time grows with the frames it simulates and compares.
 - **A still camera.** `stabilise` measures each frame's camera motion against frame 0
   (pd_tool.video.camera_motion: a robust similarity fit of the whole frame, or of the
   static part where one is known) and, where it exceeds `STILL_PERCENT` of the long side,
@@ -50,8 +49,8 @@ class ClipChoice:
     """What was made of a clip: it had `source_frames` at `source_fps`; the fit uses
     `frames` of them from `start`, every `step`-th, at `fps`. camera_motion: the largest
     camera motion measured against frame 0, % of the long side (None: not measured, or the
-    static scene too plain to show it);
-    stabilised: the frames were warped back onto frame 0's view."""
+    static scene too plain to show it); stabilised: the frames were warped back onto frame
+    0's view."""
 
     source_frames: int
     source_fps: float
