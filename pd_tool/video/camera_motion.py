@@ -233,6 +233,13 @@ def _one_thread() -> Iterator[None]:
         torch.set_num_threads(n)
 
 
+def align_size(h: int, w: int, long_side: int = ALIGN_LONG_SIDE) -> tuple[int, int]:
+    """(height, width) px at which frames of h x w are aligned: the long side at most
+    `long_side` (never upscaled), at least 8 px each."""
+    f = min(1.0, long_side / max(h, w))
+    return max(8, round(h * f)), max(8, round(w * f))
+
+
 def estimate_camera_motion(reference, frames, weight=None, long_side: int = ALIGN_LONG_SIDE) -> CameraMotion:
     """How far the camera moved in `frames` relative to `reference`.
 
@@ -257,8 +264,7 @@ def _estimate(reference, frames, weight, long_side: int) -> CameraMotion:
         raise ValueError(f"frames [T, H, W, 3] must match the reference [H, W, 3]: got {list(vid.shape)} "
                          f"and {list(ref.shape)}")
     h, w = ref.shape
-    f = min(1.0, long_side / max(h, w))
-    size = (max(8, round(h * f)), max(8, round(w * f)))
+    size = align_size(h, w, long_side)
     px = max(h, w) / max(size)  # frame px per alignment px
 
     def small(t: Tensor) -> Tensor:

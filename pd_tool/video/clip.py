@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from pd_tool.core.errors import VideoError
-from pd_tool.video.camera_motion import ALIGN_LONG_SIDE, CameraMotion, estimate_camera_motion, to_gray, undo_motion
+from pd_tool.video.camera_motion import CameraMotion, align_size, estimate_camera_motion, to_gray, undo_motion
 from pd_tool.video.folder import MIN_FRAMES, ReferenceVideo
 
 if TYPE_CHECKING:
@@ -107,14 +107,12 @@ def choose_frames(count: int, fps: float, *, start: int = 0, max_frames: int | N
 
 def texture(frame: torch.Tensor, weight: np.ndarray | None = None) -> float:
     """Mean grey gradient magnitude (0-1 units a pixel) of frame [H, W, 3] at the alignment's
-    resolution (ALIGN_LONG_SIDE, where the camera motion is measured) after a 3 x 3 box blur
+    resolution (`align_size`, where the camera motion is measured) after a 3 x 3 box blur
     (which takes pixel noise of 2/255 to about 0.002), weighted by `weight` [H, W] (None:
     everywhere): how much a shift of the camera would change the frame."""
     g = to_gray(frame.detach().cpu())[None, None]
-    h, w = g.shape[-2:]
-    f = min(1.0, ALIGN_LONG_SIDE / max(h, w))
-    size = (max(8, round(h * f)), max(8, round(w * f)))
-    if size != (h, w):
+    size = align_size(*g.shape[-2:])
+    if size != tuple(g.shape[-2:]):
         g = F.interpolate(g, size=size, mode="area")
     g = F.avg_pool2d(g, 3, stride=1, padding=1, count_include_pad=False)[0, 0]
     gx = torch.zeros_like(g)
@@ -153,24 +151,26 @@ def stabilise(frames: torch.Tensor, masks: torch.Tensor | None, weight: np.ndarr
     exceeds `still_percent` of the long side and STILL_PX, warp them back onto frame 0's view.
 
     masks: [T, H, W] object masks or None. weight: [H, W] where the scene is static (1) or
-    to be ignored (0) in the measurement; None: the whole frame, robustly (with masks
-    given, the part outside them). Returns (frames, masks, the measured motion (None where
+    to be ignored (0) in the measurement; None: the whole frame, robustly. With masks, the
+    part any of them marks is left out too. Returns (frames, masks, the measured motion (None where
     the weighed part of frame 0 is too plain to show it, `texture`), whether the frames
     were warped); warped masks are the given masks (or 1) times where the shaken frame saw
     the view.
     """
     cpu = frames.detach().to("cpu", torch.float32)
-    if weight is None and masks is not None:
-        weight = (1.0 - masks.detach().to("cpu", torch.float32).amax(0)).clamp(0, 1).numpy()
+    if masks is not None:  # the object, wherever a mask marks it, is no part of the static scene
+        outside = (1.0 - masks.detach().to("cpu", torch.float32).amax(0)).clamp(0, 1).numpy()
+        weight = outside if weight is None else weight * outside
     if texture(cpu[0], weight) < TEXTURE_LEVEL:
         return frames, masks, None, False
     motion = estimate_camera_motion(cpu[0], cpu, weight)
     if motion.max_percent <= still_percent or motion.max_px <= STILL_PX:
         return frames, masks, motion, False
+    if masks is not None:  # warped with the frames, as a fourth channel
+        cpu = torch.cat([cpu, masks.detach().to("cpu", torch.float32)[..., None]], -1)
     warped, valid = undo_motion(cpu, motion)
-    m = valid if masks is None else valid * undo_motion(masks.detach().to("cpu", torch.float32)[..., None],
-                                                         motion)[0][..., 0]
-    return warped.to(frames.device), m.to(frames.device), motion, True
+    m = valid if masks is None else valid * warped[..., 3]
+    return warped[..., :3].to(frames.device), m.to(frames.device), motion, True
 
 
 def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | None = MAX_FRAMES,
@@ -180,18 +180,14 @@ def prepare_clip(video: ReferenceVideo, *, start: int = 0, max_frames: int | Non
     frame 0's view (the one the video's camera describes, whatever `start` is), measured
     outside the object: outside its masks, or outside the footprint of `scene` (the
     GaussianScene the clip films, rendered at rest from the video's camera; None: the whole
-    frame, robustly). Returns the new ReferenceVideo (same
-    camera, the kept frames' rate) and what was done."""
+    frame, robustly). Returns the new ReferenceVideo (same camera, the kept frames' rate)
+    and what was done."""
     idx, fps = choose_frames(video.num_frames, video.fps, start=start, max_frames=max_frames, max_fps=max_fps)
     choice = ClipChoice(video.num_frames, video.fps, start, idx[1] - idx[0], len(idx), fps)
     frames = video.frames[idx]
     masks = None if video.masks is None else video.masks[idx]
     if still:
-        weight = None
-        if scene is not None:
-            weight = outside_object(footprint(scene, video.camera))
-            if masks is not None:
-                weight = weight * (1.0 - masks.detach().cpu().float().amax(0).numpy())
+        weight = None if scene is None else outside_object(footprint(scene, video.camera))
         # onto frame 0's view, the one the clip's camera describes, whichever frame the fit starts at
         lead = 0 if start == 0 else 1
         if lead:

@@ -68,6 +68,18 @@ def test_stabilise_undoes_a_handheld_shake_and_masks_what_the_frames_did_not_see
     assert dx > 1.5 and float(masks[k][H // 2, W - int(dx) + 1:].max()) == 0.0
     assert float(masks[k][H // 2, W // 2]) == 1.0
     assert float(masks[0].min()) == 1.0  # frame 0 is the view itself
+    # with object masks: measured outside them, and the masks warped as the frames are (a
+    # reference: each warped on its own), times where the shaken frame saw the view
+    from pd_tool.video.camera_motion import undo_motion
+
+    obj = torch.zeros(8, H, W)
+    obj[:, 20:75, 45:140] = 1.0
+    frames_m, masks_m, motion_m, warped_m = stabilise(shook, obj)
+    assert warped_m
+    np.testing.assert_allclose(motion_m.shifts[1:], [m[:2] for m in motions[1:]], atol=0.3)
+    ref_frames, valid = undo_motion(shook, motion_m)
+    assert torch.allclose(frames_m, ref_frames, atol=1e-6)
+    assert torch.allclose(masks_m, undo_motion(obj[..., None], motion_m)[0][..., 0] * valid, atol=1e-6)
 
 
 def test_a_still_clip_is_left_as_it_is() -> None:

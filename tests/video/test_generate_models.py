@@ -17,9 +17,9 @@ from click.testing import CliRunner
 
 from cli import main
 
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.skipif(
     not all(importlib.util.find_spec(m) for m in ("diffusers", "transformers", "ftfy", "sentencepiece")),
-    reason='needs the video extra: pip install -e ".[video]"')
+    reason='needs the video extra: pip install -e ".[video]"')]
 
 SIZE = ["--width", "64", "--height", "32"]  # multiples of 32 (LTX-Video's pipeline asks that of every model)
 FAST = ["--frames", "5", "--steps", "2"]  # 1 + 4k frames: the tiny VAEs compress time 4x
@@ -107,14 +107,6 @@ def build_tiny_ltx(folder: Path) -> Path:
 BUILDERS = {"WanImageToVideoPipeline": build_tiny_wan, "CogVideoXImageToVideoPipeline": build_tiny_cogvideox,
             "LTXImageToVideoPipeline": build_tiny_ltx}
 FPS = {"WanImageToVideoPipeline": 16.0, "CogVideoXImageToVideoPipeline": 8.0, "LTXImageToVideoPipeline": 25.0}
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    n = torch.get_num_threads()  # hundreds of tiny ops: one thread is faster on a shared 2-core box
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
