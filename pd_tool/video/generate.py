@@ -344,6 +344,13 @@ def static_weight(scene, camera: Camera, static: np.ndarray) -> np.ndarray | Non
 # ----------------------------------------------------------------------------- model
 
 
+def _first_line(e: Exception) -> str:
+    """`Type: first line` of a library's exception, at most 300 characters of it: its
+    messages can span pages, and an error must stay one line."""
+    text = str(e).strip()
+    return f"{type(e).__name__}: {text.splitlines()[0][:300] if text else ''}"
+
+
 def load_pipeline(info: ModelInfo, device: str = "cpu"):
     """Load the pipeline from local files only (never a download). On CUDA it runs in its
     authors' dtype (float16 for SVD, bfloat16 for the others), on the CPU in float32."""
@@ -366,9 +373,7 @@ def load_pipeline(info: ModelInfo, device: str = "cpu"):
             pipe = cls.from_pretrained(info.path, torch_dtype=dtype, local_files_only=True, variant=info.variant,
                                        use_safetensors=True)
     except Exception as e:  # a user's folder: corrupt weights, wrong shapes, missing files
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise GenerateError(f"{info.path}: cannot load the model ({type(e).__name__}: {first[:300]}); "
-                            f"{MODEL_HINT}") from None
+        raise GenerateError(f"{info.path}: cannot load the model ({_first_line(e)}); {MODEL_HINT}") from None
     finally:
         for log, on in zip(logs, bars_were_on):
             if on:
@@ -400,9 +405,8 @@ def animate(pipe, image: np.ndarray, settings: GenerateSettings, seed: int, kind
         raise GenerateError(f"out of GPU memory making {settings.frames} frames of {w}x{h}; use fewer --frames "
                             f"or a smaller --width/--height") from None
     except (RuntimeError, ValueError, TypeError) as e:  # the model's own checks and shape errors
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise GenerateError(f"{kind.label} failed on {settings.frames} frames of {w}x{h} ({type(e).__name__}: "
-                            f"{first[:300]}); try the model's own --frames, --width and --height") from None
+        raise GenerateError(f"{kind.label} failed on {settings.frames} frames of {w}x{h} ({_first_line(e)}); "
+                            f"try the model's own --frames, --width and --height") from None
     v = np.asarray(out.frames[0], dtype=np.float32)[: settings.frames]
     if v.shape[0] != settings.frames or v.shape[1:3] != (h, w):
         raise GenerateError(f"the model made {v.shape[0]} frames of {v.shape[2]}x{v.shape[1]} px where "
