@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import re
 import signal
@@ -363,6 +364,62 @@ def render(scene: Path, out: Path, camera: Path | None, view: str | None, width:
         if write_camera is not None:
             save_camera_json(write_camera / "camera.json", dataclasses.replace(cam, fps=fps))
             click.echo(f"wrote {write_camera / 'camera.json'}")
+
+
+FOCAL_MM_OPTION = click.option(
+    "--focal-mm", type=T.FiniteFloat(4.0, 2000.0, unit="mm"), default=None,
+    help="The camera's 35 mm-equivalent focal length, when known (a phone's main camera: about 24-28; a photo's "
+         "EXIF FocalLengthIn35mmFilm). Registration then solves the pose alone. Default: solved for.")
+
+
+@main.command()
+@click.argument("scene", type=SCENE_PATH)
+@click.argument("frame", type=click.Path(exists=True, path_type=Path))
+@click.option("-o", "--out", type=T.OutputFile([".json"], "a camera.json"), required=True,
+              help="The camera file to write (pdtool camera.json); a picture OUT_STEM.register.png goes beside it.")
+@click.option("--mask", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="A mask of the object in the frame (white = object), the frame's size. Default: masks/ of a "
+                   "frame folder, else the object's colours.")
+@click.option("--up", type=UP_CHOICE, default="auto", show_default=True, help=UP_HELP)
+@click.option("--max-residual", type=T.FiniteFloat(0.0, 1.0, lo_open=True), default=None,
+              help="Refuse when the render and the frame differ by more than this per covered pixel "
+                   "(colour 0-1). Default: 0.06.")
+@FOCAL_MM_OPTION
+@DEVICE_OPTION
+def register(scene: Path, frame: Path, out: Path, mask: Path | None, up: str, max_residual: float | None,
+             focal_mm: float | None, device: str) -> None:
+    """Find the camera of a frame in the splat's frame, and write it as camera.json.
+
+    FRAME is a picture of the object (PNG or JPG), a video file or a frame folder (its first
+    frame). The object should be near the middle of the picture, upright or nearly so. pdtool
+    searches views all around the object, then refines the pose and the focal length until
+    its render lies on the frame. The principal point is taken at the image centre.
+
+    \b
+    Examples:
+      pdtool register scene.ply clip.mp4 -o clip/camera.json
+      pdtool register scene.ply photo.jpg --mask photo_mask.png -o camera.json
+    """
+    with user_errors():
+        from pd_tool import app
+        from pd_tool.core.device import resolve_device
+        from pd_tool.register.solve import MAX_RESIDUAL
+
+        job = app.RegisterJob(scene, frame, out, mask=mask, up=up, device=resolve_device(device),
+                              max_residual=MAX_RESIDUAL if max_residual is None else max_residual, focal_mm=focal_mm)
+        with bars() as held:
+            def progress(stage: str, done: int, total: int) -> None:
+                name = {"search": "search views", "refine": "refine"}[stage]
+                bar = held.setdefault(stage, LazyBar(name, "step"))
+                bar.update_to(done, total)
+
+            done = app.register(job, progress=progress)
+        r, cam = done.registration, done.registration.camera
+        fov = 2.0 * math.degrees(math.atan(0.5 * cam.height / cam.fy))
+        click.echo(f"registered in {r.seconds:.0f} s: residual {r.residual:.3f} (refused over {job.max_residual:g}); "
+                   f"focal {cam.fx:.0f} px ({fov:.1f} deg vertical), camera at "
+                   f"{', '.join(f'{v:.3g}' for v in cam.center)}")
+        click.echo(f"wrote {out}" + (f" and {done.picture} (frame | render over it | difference x4)" if done.picture else ""))
 
 
 @main.command()
@@ -811,8 +868,10 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @click.option("-o", "--out", type=T.OutputFile([".pdmat"], "a pdtool material file"),
               help="Material file to write (.pdmat). Default: SCENE's name + .pdmat beside it.")
 @click.option("--camera", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="Camera file to use instead of each video folder's camera.json.")
+              help="Camera file to use instead of each video folder's camera.json. A clip with neither is "
+                   "registered to the splat (pdtool register), which is slower and less exact.")
 @click.option("--view", help="View id or name in --camera.")
+@FOCAL_MM_OPTION
 @click.option("--fps", type=T.FPS, help="Video frame rate. Default: camera.json's, else the .mp4's own, else 30.")
 @click.option("--start", type=T.BoundedInt(0, T.FRAMES_MAX), default=0, show_default=True,
               help="The frame each clip starts at: the object still at rest just before the push (a phone clip "
@@ -882,7 +941,7 @@ def bake(out: Path, scene: Path | None, material: Path | None, preset: str | Non
 @prepare_options_decorator
 @DEVICE_OPTION
 def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | None, view: str | None,
-        fps: float | None, start: int, max_frames: int, max_fps: float, stabilise: bool, quality: str, velocity_iters: int | None, material_iters: int | None,
+        focal_mm: float | None, fps: float | None, start: int, max_frames: int, max_fps: float, stabilise: bool, quality: str, velocity_iters: int | None, material_iters: int | None,
         rounds: int, horizon: int, polish: int, keep_best: int, level: bool, diffusion: float, working_size: int,
         init_e: float, init_material: Path | None, match_exposure: bool, nu: float, density: float,
         background: tuple[float, float, float], resume: bool, no_preview: bool, seed: int, max_minutes: float,
@@ -891,7 +950,10 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
 
     Each VIDEO is a folder of frames (PNG/JPG, frame 0 = the object at rest) or one
     .mp4, with a camera.json (see `pdtool render --write-camera`); optional masks/ hold
-    one PNG per frame. Several folders = several views sharing one material.
+    one PNG per frame. Several folders = several views sharing one material. A clip
+    without a camera (a phone video) is registered to the splat first, as `pdtool
+    register` does: the camera found is written beside the material file with a
+    picture to check; --focal-mm helps when the lens is known.
 
     Writes the material file (.pdmat), a report (.report.json), a loss plot, the E field
     as a coloured .ply and a picture, and a side-by-side preview, and records the fit
@@ -905,8 +967,8 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
     Examples:
       pdtool fit plant.ply video/ --quality draft
       pdtool bake --force 0,0,1 out.usd
-      # a 60 fps handheld clip whose flick starts at frame 40
-      pdtool fit plant.ply phone.mp4 --camera camera.json --start 40
+      # a 60 fps handheld phone clip whose flick starts at frame 40, camera found
+      pdtool fit plant.ply phone.mp4 --start 40 --focal-mm 26
     """
     out_given = out is not None
     out = out or T.OutputFile([".pdmat"], "a pdtool material file").convert(scene.with_suffix(".pdmat"), None, None)
@@ -928,7 +990,7 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                          PrepareOptions(up_axis="auto").updated(**prepare_changes(**prep_kw)),
                          camera=camera, view=parse_view(view), fps=fps, preview=not no_preview, resume=resume,
                          out_named=out_given, start=start, max_frames=max_frames, max_fps=max_fps,
-                         stabilise=stabilise)
+                         stabilise=stabilise, focal_mm=focal_mm)
         estimates = []
         with bars() as held:
             def progress(stage: str, it: int, total: int, loss: float) -> None:
@@ -940,8 +1002,12 @@ def fit(scene: Path, videos: tuple[Path, ...], out: Path | None, camera: Path | 
                         held[stage].note = f" (whole fit about {estimates[-1].describe()})"
                 held[stage].update_to(it, total, loss=f"{loss:.4f}")
 
+            def register_progress(stage: str, done: int, total: int) -> None:
+                name = {"search": "register: search views", "refine": "register: refine"}[stage]
+                held.setdefault(name, LazyBar(name, "step")).update_to(done, total)
+
             done = app.fit(job, progress=progress, max_minutes=max_minutes, on_estimate=estimates.append,
-                           say=click.echo)
+                           say=click.echo, register_progress=register_progress)
     result, side, estimate = done.result, done.side, done.estimate
     import numpy as np
 

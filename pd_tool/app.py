@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 from pd_tool.bake import BakeResult, BakeSettings, ForceSpec
 from pd_tool.bake import bake as run_bake
 from pd_tool.core.atomic import check_destination, check_outputs
-from pd_tool.core.errors import MissingInput, OutputError
+from pd_tool.core.errors import MissingInput, OutputError, RegistrationError
 from pd_tool.fit.outputs import check_fit_outputs, write_fit_outputs
 from pd_tool.fit.run import FitResult, run_fit
 from pd_tool.fit.settings import FitSettings
@@ -24,9 +24,10 @@ from pd_tool.materials.file import MaterialFile, check_record, is_material_file,
 from pd_tool.materials.presets import Material, load_preset
 from pd_tool.prepare import PrepareOptions
 from pd_tool.prepare.work import WorkEstimate, work_policy
+from pd_tool.register.solve import MAX_RESIDUAL, Registration
 from pd_tool.render.views import scene_camera
 from pd_tool.video.clip import MAX_FPS, MAX_FRAMES, ClipChoice, prepare_clip
-from pd_tool.video.folder import load_reference_video
+from pd_tool.video.folder import has_camera, load_reference_video
 
 FitProgress = Callable[[str, int, int, float], None]  # (stage, iteration, total, loss)
 BakeProgress = Callable[[int, int], None]  # (frames done, total)
@@ -41,7 +42,9 @@ class FitJob:
     (SCENE.pdmat) replaces only a pdtool material file. `record_dir`: the folder whose
     last-fit record a plain `pdtool bake` there reads. start, max_frames, max_fps and
     stabilise: which frames of each clip the fit uses and whether a shaken camera is
-    warped back onto frame 0's view (pd_tool.video.clip).
+    warped back onto frame 0's view (pd_tool.video.clip). A clip without a camera (no
+    `camera`, no camera.json beside it) is registered to the splat first (`register`);
+    `focal_mm`: its 35 mm-equivalent focal length, when known.
     """
 
     scene: Path
@@ -60,6 +63,7 @@ class FitJob:
     max_frames: int | None = MAX_FRAMES
     max_fps: float | None = MAX_FPS
     stabilise: bool = True
+    focal_mm: float | None = None
 
 
 @dataclass
@@ -70,12 +74,27 @@ class FitDone:
     clips: list[ClipChoice] = field(default_factory=list)  # per video: the frames used, stabilised or not
 
 
+def registered_camera_paths(job: FitJob) -> dict[int, Path]:
+    """Where a fit writes the camera it registers, by the index of each clip that has no
+    camera: OUT_STEM.camera.json, or OUT_STEM.camera-K.json when there are several clips."""
+    if job.camera is not None:
+        return {}
+    many = len(job.videos) > 1
+    return {i: job.out.with_name(f"{job.out.stem}.camera-{i}.json" if many else f"{job.out.stem}.camera.json")
+            for i, v in enumerate(job.videos) if not has_camera(v)}
+
+
 def check_fit_destinations(job: FitJob) -> None:
     """Before a fit runs: its side outputs and the last-fit record replace only pdtool's
     own files, and a material file nobody named (SCENE.pdmat) only a pdtool material file."""
     inputs = {"SCENE": job.scene, **{f"VIDEO {i}": v for i, v in enumerate(job.videos)},
               "--init-material": job.settings.init_material}
-    check_outputs({"--out": job.out}, {}, inputs)
+    cams = registered_camera_paths(job)
+    outs = {"--out": job.out, **{f"camera {i}": p for i, p in cams.items()},
+            **{f"picture {i}": register_picture_path(p) for i, p in cams.items()}}
+    check_outputs(outs, {}, inputs)
+    for p in list(outs.values())[1:]:
+        check_destination(p)
     if not job.out_named and (job.out.exists() or job.out.is_symlink()) and not is_material_file(job.out):
         raise OutputError(f"{job.out}: exists and is not a pdtool material file, which the fit would replace; move "
                           "or rename it, or name the material file with -o", path=job.out)
@@ -86,16 +105,32 @@ def check_fit_destinations(job: FitJob) -> None:
 
 def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float | None = None,
         on_estimate: Callable[[WorkEstimate], None] | None = None,
-        say: Callable[[str], None] | None = None) -> FitDone:
+        say: Callable[[str], None] | None = None,
+        register_progress: Callable[[str, int, int], None] | None = None) -> FitDone:
     """Fit the material of `job.scene` to its videos and write the material file, its side
     outputs and the last-fit record. Refused (WorkTooLarge) before any work when the run-time
-    estimate exceeds `max_minutes`. `say` gets a line per clip that was trimmed, thinned
-    or stabilised."""
+    estimate exceeds `max_minutes`; refused (RegistrationError) when a clip without a camera
+    cannot be registered. `say` gets a line per clip that was registered, trimmed, thinned
+    or stabilised; `register_progress` the registration's (stage, done, total)."""
     load_preset("quality", job.settings.quality)
     check_fit_destinations(job)
     dev = job.settings.device
-    refs = [load_reference_video(v, camera_path=job.camera, view=job.view, fps=job.fps,
-                                 working_size=job.settings.working_long_side, device=dev) for v in job.videos]
+    cams: dict[int, Path | None] = {i: job.camera for i in range(len(job.videos))}
+    registered: dict[int, RegisterDone] = {}
+    for i, path in registered_camera_paths(job).items():
+        v = job.videos[i]
+        got = register(RegisterJob(job.scene, v, path, up=job.prepare.up_axis, device=dev, focal_mm=job.focal_mm),
+                       progress=register_progress,
+                       refusal_hint="pass the clip's camera with --camera FILE (pdtool render --write-camera "
+                                    "writes one for a view you choose)")
+        registered[i], cams[i] = got, path
+        if say is not None:
+            say(f"{v}: no camera.json, so frame 0 was registered to the splat (residual {got.registration.residual:.3f}, "
+                f"{got.registration.seconds:.0f} s): wrote {path} and {got.picture}; check that picture, or pass "
+                f"--camera")
+    refs = [load_reference_video(v, camera_path=cams[i], view=job.view if cams[i] == job.camera else None,
+                                 fps=job.fps, working_size=job.settings.working_long_side, device=dev)
+            for i, v in enumerate(job.videos)]
     splats = load_splats(job.scene, device=dev)
     clips = []
     for i, v in enumerate(job.videos):
@@ -105,6 +140,11 @@ def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float 
         if line is not None and say is not None:
             say(line)
         clips.append(choice)
+    clip_records = [dataclasses.asdict(c) for c in clips]
+    for i, got in registered.items():
+        clip_records[i]["registered"] = {"camera": str(got.camera), "picture": str(got.picture),
+                                         "residual": got.registration.residual,
+                                         "seconds": got.registration.seconds}
     estimates: list[WorkEstimate] = []
 
     def estimated(est: WorkEstimate) -> None:
@@ -116,7 +156,7 @@ def fit(job: FitJob, *, progress: FitProgress | None = None, max_minutes: float 
         result = run_fit(splats, job.scene, refs, job.out, prepare_options=job.prepare, settings=job.settings,
                          progress=progress, resume=job.resume)
     side = write_fit_outputs(job.out.parent, job.out.stem, splats, result, refs, job.settings.resolved(),
-                             preview=job.preview, clips=[dataclasses.asdict(c) for c in clips])
+                             preview=job.preview, clips=clip_records)
     write_record(job.scene, job.out, job.record_dir)
     return FitDone(result, side, estimates[-1] if estimates else None, clips)
 
@@ -206,3 +246,78 @@ def bake(job: BakeJob, *, progress: BakeProgress | None = None, max_minutes: flo
                         prepare_options=got.prepare, settings=job.settings, preview=job.preview,
                         frames_dir=job.frames_out, camera=cam, inputs={"--material": got.material_path},
                         progress=progress, match_progress=match_progress)
+
+
+@dataclass
+class RegisterJob:
+    """A registration as a user names it: the splat, a frame (an image, a video file or a
+    frame folder: its first frame, and its first mask from masks/), the camera.json to
+    write, an optional mask image, the scene's up axis ("auto" guesses it), the device and
+    the residual above which the frame counts as not registered. `picture`: also write
+    OUT_STEM.register.png, the frame beside the render over it. `focal_mm`: the camera's
+    35 mm-equivalent focal length when known (held; else it is solved for)."""
+
+    scene: Path
+    frame: Path
+    out: Path
+    mask: Path | None = None
+    up: str = "auto"
+    device: str = "cpu"
+    max_residual: float = MAX_RESIDUAL
+    picture: bool = True
+    focal_mm: float | None = None
+
+
+@dataclass
+class RegisterDone:
+    registration: Registration
+    camera: Path
+    picture: Path | None
+
+
+def register_picture_path(out: Path) -> Path:
+    """Where `register` puts its side-by-side picture for the camera file `out`."""
+    return out.with_name(out.stem + ".register.png")
+
+
+def register(job: RegisterJob, *, progress: Callable[[str, int, int], None] | None = None,
+             refusal_hint: str = "give a mask of the object (--mask), or write the camera file by hand") -> RegisterDone:
+    """Find the camera of `job.frame` in `job.scene`'s frame and write it as camera.json
+    (with the picture). Refused (RegistrationError, nothing written) when the residual is
+    over `job.max_residual`; `refusal_hint` names the way out in that message."""
+    import numpy as np
+    import torch
+
+    from pd_tool.core.cameras import save_camera_json
+    from pd_tool.register.solve import RegisterSettings, focal_from_35mm, register_frame, side_by_side
+    from pd_tool.render.preview import save_png
+    from pd_tool.render.views import auto_up
+    from pd_tool.video.folder import _imread, _to_float_mask, read_first_frame
+
+    picture = register_picture_path(job.out) if job.picture else None
+    outs = {"--out": job.out, **({"picture": picture} if picture else {})}
+    check_outputs(outs, {}, {"SCENE": job.scene, "FRAME": job.frame, "--mask": job.mask})
+    for p in outs.values():
+        check_destination(p)
+    rgb, mask, src = read_first_frame(job.frame)
+    if job.mask is not None:
+        mask = _to_float_mask(_imread(job.mask), job.mask)
+        if mask.shape != rgb.shape[:2]:
+            raise RegistrationError(f"{job.mask}: mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
+                                    f"{rgb.shape[1]}x{rgb.shape[0]}; give a mask of the frame's size")
+    splats = load_splats(job.scene, device=job.device)
+    up = auto_up(splats, job.up)[0]
+    frame = torch.from_numpy(np.ascontiguousarray(rgb))
+    mask_t = None if mask is None else torch.from_numpy(np.ascontiguousarray(mask))
+    focal = None if job.focal_mm is None else focal_from_35mm(job.focal_mm, rgb.shape[1], rgb.shape[0])
+    reg = register_frame(splats, frame, mask_t, settings=RegisterSettings(up_axis=up), focal=focal, progress=progress)
+    if not reg.residual <= job.max_residual:
+        raise RegistrationError(
+            f"{src}: could not register {job.scene.name} to this frame: residual {reg.residual:.3f} is over "
+            f"{job.max_residual:g} (the render and the frame differ by that much per covered pixel); check that the "
+            f"frame shows the object, or {refusal_hint}")
+    shown = side_by_side(splats, reg.camera, frame) if picture is not None else None  # before any file is written
+    save_camera_json(job.out, reg.camera)
+    if picture is not None:
+        save_png(picture, shown)
+    return RegisterDone(reg, job.out, picture)

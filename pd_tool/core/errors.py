@@ -38,6 +38,10 @@ class VideoError(PdToolError):
     """A reference video folder is missing frames, a camera or has inconsistent sizes."""
 
 
+class RegistrationError(PdToolError):
+    """A frame that the splat could not be registered to (pd_tool.register)."""
+
+
 class MissingInput(PdToolError):
     """A run needs an input that was neither named nor found where pdtool looks for it."""
 

@@ -265,6 +265,46 @@ def _read_video_file(path: Path, size_fn) -> tuple[list[Tensor], tuple[int, int]
     return frames, native or (0, 0), fps
 
 
+def has_camera(path: str | Path) -> bool:
+    """Whether a video folder (or the folder of a video file) holds a camera.json.
+    Raises VideoError as load_reference_video does for a missing or unusable source."""
+    folder = _find_source(Path(path))[0]
+    return (folder / CAMERA_FILE).is_file()
+
+
+def read_first_frame(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, Path]:
+    """The first frame of an image, a video file or a frame folder, with its mask.
+
+    Returns (rgb [H, W, 3] float32 0-1, mask [H, W] float32 0-1 from the folder's masks/ or
+    None, the file the frame came from). Raises VideoError as load_reference_video does."""
+    path = Path(path)
+    if path.is_file() and path.suffix.lower() in FRAME_EXTS:
+        return _to_float_rgb(_imread(path), path), None, path
+    folder, frame_files, video_file = _find_source(path)
+    if video_file is not None:
+        import imageio.v3 as iio
+
+        try:
+            img = next(iter(iio.imiter(video_file, plugin="FFMPEG")))
+        except StopIteration:
+            raise VideoError(f"{video_file}: the video holds no frames; export it again") from None
+        except Exception as e:
+            raise VideoError(f"{video_file}: cannot decode video ({_why(e)}); "
+                             f"re-encode it as H.264 .mp4 or export PNG frames") from None
+        rgb, src = _to_float_rgb(np.asarray(img), video_file), video_file
+    else:
+        rgb, src = _to_float_rgb(_imread(frame_files[0]), frame_files[0]), frame_files[0]
+    mask = None
+    if (folder / MASK_DIR).is_dir():
+        masks = _list_files(folder / MASK_DIR, FRAME_EXTS)
+        if masks:
+            mask = _to_float_mask(_imread(masks[0]), masks[0])
+            if mask.shape != rgb.shape[:2]:
+                raise VideoError(f"{masks[0]}: mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
+                                 f"{rgb.shape[1]}x{rgb.shape[0]}; export masks at the frames' size")
+    return rgb, mask, src
+
+
 def _load_camera(folder: Path, camera_path: str | Path | None, view: int | str | None) -> tuple["Camera", Path]:
     if camera_path is not None:
         src = Path(camera_path)
