@@ -86,12 +86,16 @@ def random_camera(center: np.ndarray, radius: float, up: np.ndarray, width: int,
     return Camera(width, height, f, f, width / 2.0, height / 2.0, tilt @ rz @ w2c)
 
 
-def make_case(scene: GaussianScene, up: np.ndarray, width: int, height: int, seed: int) -> tuple[torch.Tensor, Camera]:
-    """(frame [H, W, 3] float32 0-1, the true camera) for one case."""
+def make_case(scene: GaussianScene, up: np.ndarray, width: int, height: int, seed: int,
+              backdrop: tuple[float, float, float] | None = None) -> tuple[torch.Tensor, Camera]:
+    """(frame [H, W, 3] float32 0-1, the true camera) for one case: over clutter, or over
+    a plain `backdrop` colour (a render's background; the same camera as over clutter)."""
     rng = np.random.default_rng(seed)
     center, radius = object_bounds(scene.positions.detach().cpu().numpy())
     cam = random_camera(center, radius, up, width, height, rng)
     bg = torch.from_numpy(clutter(height, width, rng)).to(scene.positions.device)
+    if backdrop is not None:
+        bg = torch.tensor(backdrop, dtype=torch.float32, device=bg.device).expand_as(bg).contiguous()
     over, _ = render_over(scene, cam, bg)
     gain = torch.tensor(rng.uniform(0.9, 1.1, 3), dtype=torch.float32, device=over.device)
     noise = torch.from_numpy(rng.normal(0.0, 2.0 / 255.0, over.shape).astype(np.float32)).to(over.device)
@@ -128,7 +132,7 @@ def near_start(truth: Camera, degrees: float, focal: float, seed: int) -> Camera
 
 def run_capture(path: Path, cases: int, width: int, height: int, device: str, seed: int,
                 settings: RegisterSettings, max_gaussians: int | None, start: tuple[float, float] | None = None,
-                known_focal: bool = False) -> dict:
+                known_focal: bool = False, backdrop: tuple[float, float, float] | None = None) -> dict:
     from pd_tool.io import load_splats
 
     scene = load_splats(path, device=device)
@@ -142,7 +146,7 @@ def run_capture(path: Path, cases: int, width: int, height: int, device: str, se
     s = RegisterSettings(**{**settings.__dict__, "up_axis": axis})
     rows = []
     for k in range(cases):
-        frame, truth = make_case(scene, up, width, height, seed * 1000 + k)
+        frame, truth = make_case(scene, up, width, height, seed * 1000 + k, backdrop)
         begin = None if start is None else near_start(truth, start[0], start[1], seed * 1000 + k)
         reg = register_frame(scene, frame, settings=s, start=begin, focal=truth.fx if known_focal else None)
         err = camera_errors(reg.camera, truth, size)
@@ -172,6 +176,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "focal length off by FOCAL (0.1 = 10%%) instead of searching")
     ap.add_argument("--known-focal", action="store_true", help="give the solve the true focal length, as "
                     "`--focal-mm` does (a phone's 35 mm-equivalent focal length)")
+    ap.add_argument("--backdrop", default="clutter", help="clutter, or R,G,B (0-1): a plain background, as "
+                    "a render or a generated video has")
     ap.add_argument("--quick", action="store_true", help="CI scale: udon, 3 cases at 240x180")
     ap.add_argument("--json", default="")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
@@ -183,7 +189,7 @@ def main(argv: list[str] | None = None) -> dict:
     t0 = time.perf_counter()
     out = {"device": a.device, "gpu": torch.cuda.get_device_name() if a.device.startswith("cuda") else None,
            "settings": {k: getattr(a, k) for k in ("captures", "cases", "size", "seed", "max_gaussians", "quick", "start",
-                                                          "known_focal")},
+                                                          "known_focal", "backdrop")},
            "targets": TARGETS, "captures": []}
     for name in a.captures.split(","):
         rs = RegisterSettings()
@@ -195,7 +201,8 @@ def main(argv: list[str] | None = None) -> dict:
         out["captures"].append(run_capture(Path(a.data) / name, a.cases, w, h, a.device, a.seed, rs,
                                            a.max_gaussians or None,
                                            tuple(float(v) for v in a.start.split(",")) if a.start else None,
-                                           a.known_focal))
+                                           a.known_focal,
+                                           None if a.backdrop == "clutter" else tuple(float(v) for v in a.backdrop.split(","))))
     out["seconds"] = time.perf_counter() - t0
     for c in out["captures"]:
         print(f"{c['capture']}: {c['met']}/{len(c['cases'])} within the targets; median rotation "

@@ -42,6 +42,9 @@ MASK_SHARE = 0.2  # share of the frame the object is taken to cover, for the col
 MASK_WEIGHT = 0.5  # the footprint's mismatch with the mask, against the colour error
 SEARCH_REACH = 0.3  # the search slides each candidate this share of the frame each way
 SEARCH_BLUR = 1.0  # px at the search's size: more lets a small render of the object match as well as the right one
+BORDER = 0.03  # share of the shorter side: the frame's edge read for a plain background
+PLAIN_TOLERANCE = 0.04  # colour 0-1: a plain background's pixels are this close to its median
+PLAIN_SHARE = 0.9  # the share of the border that must be that close
 MIN_COVER = 0.02  # share of the frame the render must cover for a candidate to count
 
 
@@ -49,12 +52,17 @@ MIN_COVER = 0.02  # share of the frame the render must cover for a candidate to 
 class RegisterSettings:
     """How hard the solve looks.
 
-    levels: long side (px) of each refinement level, coarse to fine; iterations: Adam steps
+    work_side: long side (px) the frame is refined at (a smaller frame keeps its size);
+    blurs: the refinement levels, coarse to fine, as the sigma (px) of the blur both images
+    get, for a frame of work_side (scaled with a smaller one); iterations: Adam steps
     per level; rates: Adam's first step size per level (radians, distance fractions, log
     focal). search_side: long side (px) of the search renders. azimuths: directions per
     ring; elevations (degrees above the horizon); fills: the share of the frame's shorter
     side the object's bounding sphere spans at a candidate's distance. fov_y_deg: the
     vertical field of view the search assumes. keep: candidates refined at the first level.
+    dolly_rate: Adam's step along the dolly zoom at every level (log focal): the perspective
+    that tells the focal length from the distance shows only on the sharp levels, whose
+    own rates are too small to travel far along it.
     """
 
     work_side: int = 320
@@ -67,6 +75,7 @@ class RegisterSettings:
     fills: tuple[float, ...] = (0.5, 0.75, 1.05)
     fov_y_deg: float = 45.0
     keep: int = 8
+    dolly_rate: float = 0.01
     up_axis: str = "z"
 
 
@@ -117,6 +126,17 @@ def _pool2(img: torch.Tensor) -> torch.Tensor:
     return F.avg_pool2d(img.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
 
 
+def _moved(w2c: np.ndarray, w: torch.Tensor, t: torch.Tensor, pivot: torch.Tensor | None = None) -> np.ndarray:
+    """[4, 4] world-to-camera: `w2c` turned by the rotation vector `w` about `pivot` (a point
+    in w2c's camera frame, default its origin), then moved by `t` (camera frame)."""
+    r = _rodrigues(w.detach().double().cpu()).numpy()
+    p = np.zeros(3) if pivot is None else pivot.detach().double().cpu().numpy()
+    delta = np.eye(4)
+    delta[:3, :3] = r
+    delta[:3, 3] = p - r @ p + t.detach().double().cpu().numpy()
+    return delta @ w2c
+
+
 def _rodrigues(w: torch.Tensor) -> torch.Tensor:
     """Rotation vector [3] -> [3, 3] rotation matrix (differentiable at 0)."""
     theta2 = (w * w).sum()
@@ -143,8 +163,10 @@ class _Splats:
         self.sh = take(scene.sh).float()
 
     def render(self, w2c: np.ndarray, w: torch.Tensor, t: torch.Tensor, cam: Camera,
-               log_focal: torch.Tensor | None = None):
-        """Render with camera `cam` whose pose is Rodrigues(w) @ w2c's plus t (camera frame).
+               log_focal: torch.Tensor | None = None, pivot: torch.Tensor | None = None):
+        """Render with camera `cam` whose pose is w2c's turned by Rodrigues(w) about `pivot`
+        (a point in w2c's camera frame; None: the camera itself), then moved by t (camera
+        frame): `_moved(w2c, w, t, pivot)`.
 
         log_focal: a [1] tensor whose gradient is wanted; `cam` already holds its focal
         length. The rasteriser does not differentiate the focal length, so the camera-frame
@@ -157,7 +179,8 @@ class _Splats:
         r0 = torch.as_tensor(w2c[:3, :3], dtype=torch.float32, device=dev)
         t0 = torch.as_tensor(w2c[:3, 3], dtype=torch.float32, device=dev)
         r = _rodrigues(w) @ r0
-        means = self.means @ r.T + (_rodrigues(w) @ t0 + t)
+        p = torch.zeros(3, device=dev) if pivot is None else pivot
+        means = self.means @ r.T + (_rodrigues(w) @ (t0 - p) + p + t)
         scales = self.scales
         if log_focal is not None:
             k = torch.exp(log_focal - log_focal.detach())
@@ -170,14 +193,26 @@ class _Splats:
         return out.rgb, out.alpha
 
 
-def _loss(rgb: torch.Tensor, alpha: torch.Tensor, frame: torch.Tensor, sigma: float, mask: torch.Tensor | None):
-    """(loss, residual, coverage): the render (premultiplied) against the frame seen through
-    the render's alpha, both blurred by `sigma` px, as the mean absolute difference per
-    covered pixel after a gain per colour channel (an exposure or white-balance change);
-    the frame outside the render's footprint does not count. With a mask, the footprint's
-    mismatch with it is added."""
+def _loss(rgb: torch.Tensor, alpha: torch.Tensor, frame: torch.Tensor, sigma: float, mask: torch.Tensor | None,
+          backdrop: torch.Tensor | None = None):
+    """(loss, residual, coverage) of a render (premultiplied rgb [H, W, 3], alpha [H, W, 1])
+    against `frame`, both blurred by `sigma` px, as the mean absolute difference per covered
+    pixel after a gain per colour channel (an exposure or white-balance change).
+
+    Over clutter (`backdrop` None) the render is compared with the frame seen through its
+    alpha, so the frame outside its footprint does not count; with a mask, the footprint's
+    mismatch with it is added. Over a plain `backdrop` colour [3] (a render's or a generated
+    video's background) the render composited over that colour is compared with the whole
+    frame, so an object pixel the render leaves uncovered costs as much as a covered one
+    that is wrong: at the true camera the difference is only noise."""
     r = _blur(rgb, sigma)
     a = _blur(alpha, sigma)
+    if backdrop is not None:
+        f = _blur(frame, sigma)
+        fo = f - (1.0 - a) * backdrop  # the object's share of the frame
+        gain = ((fo * r).sum(dim=(0, 1)) / (r * r).sum(dim=(0, 1)).clamp_min(1e-8)).clamp(*GAIN_RANGE).detach()
+        residual = (r * gain - fo).abs().sum() / (3.0 * a.detach().sum().clamp_min(1.0))
+        return residual, residual, alpha.mean()
     af = _blur(alpha * frame, sigma)
     gain = ((af * r).sum(dim=(0, 1)) / (af * af).sum(dim=(0, 1)).clamp_min(1e-8)).clamp(*GAIN_RANGE).detach()
     residual = (r - af * gain).abs().sum() / (3.0 * a.sum().clamp_min(1.0))
@@ -186,6 +221,26 @@ def _loss(rgb: torch.Tensor, alpha: torch.Tensor, frame: torch.Tensor, sigma: fl
         m = _blur(mask[..., None], sigma)
         loss = loss + MASK_WEIGHT * (a - m).abs().sum() / m.sum().clamp_min(1.0)
     return loss, residual, alpha.mean()
+
+
+def plain_backdrop(frame: torch.Tensor) -> torch.Tensor | None:
+    """The frame's background colour [3] when it is plain (a render's or a generated video's
+    white or black), else None: the median of a border BORDER wide, when PLAIN_SHARE of the
+    border lies within PLAIN_TOLERANCE of it in every channel."""
+    h, w = frame.shape[:2]
+    b = max(2, round(BORDER * min(h, w)))
+    ring = torch.cat([frame[:b].reshape(-1, 3), frame[-b:].reshape(-1, 3),
+                      frame[b:-b, :b].reshape(-1, 3), frame[b:-b, -b:].reshape(-1, 3)])
+    colour = ring.median(dim=0).values
+    near = ((ring - colour).abs().amax(dim=1) <= PLAIN_TOLERANCE).float().mean()
+    return colour if float(near) >= PLAIN_SHARE else None
+
+
+def backdrop_mask(frame: torch.Tensor, colour: torch.Tensor) -> torch.Tensor:
+    """[H, W] 0-1: where `frame` differs from the plain background `colour`, ramping over
+    one to three times PLAIN_TOLERANCE (the largest channel's difference)."""
+    d = (frame - colour).abs().amax(dim=-1)
+    return ((d - PLAIN_TOLERANCE) / (2.0 * PLAIN_TOLERANCE)).clamp(0.0, 1.0)
 
 
 def colour_mask(object_rgb: torch.Tensor, object_alpha: torch.Tensor, frame: torch.Tensor,
@@ -361,8 +416,11 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
     ww, wh = _level_size(width, height, s.work_side)
     wframe = _resize_hw(frame, wh, ww)
     full = _Splats(scene)
+    backdrop = plain_backdrop(wframe)
     if mask is not None:
         wmask = _resize_hw(mask[..., None], wh, ww)[..., 0]
+    elif backdrop is not None:  # a render's plain background: what differs from it is the object
+        wmask = backdrop_mask(wframe, backdrop)
     else:  # no mask given: the object's colours tell where it may be
         wmask = _object_colour_mask(full, center, radius, up, wframe, s)
 
@@ -401,9 +459,16 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
     total = int(s.iterations[0]) * len(starts) + sum(int(n) for n in s.iterations[1:])
     done = [0]
 
+    def _pivot(w2c: np.ndarray) -> torch.Tensor:
+        # turning about the object's centre keeps its image in place, so that the view's
+        # direction, which the image shows only through the object's own relief, is a
+        # parameter of its own rather than the small difference of a turn and a move
+        return torch.as_tensor(w2c[:3, :3] @ center + w2c[:3, 3], dtype=torch.float32, device=dev)
+
     def refine(w2c: np.ndarray, f0: float, lv: int, state=None):
-        sigma = s.blurs[lv]
+        sigma = s.blurs[lv] * max(ww, wh) / s.work_side  # the blurs are set for a frame of work_side
         dist = float(np.linalg.norm(Camera(width, height, f0, f0, 0, 0, w2c).center - center))
+        pivot = _pivot(w2c)
         if state is None:
             state = (torch.zeros(3, device=dev), torch.zeros(3, device=dev), 0.0)
         rot = state[0].clone().requires_grad_(True)
@@ -412,7 +477,10 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
         # a dolly-zoom: the focal length and the distance scaled together, which changes only
         # the perspective; as its own parameter Adam steps along it as fast as along the rest
         dolly = torch.zeros(1, device=dev, requires_grad=True)
-        opt = torch.optim.Adam([rot, tr_n] if known else [rot, tr_n, logf, dolly], lr=s.rates[lv])
+        groups = [{"params": [rot, tr_n]}]
+        if not known:
+            groups += [{"params": [logf]}, {"params": [dolly], "lr": max(s.rates[lv], s.dolly_rate)}]
+        opt = torch.optim.Adam(groups, lr=s.rates[lv])
         n = int(s.iterations[lv])
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, n, eta_min=0.1 * s.rates[lv])
         hist = []
@@ -427,8 +495,8 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
             return rot, t, logf + dolly
 
         def loss_at(r, t, lf_t):
-            rgb, alpha = full.render(w2c, r, t, cam_at(float(lf_t.detach())), lf_t)
-            return _loss(rgb, alpha, wframe, sigma, wmask)
+            rgb, alpha = full.render(w2c, r, t, cam_at(float(lf_t.detach())), lf_t, pivot)
+            return _loss(rgb, alpha, wframe, sigma, wmask, backdrop)
 
         for _ in range(n):
             opt.zero_grad()
@@ -456,11 +524,8 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
         losses += h
 
     rot, tr, lf = state
-    delta = np.eye(4)
-    delta[:3, :3] = _rodrigues(rot.double().cpu()).numpy()
-    delta[:3, 3] = tr.double().cpu().numpy()
     fk = f * math.exp(float(lf))
-    cam = Camera(width, height, fk, fk, width / 2.0, height / 2.0, delta @ w2c, name="registered")
+    cam = Camera(width, height, fk, fk, width / 2.0, height / 2.0, _moved(w2c, rot, tr, _pivot(w2c)), name="registered")
     _, residual, cover = end
     return Registration(cam, float(residual), float(cover), len(cands),
                         len(starts), time.perf_counter() - t_start, losses)

@@ -146,3 +146,62 @@ def test_refinement_recovers_a_turned_camera_on_udon(shared_data):
     at_truth = S._loss(*S._Splats(scene).render(truth.world_to_camera, torch.zeros(3), torch.zeros(3), truth),
                        frame, settings.blurs[-1], None)[1]
     assert reg.residual < 1.2 * float(at_truth)
+
+
+def test_a_turn_about_a_pivot_renders_as_the_moved_camera():
+    """`_Splats.render` with a turn about a pivot and a move, against `_moved`'s camera
+    rendered as it is: the refinement's pose and the camera it returns agree."""
+    scene = _blob_scene(seed=4)
+    cam = auto_camera(scene.positions.numpy(), 64, 48, fov_y_deg=40.0)
+    splats = S._Splats(scene)
+    w, t = torch.tensor([0.05, -0.08, 0.03]), torch.tensor([0.02, -0.01, 0.05])
+    pivot = torch.tensor([0.1, -0.05, 2.0])
+    with torch.no_grad():
+        rgb, alpha = splats.render(cam.world_to_camera, w, t, cam, None, pivot)
+        moved = S._moved(cam.world_to_camera, w, t, pivot)
+        rgb2, alpha2 = splats.render(moved, torch.zeros(3), torch.zeros(3), cam)
+    assert float(alpha.sum()) > 50.0
+    assert torch.allclose(rgb, rgb2, atol=1e-4) and torch.allclose(alpha, alpha2, atol=1e-4)
+    # the pivot's own image stays where it was: a turn about it moves only what is around it
+    p_world = np.linalg.inv(cam.world_to_camera) @ np.r_[pivot.numpy(), 1.0]
+    p_moved = moved @ p_world
+    assert np.allclose(p_moved[:3], pivot.numpy() + t.numpy(), atol=1e-6)
+
+
+def test_plain_backdrop_is_read_from_a_renders_border_and_not_from_clutter():
+    scene = _blob_scene(seed=5)
+    cam = auto_camera(scene.positions.numpy(), 80, 60, fov_y_deg=40.0)
+    with torch.no_grad():
+        rgb, alpha = S._Splats(scene).render(cam.world_to_camera, torch.zeros(3), torch.zeros(3), cam)
+    g = torch.Generator().manual_seed(6)
+    for colour in ([1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.3, 0.5, 0.2]):
+        c = torch.tensor(colour)
+        frame = rgb + (1.0 - alpha) * c + torch.randn(60, 80, 3, generator=g) * (2.0 / 255.0)
+        found = S.plain_backdrop(frame)
+        assert found is not None and torch.allclose(found, c, atol=0.02)
+        m = S.backdrop_mask(frame, found)
+        solid, empty = alpha[..., 0] > 0.9, alpha[..., 0] < 0.01
+        assert float(m[empty].mean()) < 0.02
+        # the blob's random colours: most solid pixels differ from any one backdrop colour
+        assert float(m[solid].mean()) > 0.6
+    assert S.plain_backdrop(torch.rand(60, 80, 3, generator=g)) is None
+
+
+def test_backdrop_loss_is_zero_at_the_truth_and_counts_what_the_render_leaves_uncovered():
+    """Over a plain backdrop the frame is exactly the render composited over it: the loss is
+    0 there, and a camera further away (a smaller render) costs, which the loss that only
+    compares covered pixels cannot see."""
+    scene = _blob_scene(seed=7)
+    cam = auto_camera(scene.positions.numpy(), 80, 60, fov_y_deg=40.0)
+    splats = S._Splats(scene)
+    zero = torch.zeros(3)
+    c = torch.tensor([1.0, 1.0, 1.0])
+    with torch.no_grad():
+        rgb, alpha = splats.render(cam.world_to_camera, zero, zero, cam)
+        frame = rgb + (1.0 - alpha) * c
+        at_truth = S._loss(rgb, alpha, frame, 1.0, None, c)[1]
+        away = torch.tensor([0.0, 0.0, 0.15 * float(np.linalg.norm(cam.center))])
+        rgb2, alpha2 = splats.render(cam.world_to_camera, zero, away, cam)
+        further = S._loss(rgb2, alpha2, frame, 1.0, None, c)[1]
+    assert float(at_truth) < 1e-5
+    assert float(further) > 0.02
