@@ -70,9 +70,11 @@ _NAME_OR_FILE = {"preset", "interaction", "quality"}
 _OUTPUTS = {"bake": ("out", "preview", "frames_out"), "fit": ("out",)}
 _FOLDER_OUTPUTS = {"frames_out"}
 # What `pdtool fit -o STEM.pdmat` writes beside the material (pd_tool/fit/outputs.py
-# write_fit_outputs, the checkpoint in pd_tool/fit/resume.py); the preview falls back to
+# write_fit_outputs, the checkpoint in pd_tool/fit/resume.py, and the camera a clip without
+# one is registered to, pd_tool/app.py registered_camera_paths); the preview falls back to
 # .gif without an mp4 encoder.
 _FIT_SIDE = (".loss.png", ".E.ply", ".E.png", ".preview.mp4", ".preview.gif", ".report.json")
+_FIT_CAMERAS = (".camera{}.json", ".camera{}.register.png")
 
 
 def canonical(p: str | Path, cwd: str | Path) -> Path:
@@ -137,6 +139,9 @@ def job_files(job: Job, commands: CommandLines) -> JobFiles:
         main = outs[0]
         stem = main.name[: -len(main.suffix)] if main.suffix else main.name
         side = [main.with_name(main.name + ".ckpt"), *(main.with_name(stem + s) for s in _FIT_SIDE)]
+        clips = params.get("videos") or ()
+        tags = [""] if len(clips) <= 1 else [f"-{k}" for k in range(len(clips))]
+        side += [main.with_name(stem + s.format(t)) for s in _FIT_CAMERAS for t in tags]
     ins: list[Path] = []
     for key, value in params.items():
         if key in _OUTPUTS[job.command] or value is None:

@@ -142,6 +142,13 @@ def test_job_files_use_the_cli_parser(tmp_path: Path) -> None:
     b = job_files(bake, COMMANDS)
     assert b.outputs == [tmp_path.resolve() / "o/b.usd", tmp_path.resolve() / "p.mp4"]
     assert b.inputs == [tmp_path.resolve() / "s.ply"]  # 'flower' is a built-in preset, not a file
+    # a clip without a camera is registered: the camera and its picture are the fit's too
+    assert {tmp_path.resolve() / n for n in ("s.camera.json", "s.camera.register.png")} <= set(f.side)
+    (tmp_path / "w").mkdir()
+    (two,) = parse_jobs({"job": [{"name": "g", "command": "fit", "args": ["s.ply", "v", "w", "-o", "g.pdmat"]}]},
+                        cwd=tmp_path)
+    side = set(job_files(two, COMMANDS).side)
+    assert {tmp_path.resolve() / n for n in ("g.camera-0.json", "g.camera-1.register.png")} <= side
 
 
 def test_run_job_reports_one_line_errors(tmp_path: Path) -> None:
