@@ -1,23 +1,24 @@
 """Find the camera of a frame in the splat's frame: a photometric pose and focal-length solve.
 
-A handheld clip of the object shows it near the image centre, upright or nearly so. The
-solve renders the splat over the frame itself: the render's alpha composites it onto the
-frame, so a pixel differs only where the rendered object covers it, and background clutter
-around the object costs nothing. The render's own footprint is the object mask; a mask of
-the object in the frame, when given, also makes the object's pixels that the render leaves
-uncovered count, and the render's pixels outside it.
+A handheld clip of the object shows it near the image centre, upright or nearly so.
 
 1. Search: the object's centre seen from a ring of directions (azimuth x elevation about
    the scene's up axis), at a few distances (how much of the frame the object spans),
-   rendered small from a subset of the Gaussians. No gradients.
-2. Refine the best few: rotation, translation and focal length by Adam, on an image
-   pyramid. Pose gradients come through the rasteriser (the Gaussians are moved into the
-   camera's frame in torch); the focal length, which the rasteriser does not differentiate,
-   takes a central difference of the loss.
+   rendered small from a subset of the Gaussians, each slid over the frame to its best
+   place by FFT. No gradients.
+2. Refine the best few by Adam on a blur pyramid: a turn about the object's centre, a
+   move, the focal length and a dolly zoom. Gradients come through the rasteriser (the
+   Gaussians are moved into the camera's frame in torch; the focal length through their
+   camera-frame x, y and scales).
 
-The loss is the mean absolute difference over the pixels the render covers, after one
-gain per colour channel (an exposure or white-balance change between the capture and the
-clip). Its value at the end, on the finest level, is the residual a caller bounds.
+The loss (`_loss`) is a mean absolute difference per covered pixel after one gain per
+colour channel (an exposure or white-balance change between the capture and the clip).
+On a plain background, read from the frame's border (a render, a generated video), the
+render composited over that colour is compared with the whole frame. Over clutter the
+render is compared with the frame seen through its alpha, so the clutter around the
+object costs nothing, and a mask of the object (given, or from its colours) makes the
+object's pixels the render leaves uncovered count. Its value at the end, on the finest
+level, is the residual a caller bounds.
 """
 from __future__ import annotations
 
@@ -62,7 +63,9 @@ class RegisterSettings:
     vertical field of view the search assumes. keep: candidates refined at the first level.
     dolly_rate: Adam's step along the dolly zoom at every level (log focal): the perspective
     that tells the focal length from the distance shows only on the sharp levels, whose
-    own rates are too small to travel far along it.
+    own rates are too small to travel far along it. supersample: the sharp levels render
+    at up to this many times the working size (no more than the frame's own) and shrink
+    the render as the frame was shrunk.
     """
 
     work_side: int = 320
@@ -76,6 +79,7 @@ class RegisterSettings:
     fov_y_deg: float = 45.0
     keep: int = 8
     dolly_rate: float = 0.01
+    supersample: float = 2.0
     up_axis: str = "z"
 
 
@@ -389,8 +393,8 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
     Args:
         scene: the splats (scene units); rendered on their device.
         frame: [H, W, 3] float32 0-1, the frame (any device; moved to the scene's).
-        mask: [H, W] float 0-1 where the object is in the frame, or None (the render's own
-            footprint is the mask).
+        mask: [H, W] float 0-1 where the object is in the frame, or None (on a plain
+            background what differs from it, else the object's colours).
         settings: RegisterSettings; up_axis names the scene's up ("z", "-y", ...).
         start: a camera near the answer to refine from instead of searching (any image
             size of the frame's aspect; its principal point is taken as the centre).
@@ -486,9 +490,18 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
         hist = []
         z = torch.tensor([0.0, 0.0, 1.0], device=dev)
 
+        # The frame was shrunk to the working size with an antialiasing filter; a render made
+        # at that size instead draws each Gaussian at least a pixel wide, which makes the
+        # object look nearer and blurs it (on udon at 320x240 the truth's residual is 0.039
+        # rendered small, 0.014 rendered at 640x480 and shrunk, and only then is the truth
+        # the best focal length along the dolly zoom). So the sharp levels render at up to
+        # `supersample` times the size and shrink the render as the frame was shrunk.
+        k = min(s.supersample, max(width / ww, 1.0)) if lv > 0 else 1.0
+        rw, rh = round(ww * k), round(wh * k)
+
         def cam_at(lf: float) -> Camera:
             fk = f0 * math.exp(lf)
-            return Camera(ww, wh, fk * ww / width, fk * wh / height, ww / 2.0, wh / 2.0)
+            return Camera(rw, rh, fk * rw / width, fk * rh / height, rw / 2.0, rh / 2.0)
 
         def pose():
             t = tr_n * dist + z * (torch.exp(dolly) - 1.0) * dist
@@ -496,6 +509,8 @@ def register_frame(scene: GaussianScene, frame: torch.Tensor, mask: torch.Tensor
 
         def loss_at(r, t, lf_t):
             rgb, alpha = full.render(w2c, r, t, cam_at(float(lf_t.detach())), lf_t, pivot)
+            if (rw, rh) != (ww, wh):
+                rgb, alpha = _resize_hw(rgb, wh, ww), _resize_hw(alpha, wh, ww)
             return _loss(rgb, alpha, wframe, sigma, wmask, backdrop)
 
         for _ in range(n):
