@@ -379,7 +379,7 @@ FOCAL_MM_OPTION = click.option(
               help="The camera file to write (pdtool camera.json); a picture OUT_STEM.register.png goes beside it.")
 @click.option("--mask", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="A mask of the object in the frame (white = object), the frame's size. Default: masks/ of a "
-                   "frame folder, else the object's colours.")
+                   "frame folder, else what differs from a plain background, else the object's colours.")
 @click.option("--up", type=UP_CHOICE, default="auto", show_default=True, help=UP_HELP)
 @click.option("--max-residual", type=T.FiniteFloat(0.0, 1.0, lo_open=True), default=None,
               help="Refuse when the render and the frame differ by more than this per covered pixel "
@@ -393,7 +393,10 @@ def register(scene: Path, frame: Path, out: Path, mask: Path | None, up: str, ma
     FRAME is a picture of the object (PNG or JPG), a video file or a frame folder (its first
     frame). The object should be near the middle of the picture, upright or nearly so. pdtool
     searches views all around the object, then refines the pose and the focal length until
-    its render lies on the frame. The principal point is taken at the image centre.
+    its render lies on the frame. The principal point is taken at the image centre. Check
+    the picture: the rotation is usually within a degree on a plain background, less often
+    over clutter, and the focal length is the least sure part: give --focal-mm when known
+    (docs/benchmarks.md, camera registration).
 
     \b
     Examples:
