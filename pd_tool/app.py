@@ -292,7 +292,7 @@ def register(job: RegisterJob, *, progress: Callable[[str, int, int], None] | No
     from pd_tool.register.solve import RegisterSettings, focal_from_35mm, register_frame, side_by_side
     from pd_tool.render.preview import save_png
     from pd_tool.render.views import auto_up
-    from pd_tool.video.folder import _imread, _to_float_mask, read_first_frame
+    from pd_tool.video.folder import read_first_frame, read_mask
 
     picture = register_picture_path(job.out) if job.picture else None
     outs = {"--out": job.out, **({"picture": picture} if picture else {})}
@@ -301,10 +301,7 @@ def register(job: RegisterJob, *, progress: Callable[[str, int, int], None] | No
         check_destination(p)
     rgb, mask, src = read_first_frame(job.frame)
     if job.mask is not None:
-        mask = _to_float_mask(_imread(job.mask), job.mask)
-        if mask.shape != rgb.shape[:2]:
-            raise RegistrationError(f"{job.mask}: mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
-                                    f"{rgb.shape[1]}x{rgb.shape[0]}; give a mask of the frame's size")
+        mask = read_mask(job.mask, (rgb.shape[1], rgb.shape[0]), "the frame is", "give a mask of the frame's size")
     splats = load_splats(job.scene, device=job.device)
     up = auto_up(splats, job.up)[0]
     frame = torch.from_numpy(np.ascontiguousarray(rgb))

@@ -265,6 +265,16 @@ def _read_video_file(path: Path, size_fn) -> tuple[list[Tensor], tuple[int, int]
     return frames, native or (0, 0), fps
 
 
+def read_mask(path: Path, size: tuple[int, int], frames: str = "the frames are",
+              fix: str = "export masks at the frames' size") -> np.ndarray:
+    """[H, W] float32 0-1 object mask from an image that must be `size` (width, height) px,
+    the size of the frames it masks. Raises VideoError naming `frames` and `fix` otherwise."""
+    m = _to_float_mask(_imread(path), path)
+    if (m.shape[1], m.shape[0]) != tuple(size):
+        raise VideoError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but {frames} {size[0]}x{size[1]}; {fix}")
+    return m
+
+
 def has_camera(path: str | Path) -> bool:
     """Whether a video folder (or the folder of a video file) holds a camera.json.
     Raises VideoError as load_reference_video does for a missing or unusable source."""
@@ -298,10 +308,7 @@ def read_first_frame(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, P
     if (folder / MASK_DIR).is_dir():
         masks = _list_files(folder / MASK_DIR, FRAME_EXTS)
         if masks:
-            mask = _to_float_mask(_imread(masks[0]), masks[0])
-            if mask.shape != rgb.shape[:2]:
-                raise VideoError(f"{masks[0]}: mask is {mask.shape[1]}x{mask.shape[0]} but the frame is "
-                                 f"{rgb.shape[1]}x{rgb.shape[0]}; export masks at the frames' size")
+            mask = read_mask(masks[0], (rgb.shape[1], rgb.shape[0]), "the frame is")
     return rgb, mask, src
 
 
@@ -391,7 +398,6 @@ def load_reference_video(
         raise VideoError(f"{what}: {t} frame(s); fitting needs at least {MIN_FRAMES} "
                          f"(frame 0 = rest state, then the motion); add frames")
 
-    w0, h0 = native
     size = state["size"]
 
     masks, mask_files = None, None
@@ -403,10 +409,7 @@ def load_reference_video(
                              f"frame (or remove {MASK_DIR}/ to fit on whole frames)")
         ms = []
         for path in mask_files:
-            m = _to_float_mask(_imread(path), path)
-            if (m.shape[1], m.shape[0]) != native:
-                raise VideoError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but the frames are {w0}x{h0}; "
-                                 f"export masks at the frames' size")
+            m = read_mask(path, native)
             ms.append(_resize(torch.from_numpy(m)[None], size)[0])
         masks = torch.stack(ms).to(device)
 
