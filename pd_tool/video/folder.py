@@ -418,7 +418,7 @@ def load_reference_video(
     frames_t = torch.stack(frames).permute(0, 2, 3, 1).contiguous().to(device)
     return ReferenceVideo(
         frames=frames_t, masks=masks, camera=cam.resized(*size), fps=float(fps), folder=folder,
-        frame_paths=sources, mask_paths=mask_files, camera_path=cam_src, native_size=(w0, h0),
+        frame_paths=sources, mask_paths=mask_files, camera_path=cam_src, native_size=native,
     )
 
 
